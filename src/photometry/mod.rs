@@ -1,0 +1,302 @@
+//! Reflectance models for shape from shading (PHOTOMETRY.md).
+//!
+//! Frame: x east, y north, z up. A surface with gradients p = ∂z/∂x, q = ∂z/∂y has the unit
+//! normal n = (−p, −q, 1)/N, N = √(1+p²+q²). With s the unit vector to the Sun and v the unit
+//! vector to the camera, μ0 = s·n, μ = v·n, cos g = s·v.
+//!
+//! A model implements [`ReflectanceModel`]: the reflectance as a function of (μ0, μ, cos g) and
+//! the albedo, with its partials in μ0 and μ. [`ReflectanceModel::shade`] chains those with
+//! ∂μ0/∂p = −s_x/N − p·μ0/N² (and likewise) to give R, ∂R/∂p, ∂R/∂q.
+
+mod dual;
+mod hapke;
+
+pub use dual::Dual;
+pub use hapke::{HFunction, Hapke, PhaseFunction};
+
+use serde::{Deserialize, Serialize};
+
+/// A 3-vector in the local east-north-up frame.
+pub type Vec3 = [f64; 3];
+
+/// Cosines that fix the photometric geometry of one pixel.
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub struct Cosines {
+    /// μ0 = cos i, incidence.
+    pub mu0: f64,
+    /// μ = cos e, emission.
+    pub mu: f64,
+    /// cos g, phase (independent of the surface slope).
+    pub cos_g: f64,
+}
+
+/// A reflectance value with its partial derivatives in μ0 and μ (phase angle held fixed).
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub struct ReflectanceCos {
+    pub r: f64,
+    pub dr_dmu0: f64,
+    pub dr_dmu: f64,
+}
+
+/// R(p, q) and its gradient; `lit` is false where μ0 ≤ 0 or μ ≤ 0 (no photometric information:
+/// the value and derivatives are then 0 and the pixel must be masked from E_I).
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub struct Shade {
+    pub r: f64,
+    pub dr_dp: f64,
+    pub dr_dq: f64,
+    pub lit: bool,
+}
+
+impl Shade {
+    const DARK: Shade = Shade {
+        r: 0.0,
+        dr_dp: 0.0,
+        dr_dq: 0.0,
+        lit: false,
+    };
+}
+
+/// Outcome of the pixel-wise albedo inversion R(ρ; μ0, μ, g) = I.
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub enum Albedo {
+    /// The unique albedo reproducing the observation (0 when the observation is ≤ 0).
+    Value(f64),
+    /// μ0 ≤ 0 or μ ≤ 0: the pixel carries no information about the albedo.
+    Shadowed,
+    /// The observation exceeds what the model can produce at the largest admissible albedo
+    /// (saturation or wrong geometry): flagged rather than invented.
+    OutOfRange,
+}
+
+/// Geometry of one pixel for a surface of gradient (p, q): the cosines and their p, q partials.
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub struct Incidence {
+    pub cos: Cosines,
+    pub dmu0_dp: f64,
+    pub dmu0_dq: f64,
+    pub dmu_dp: f64,
+    pub dmu_dq: f64,
+}
+
+/// μ0, μ, cos g and their derivatives for gradients (p, q); `None` when μ0 ≤ 0 or μ ≤ 0.
+pub fn incidence(p: f64, q: f64, sun: &Vec3, view: &Vec3) -> Option<Incidence> {
+    let n2 = 1.0 + p * p + q * q;
+    let n = n2.sqrt();
+    let mu0 = (-p * sun[0] - q * sun[1] + sun[2]) / n;
+    let mu = (-p * view[0] - q * view[1] + view[2]) / n;
+    if mu0 <= 0.0 || mu <= 0.0 {
+        return None;
+    }
+    let cos_g = sun[0] * view[0] + sun[1] * view[1] + sun[2] * view[2];
+    Some(Incidence {
+        cos: Cosines { mu0, mu, cos_g },
+        dmu0_dp: -sun[0] / n - p * mu0 / n2,
+        dmu0_dq: -sun[1] / n - q * mu0 / n2,
+        dmu_dp: -view[0] / n - p * mu / n2,
+        dmu_dq: -view[1] / n - q * mu / n2,
+    })
+}
+
+/// A photometric model: reflectance as a function of albedo and the cosines of i, e, g.
+pub trait ReflectanceModel: Send + Sync + std::fmt::Debug {
+    /// R(ρ; μ0, μ, g) with ∂R/∂μ0 and ∂R/∂μ; called only with μ0 > 0, μ > 0.
+    fn reflectance(&self, albedo: f64, c: &Cosines) -> ReflectanceCos;
+
+    /// Solve R(ρ; μ0, μ, g) = `observed` for ρ (called only with μ0 > 0, μ > 0).
+    fn invert_cosines(&self, observed: f64, c: &Cosines) -> Albedo;
+
+    /// R, ∂R/∂p, ∂R/∂q for a surface of gradient (p, q) under the given Sun and view vectors.
+    fn shade(&self, p: f64, q: f64, albedo: f64, sun: &Vec3, view: &Vec3) -> Shade {
+        match incidence(p, q, sun, view) {
+            None => Shade::DARK,
+            Some(g) => {
+                let r = self.reflectance(albedo, &g.cos);
+                Shade {
+                    r: r.r,
+                    dr_dp: r.dr_dmu0 * g.dmu0_dp + r.dr_dmu * g.dmu_dp,
+                    dr_dq: r.dr_dmu0 * g.dmu0_dq + r.dr_dmu * g.dmu_dq,
+                    lit: true,
+                }
+            }
+        }
+    }
+
+    /// The pixel-wise albedo inversion for a surface of gradient (p, q).
+    fn invert(&self, observed: f64, p: f64, q: f64, sun: &Vec3, view: &Vec3) -> Albedo {
+        match incidence(p, q, sun, view) {
+            None => Albedo::Shadowed,
+            Some(g) => self.invert_cosines(observed, &g.cos),
+        }
+    }
+}
+
+/// Lambert: R = ρ·μ0.
+#[derive(Debug, Clone, Copy, PartialEq, Serialize, Deserialize)]
+pub struct Lambert;
+
+impl ReflectanceModel for Lambert {
+    fn reflectance(&self, albedo: f64, c: &Cosines) -> ReflectanceCos {
+        ReflectanceCos {
+            r: albedo * c.mu0,
+            dr_dmu0: albedo,
+            dr_dmu: 0.0,
+        }
+    }
+    fn invert_cosines(&self, observed: f64, c: &Cosines) -> Albedo {
+        invert_linear(observed, self.reflectance(1.0, c).r)
+    }
+}
+
+/// One specular lobe A·cos^B(θr) of the metallic model.
+#[derive(Debug, Clone, Copy, PartialEq, Serialize, Deserialize)]
+pub struct Lobe {
+    pub a: f64,
+    pub b: f64,
+}
+
+/// Metallic model (d'Angelo & Wöhler; seed Eq. 3):
+/// R = ρ·[μ0 + Σₖ Aₖ·cos^Bₖ(θr)], cos θr = 2μ0μ − cos g, each lobe 0 where cos θr ≤ 0.
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+pub struct Metallic {
+    pub lobes: Vec<Lobe>,
+}
+
+impl Metallic {
+    /// The seed's cast-iron flange: K = 1, A₁ = 1.5, B₁ = 2.
+    pub fn cast_iron() -> Self {
+        Self {
+            lobes: vec![Lobe { a: 1.5, b: 2.0 }],
+        }
+    }
+}
+
+impl ReflectanceModel for Metallic {
+    fn reflectance(&self, albedo: f64, c: &Cosines) -> ReflectanceCos {
+        let cr = 2.0 * c.mu0 * c.mu - c.cos_g;
+        let (mut lobe, mut dlobe) = (0.0, 0.0);
+        if cr > 0.0 {
+            for l in &self.lobes {
+                lobe += l.a * cr.powf(l.b);
+                dlobe += l.a * l.b * cr.powf(l.b - 1.0);
+            }
+        }
+        ReflectanceCos {
+            r: albedo * (c.mu0 + lobe),
+            dr_dmu0: albedo * (1.0 + dlobe * 2.0 * c.mu),
+            dr_dmu: albedo * dlobe * 2.0 * c.mu0,
+        }
+    }
+    fn invert_cosines(&self, observed: f64, c: &Cosines) -> Albedo {
+        invert_linear(observed, self.reflectance(1.0, c).r)
+    }
+}
+
+/// ρ = I / R(ρ = 1) for models linear in the albedo.
+fn invert_linear(observed: f64, unit: f64) -> Albedo {
+    if unit <= 0.0 {
+        Albedo::Shadowed
+    } else if observed <= 0.0 {
+        Albedo::Value(0.0)
+    } else {
+        Albedo::Value(observed / unit)
+    }
+}
+
+/// The photometric model selected by a user, as written in workflow files and run records.
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+#[serde(tag = "model", rename_all = "lowercase", deny_unknown_fields)]
+pub enum ModelSpec {
+    Lambert,
+    Metallic { lobes: Vec<Lobe> },
+    Hapke(Hapke),
+}
+
+impl ModelSpec {
+    /// The model object.
+    pub fn build(&self) -> Box<dyn ReflectanceModel> {
+        match self {
+            ModelSpec::Lambert => Box::new(Lambert),
+            ModelSpec::Metallic { lobes } => Box::new(Metallic {
+                lobes: lobes.clone(),
+            }),
+            ModelSpec::Hapke(h) => Box::new(h.clone()),
+        }
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    fn numeric(m: &dyn ReflectanceModel, p: f64, q: f64, s: &Vec3, v: &Vec3) -> (f64, f64) {
+        let h = 1e-6;
+        let f = |p, q| m.shade(p, q, 0.7, s, v).r;
+        (
+            (f(p + h, q) - f(p - h, q)) / (2.0 * h),
+            (f(p, q + h) - f(p, q - h)) / (2.0 * h),
+        )
+    }
+
+    #[test]
+    fn lambert_and_metallic_derivatives_match_differences() {
+        let s = [0.5f64.sin(), 0.1, 0.0];
+        let s = [s[0], s[1], (1.0 - s[0] * s[0] - s[1] * s[1]).sqrt()];
+        let v = [0.05, -0.02, (1.0f64 - 0.05 * 0.05 - 0.02 * 0.02).sqrt()];
+        let models: [&dyn ReflectanceModel; 2] = [&Lambert, &Metallic::cast_iron()];
+        for m in models {
+            for &(p, q) in &[(0.0, 0.0), (0.2, -0.1), (-0.3, 0.25)] {
+                let a = m.shade(p, q, 0.7, &s, &v);
+                let (np, nq) = numeric(m, p, q, &s, &v);
+                assert!((a.dr_dp - np).abs() < 1e-7, "{m:?} p {} {np}", a.dr_dp);
+                assert!((a.dr_dq - nq).abs() < 1e-7, "{m:?} q {} {nq}", a.dr_dq);
+            }
+        }
+    }
+
+    #[test]
+    fn lambert_is_albedo_times_cos_incidence() {
+        // Sun 60° from zenith towards east, flat surface: R = ρ·cos 60°.
+        let s = [60f64.to_radians().sin(), 0.0, 60f64.to_radians().cos()];
+        let r = Lambert.shade(0.0, 0.0, 0.8, &s, &[0.0, 0.0, 1.0]);
+        assert!((r.r - 0.4).abs() < 1e-15);
+        // A slope tilted 60° away from the Sun (p = tan 30° is the surface rising to the east by
+        // 30°, facing west): μ0 = cos 90° = 0 → no information.
+        let away = Lambert.shade(3f64.sqrt(), 0.0, 0.8, &s, &[0.0, 0.0, 1.0]);
+        assert!(!away.lit && away.r == 0.0 && away.dr_dp == 0.0);
+    }
+
+    #[test]
+    fn metallic_lobe_vanishes_beyond_ninety_degrees() {
+        // cos θr = 2μ0μ − cos g ≤ 0 → pure Lambert.
+        let c = Cosines {
+            mu0: 0.3,
+            mu: 0.3,
+            cos_g: 0.5,
+        };
+        let r = Metallic::cast_iron().reflectance(1.0, &c);
+        assert_eq!(r.r, 0.3);
+        // cos θr = 2·0.9·0.9 − 0.62 = 1.0 → lobe 1.5.
+        let c = Cosines {
+            mu0: 0.9,
+            mu: 0.9,
+            cos_g: 0.62,
+        };
+        let r = Metallic::cast_iron().reflectance(2.0, &c);
+        assert!((r.r - 2.0 * (0.9 + 1.5)).abs() < 1e-12);
+    }
+
+    #[test]
+    fn linear_inversion_round_trips_and_flags_shadow() {
+        let s = [0.6, 0.0, 0.8];
+        let v = [0.0, 0.0, 1.0];
+        let m = Metallic::cast_iron();
+        let r = m.shade(0.1, -0.2, 0.37, &s, &v).r;
+        match m.invert(r, 0.1, -0.2, &s, &v) {
+            Albedo::Value(a) => assert!((a - 0.37).abs() < 1e-14),
+            other => panic!("{other:?}"),
+        }
+        assert_eq!(m.invert(0.1, 2.0, 0.0, &s, &v), Albedo::Shadowed);
+        assert_eq!(Lambert.invert(-0.01, 0.0, 0.0, &s, &v), Albedo::Value(0.0));
+    }
+}
