@@ -108,7 +108,12 @@ impl<const N: usize> Mul for Dual<N> {
 impl<const N: usize> Div for Dual<N> {
     type Output = Self;
     fn div(self, o: Self) -> Self {
-        self * o.recip()
+        let inv = 1.0 / o.v;
+        let mut d = [0.0; N];
+        for (k, x) in d.iter_mut().enumerate() {
+            *x = (self.d[k] - self.v * inv * o.d[k]) * inv;
+        }
+        Self { v: self.v * inv, d }
     }
 }
 impl<const N: usize> Add<f64> for Dual<N> {
@@ -162,7 +167,7 @@ impl<const N: usize> Mul<Dual<N>> for f64 {
 impl<const N: usize> Div<Dual<N>> for f64 {
     type Output = Dual<N>;
     fn div(self, o: Dual<N>) -> Dual<N> {
-        o.recip() * self
+        Dual::constant(self) / o
     }
 }
 

@@ -286,10 +286,6 @@ mod tests {
         }
     }
 
-    fn rel(a: f64, b: f64) -> f64 {
-        ((a - b) / b).abs()
-    }
-
     /// PHOTOMETRY.md check table: i, e, g, then per w ∈ {0.2, 0.44, 0.8} the columns
     /// θ̄=0/H81, θ̄=11°/H81, θ̄=11°/H02.
     const TABLE: [[f64; 12]; 9] = [

@@ -1,0 +1,142 @@
+//! The fast z-solver: Gauss–Newton on E(z) with R linearised in (z_x, z_y), each step solved by
+//! conjugate gradients in the DCT basis, preconditioned by the DCT-diagonal operator
+//! (ALGORITHM.md route 3), with a backtracking line search on the true energy.
+
+use super::objective::{Energy, Objective, Photo};
+use super::{ops, FusionParams, IterationRecord};
+use crate::spectral;
+use ndarray::{Array2, ArrayView2, Zip};
+
+/// 2JᵀJ·v for the linearised photometric term, J v = a·D_x v + b·D_y v.
+fn data_normal(obj: &Objective, photo: &Photo, v: &Array2<f64>) -> Array2<f64> {
+    let eps = obj.problem.spacing;
+    let (vx, vy) = ops::gradient(v.view(), eps);
+    let mut jv = Array2::zeros(v.dim());
+    Zip::from(&mut jv)
+        .and(&photo.a)
+        .and(&photo.b)
+        .and(&vx)
+        .and(&vy)
+        .par_for_each(|o, &a, &b, &x, &y| *o = 2.0 * (a * x + b * y));
+    let u = &jv * &photo.a;
+    let w = &jv * &photo.b;
+    ops::gradient_adjoint(u.view(), w.view(), eps)
+}
+
+/// Mean of x² over the grid.
+fn mean_sq(a: &Array2<f64>) -> f64 {
+    ops::dot(a.view(), a.view()) / a.len() as f64
+}
+
+/// Preconditioned CG for (2JᵀJ + H_Q)Δ = −g in DCT coefficients; returns (Δ, iterations).
+fn newton_step(
+    obj: &Objective,
+    photo: &Photo,
+    hq: &Array2<f64>,
+    g: &Array2<f64>,
+    params: &FusionParams,
+) -> (Array2<f64>, usize) {
+    let (ny, nx) = g.dim();
+    let e2 = obj.problem.spacing * obj.problem.spacing;
+    let (ax, ay) = (2.0 * mean_sq(&photo.a), 2.0 * mean_sq(&photo.b));
+    let cx = spectral::central_symbol(nx);
+    let cy = spectral::central_symbol(ny);
+    let mut minv = spectral::separable(&cy, &cx, |sy, sx| (ax * sx + ay * sy) / e2);
+    minv += hq;
+    minv.mapv_inplace(|m| if m > 0.0 { 1.0 / m } else { 0.0 });
+    minv[(0, 0)] = 0.0; // the mean height is fixed by the DEM
+    let apply = |d: &Array2<f64>| {
+        let v = obj.dct.inverse(d);
+        let mut out = obj.dct.forward(&data_normal(obj, photo, &v));
+        Zip::from(&mut out)
+            .and(hq)
+            .and(d)
+            .par_for_each(|o, &h, &x| *o += h * x);
+        out[(0, 0)] = 0.0;
+        out
+    };
+    let mut r = obj.dct.forward(g).mapv(|x| -x);
+    r[(0, 0)] = 0.0;
+    let mut y = Array2::zeros(r.dim());
+    let mut s = &r * &minv;
+    let mut d = s.clone();
+    let mut rs = ops::dot(r.view(), s.view());
+    let r0 = ops::dot(r.view(), r.view()).sqrt();
+    let mut it = 0;
+    while it < params.cg_iterations && r0 > 0.0 {
+        it += 1;
+        let ad = apply(&d);
+        let dad = ops::dot(d.view(), ad.view());
+        if dad <= 0.0 {
+            break;
+        }
+        let alpha = rs / dad;
+        y.scaled_add(alpha, &d);
+        r.scaled_add(-alpha, &ad);
+        if ops::dot(r.view(), r.view()).sqrt() <= params.cg_tolerance * r0 {
+            break;
+        }
+        s = &r * &minv;
+        let rs_new = ops::dot(r.view(), s.view());
+        let beta = rs_new / rs;
+        rs = rs_new;
+        d = &s + &(d * beta);
+    }
+    (obj.dct.inverse(&y), it)
+}
+
+pub fn minimise(
+    obj: &Objective,
+    z: &mut Array2<f64>,
+    rho: ArrayView2<f64>,
+    params: &FusionParams,
+    observe: &mut dyn FnMut(&Energy),
+) -> Vec<IterationRecord> {
+    let hq = obj.quadratic_hessian();
+    let mut photo = obj.photo(z.view(), rho);
+    let mut zh = obj.dct.forward(z);
+    let mut energy = obj.energy_with(&zh, &photo);
+    observe(&energy);
+    let mut log = vec![IterationRecord {
+        iteration: 0,
+        energy,
+        inner: 0,
+    }];
+    for iteration in 1..=params.max_iterations {
+        let g = obj.gradient(&zh, &photo);
+        let (step, inner) = newton_step(obj, &photo, &hq, &g, params);
+        let slope = ops::dot(g.view(), step.view());
+        if slope >= 0.0 {
+            break;
+        }
+        let mut t = 1.0;
+        let mut accepted = None;
+        for _ in 0..12 {
+            let mut trial = z.clone();
+            trial.scaled_add(t, &step);
+            let tp = obj.photo(trial.view(), rho);
+            let th = obj.dct.forward(&trial);
+            let te = obj.energy_with(&th, &tp);
+            if te.total <= energy.total + 1e-4 * t * slope {
+                accepted = Some((trial, tp, th, te));
+                break;
+            }
+            t *= 0.5;
+        }
+        let Some((nz, np, nh, ne)) = accepted else {
+            break;
+        };
+        let gain = (energy.total - ne.total) / energy.total.max(f64::MIN_POSITIVE);
+        (*z, photo, zh, energy) = (nz, np, nh, ne);
+        observe(&energy);
+        log.push(IterationRecord {
+            iteration,
+            energy,
+            inner,
+        });
+        if gain < params.tolerance {
+            break;
+        }
+    }
+    log
+}

@@ -1,0 +1,433 @@
+//! Fusion of shape from shading with an absolute DEM (Herbort, Grumpe & Wöhler; ALGORITHM.md).
+//!
+//! [`fuse`] runs the albedo outer loop: at each stage m it inverts R(ρ; μ0, μ, g) = I pixel by
+//! pixel on the current surface, low-passes ρ with a masked Gaussian of width σ_ρ⁽ᵐ⁾, and then
+//! minimises the energy of [`objective`] over z with that albedo, using the selected
+//! [`SolverKind`]. The final albedo is the per-pixel inversion on the final surface, lightly
+//! smoothed.
+
+mod fast;
+pub mod objective;
+pub mod ops;
+mod paper;
+
+pub use objective::Energy;
+
+use crate::photometry::{Albedo, ReflectanceModel, Vec3};
+use crate::spectral::{self, Dct2d};
+use ndarray::{Array2, ArrayView2, Zip};
+use objective::Objective;
+use serde::{Deserialize, Serialize};
+use std::time::Instant;
+
+/// Unit vectors (east, north, up) to the Sun or to the camera: one for the whole grid, or one
+/// per pixel (as M3's OBS backplanes give them).
+#[derive(Debug, Clone)]
+pub enum Directions {
+    Uniform(Vec3),
+    PerPixel(Array2<Vec3>),
+}
+
+impl Directions {
+    #[inline]
+    pub fn at(&self, i: usize, j: usize) -> &Vec3 {
+        match self {
+            Directions::Uniform(v) => v,
+            Directions::PerPixel(a) => &a[(i, j)],
+        }
+    }
+}
+
+/// One fusion problem on a locally metric grid (row 0 north, column 0 west).
+pub struct Problem<'a> {
+    /// Observed reflectance I in the model's units (sr⁻¹ for Hapke); NaN = no data.
+    pub image: ArrayView2<'a, f64>,
+    /// Input DEM resampled to the grid, metres; must be finite everywhere.
+    pub dem: ArrayView2<'a, f64>,
+    /// Grid spacing ε in metres (equal in x and y).
+    pub spacing: f64,
+    /// Standard deviation, in grid pixels, of the input DEM's own point-spread relative to the
+    /// grid (0 = the seed's plain DEM term). See [`dem_psf_sigma`].
+    pub dem_psf_sigma: f64,
+    pub sun: Directions,
+    pub view: Directions,
+    pub model: &'a dyn ReflectanceModel,
+}
+
+/// Effective Gaussian point-spread, in grid pixels, of a DEM sampled `factor` times coarser than
+/// the grid and resampled to it bilinearly: an anti-alias low-pass of σ = factor/2 plus the box
+/// of one coarse pixel (variance factor²/12) plus the bilinear tent (variance factor²/6) give
+/// σ² = factor²/4 + factor²/4, σ = factor/√2 (≈ 2.8 px at 4× coarser, ALGORITHM.md's ≈ 2.9).
+pub fn dem_psf_sigma(factor: f64) -> f64 {
+    if factor <= 1.0 {
+        0.0
+    } else {
+        factor / std::f64::consts::SQRT_2
+    }
+}
+
+/// Which z-solver minimises each stage's energy.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Serialize, Deserialize, clap::ValueEnum)]
+#[serde(rename_all = "lowercase")]
+pub enum SolverKind {
+    /// Gauss–Newton on z with conjugate gradients preconditioned in the DCT basis.
+    Fast,
+    /// The seed's Eq. 2: p ← z_x + (1/γ)(I−R)R_p + …, z ← z̄ − (ε²/κ)(p_x + q_y), κ = 4.
+    Paper,
+}
+
+/// Solver parameters. Intensities are divided by their mean over usable pixels, heights are in
+/// metres and slopes dimensionless, so the weights below are per-pixel and transfer between
+/// scenes and pixel sizes (docs/science.md).
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+#[serde(deny_unknown_fields, default)]
+pub struct FusionParams {
+    pub solver: SolverKind,
+    /// γ: weight of E_int in the seed's iteration; there it only sets the step ε²/(2κγ).
+    pub gamma: f64,
+    /// δ: weight of the low-passed DEM gradient term.
+    pub delta: f64,
+    /// η: weight of the membrane regulariser ‖∇(z − z_DEM)‖².
+    pub eta: f64,
+    /// σ_DEM in pixels.
+    pub sigma_dem: f64,
+    /// σ_ρ of each albedo stage, in pixels (the seed: ~100 down to ~10).
+    pub albedo_sigmas: Vec<f64>,
+    /// σ of the final albedo map (per-pixel inversion on the final surface), in pixels.
+    pub final_albedo_sigma: f64,
+    /// Pixels with I/Ī below this are treated as cast shadow and drop out of E_I.
+    pub shadow_threshold: f64,
+    /// Iteration limit per stage (Gauss–Newton steps for `fast`, sweeps for `paper`).
+    pub max_iterations: usize,
+    /// A stage stops when an iteration lowers E by less than this fraction.
+    pub tolerance: f64,
+    /// Conjugate-gradient limit per Gauss–Newton step.
+    pub cg_iterations: usize,
+    /// Relative residual at which conjugate gradients stop.
+    pub cg_tolerance: f64,
+}
+
+impl Default for FusionParams {
+    fn default() -> Self {
+        Self {
+            solver: SolverKind::Fast,
+            gamma: 2.5,
+            delta: 1.0,
+            eta: 0.1,
+            sigma_dem: 3.0,
+            albedo_sigmas: vec![100.0, 30.0, 10.0],
+            final_albedo_sigma: 1.0,
+            shadow_threshold: 0.1,
+            max_iterations: 30,
+            tolerance: 1e-5,
+            cg_iterations: 60,
+            cg_tolerance: 1e-2,
+        }
+    }
+}
+
+impl FusionParams {
+    /// Defaults for the `paper` solver: thousands of sweeps are needed.
+    pub fn paper() -> Self {
+        Self {
+            solver: SolverKind::Paper,
+            max_iterations: 20000,
+            tolerance: 1e-9,
+            ..Self::default()
+        }
+    }
+}
+
+/// What went wrong before any solving.
+#[derive(Debug, thiserror::Error)]
+pub enum FusionError {
+    #[error("image is {image:?} pixels but the DEM is {dem:?}: they must be on one grid")]
+    Shape {
+        image: (usize, usize),
+        dem: (usize, usize),
+    },
+    #[error("the grid is {0:?} pixels: fusion needs at least 3 × 3")]
+    TooSmall((usize, usize)),
+    #[error("grid spacing must be a positive number of metres, got {0}")]
+    Spacing(f64),
+    #[error("the input DEM has a non-finite height at row {row}, column {col}: fill or crop no-data before fusion")]
+    DemNotFinite { row: usize, col: usize },
+    #[error("no pixel has a usable observation (valid, lit and above the shadow threshold)")]
+    NoObservations,
+    #[error("invalid parameter {name} = {value}: {why}")]
+    Parameter {
+        name: &'static str,
+        value: f64,
+        why: &'static str,
+    },
+    #[error("per-pixel direction array is {got:?} pixels, the grid {want:?}")]
+    DirectionShape {
+        got: (usize, usize),
+        want: (usize, usize),
+    },
+}
+
+/// One iteration's record.
+#[derive(Debug, Clone, Serialize)]
+pub struct IterationRecord {
+    pub iteration: usize,
+    pub energy: Energy,
+    /// Conjugate-gradient iterations (fast) or 0 (paper).
+    pub inner: usize,
+}
+
+/// One albedo stage's record.
+#[derive(Debug, Clone, Serialize)]
+pub struct StageReport {
+    pub sigma_rho: f64,
+    pub iterations: Vec<IterationRecord>,
+    pub seconds: f64,
+}
+
+/// The fused products.
+#[derive(Debug, Clone)]
+pub struct Fusion {
+    /// Heights, metres, same datum as the input DEM.
+    pub height: Array2<f64>,
+    /// Albedo (Hapke w for the Hapke model).
+    pub albedo: Array2<f64>,
+    /// |I − R| at the solution where the pixel carried photometric information, NaN elsewhere.
+    pub residual: Array2<f64>,
+    /// True where the pixel carried photometric information at the solution.
+    pub photometric: Array2<bool>,
+    pub stages: Vec<StageReport>,
+}
+
+impl Fusion {
+    pub fn iterations(&self) -> usize {
+        self.stages
+            .iter()
+            .map(|s| s.iterations.len().saturating_sub(1))
+            .sum()
+    }
+}
+
+fn validate(pr: &Problem, params: &FusionParams) -> Result<(), FusionError> {
+    let dim = pr.dem.dim();
+    if pr.image.dim() != dim {
+        return Err(FusionError::Shape {
+            image: pr.image.dim(),
+            dem: dim,
+        });
+    }
+    if dim.0 < 3 || dim.1 < 3 {
+        return Err(FusionError::TooSmall(dim));
+    }
+    if !(pr.spacing.is_finite() && pr.spacing > 0.0) {
+        return Err(FusionError::Spacing(pr.spacing));
+    }
+    if let Some(((row, col), _)) = pr.dem.indexed_iter().find(|(_, h)| !h.is_finite()) {
+        return Err(FusionError::DemNotFinite { row, col });
+    }
+    for d in [&pr.sun, &pr.view] {
+        if let Directions::PerPixel(a) = d {
+            if a.dim() != dim {
+                return Err(FusionError::DirectionShape {
+                    got: a.dim(),
+                    want: dim,
+                });
+            }
+        }
+    }
+    let checks: [(&'static str, f64, bool, &'static str); 7] = [
+        ("gamma", params.gamma, params.gamma > 0.0, "must be > 0"),
+        ("delta", params.delta, params.delta >= 0.0, "must be ≥ 0"),
+        ("eta", params.eta, params.eta >= 0.0, "must be ≥ 0"),
+        (
+            "sigma_dem",
+            params.sigma_dem,
+            params.sigma_dem >= 0.0,
+            "must be ≥ 0",
+        ),
+        (
+            "dem_psf_sigma",
+            pr.dem_psf_sigma,
+            pr.dem_psf_sigma >= 0.0,
+            "must be ≥ 0",
+        ),
+        (
+            "final_albedo_sigma",
+            params.final_albedo_sigma,
+            params.final_albedo_sigma >= 0.0,
+            "must be ≥ 0",
+        ),
+        (
+            "shadow_threshold",
+            params.shadow_threshold,
+            params.shadow_threshold >= 0.0,
+            "must be ≥ 0",
+        ),
+    ];
+    for (name, value, ok, why) in checks {
+        if !ok || !value.is_finite() {
+            return Err(FusionError::Parameter { name, value, why });
+        }
+    }
+    if params.delta == 0.0 && params.eta == 0.0 {
+        return Err(FusionError::Parameter {
+            name: "delta",
+            value: 0.0,
+            why: "delta and eta cannot both be 0: nothing would fix relief across the Sun",
+        });
+    }
+    if let Some(&s) = params
+        .albedo_sigmas
+        .iter()
+        .find(|s| !(s.is_finite() && **s >= 0.0))
+    {
+        return Err(FusionError::Parameter {
+            name: "albedo_sigmas",
+            value: s,
+            why: "every σ_ρ must be ≥ 0",
+        });
+    }
+    Ok(())
+}
+
+/// Pixel-wise albedo inversion on surface `z`: the raw values and where they are defined.
+pub fn invert_albedo(
+    pr: &Problem,
+    z: ArrayView2<f64>,
+    usable: &Array2<bool>,
+) -> (Array2<f64>, Array2<bool>) {
+    let (p, q) = ops::gradient(z, pr.spacing);
+    let dim = z.dim();
+    let mut rho = Array2::zeros(dim);
+    let mut ok = Array2::from_elem(dim, false);
+    Zip::indexed(&mut rho)
+        .and(&mut ok)
+        .par_for_each(|(i, j), rho, ok| {
+            if !usable[(i, j)] {
+                return;
+            }
+            if let Albedo::Value(w) = pr.model.invert(
+                pr.image[(i, j)],
+                p[(i, j)],
+                q[(i, j)],
+                pr.sun.at(i, j),
+                pr.view.at(i, j),
+            ) {
+                *rho = w;
+                *ok = true;
+            }
+        });
+    (rho, ok)
+}
+
+/// Masked Gaussian of the per-pixel albedo on surface `z`.
+fn albedo_map(
+    pr: &Problem,
+    dct: &Dct2d,
+    z: ArrayView2<f64>,
+    usable: &Array2<bool>,
+    sigma: f64,
+) -> Result<Array2<f64>, FusionError> {
+    let (raw, ok) = invert_albedo(pr, z, usable);
+    spectral::masked_gaussian(dct, &raw, &ok, sigma).ok_or(FusionError::NoObservations)
+}
+
+/// Validate the problem and set up its energy: Ī and the usable-pixel mask.
+fn objective<'a, 'p>(
+    pr: &'a Problem<'p>,
+    params: &FusionParams,
+) -> Result<Objective<'a, 'p>, FusionError> {
+    validate(pr, params)?;
+    let valid = pr.image.mapv(|v| v.is_finite() && v > 0.0);
+    let count = valid.iter().filter(|&&b| b).count();
+    if count == 0 {
+        return Err(FusionError::NoObservations);
+    }
+    let scale = Zip::from(&pr.image)
+        .and(&valid)
+        .fold(0.0, |s, &v, &ok| if ok { s + v } else { s })
+        / count as f64;
+    let usable = Zip::from(&pr.image)
+        .and(&valid)
+        .map_collect(|&v, &ok| ok && v / scale >= params.shadow_threshold);
+    Ok(Objective::new(
+        pr,
+        params.delta,
+        params.eta,
+        params.sigma_dem,
+        pr.dem_psf_sigma,
+        scale,
+        usable,
+    ))
+}
+
+/// Run the whole fusion: albedo stages, each followed by a surface solve.
+pub fn fuse(pr: &Problem, params: &FusionParams) -> Result<Fusion, FusionError> {
+    let obj = objective(pr, params)?;
+    let mut z = pr.dem.to_owned();
+    let mut stages = Vec::new();
+    for &sigma in &params.albedo_sigmas {
+        let t0 = Instant::now();
+        let rho = albedo_map(pr, &obj.dct, z.view(), &obj.observed, sigma)?;
+        let iterations = minimise(&obj, &mut z, rho.view(), params, &mut |_| {});
+        stages.push(StageReport {
+            sigma_rho: sigma,
+            iterations,
+            seconds: t0.elapsed().as_secs_f64(),
+        });
+    }
+    let albedo = albedo_map(
+        pr,
+        &obj.dct,
+        z.view(),
+        &obj.observed,
+        params.final_albedo_sigma,
+    )?;
+    let photo = obj.photo(z.view(), albedo.view());
+    let residual = Zip::from(&photo.res)
+        .and(&photo.used)
+        .map_collect(|&r, &u| if u { (r * obj.scale).abs() } else { f64::NAN });
+    Ok(Fusion {
+        height: z,
+        albedo,
+        residual,
+        photometric: photo.used,
+        stages,
+    })
+}
+
+fn minimise(
+    obj: &Objective,
+    z: &mut Array2<f64>,
+    rho: ArrayView2<f64>,
+    params: &FusionParams,
+    observe: &mut dyn FnMut(&Energy),
+) -> Vec<IterationRecord> {
+    match params.solver {
+        SolverKind::Fast => fast::minimise(obj, z, rho, params, observe),
+        SolverKind::Paper => paper::minimise(obj, z, rho, params, observe),
+    }
+}
+
+/// The albedo map of the first stage (σ_ρ = `params.albedo_sigmas[0]`) on the input DEM.
+pub fn initial_albedo(pr: &Problem, params: &FusionParams) -> Result<Array2<f64>, FusionError> {
+    let obj = objective(pr, params)?;
+    let sigma = params
+        .albedo_sigmas
+        .first()
+        .copied()
+        .unwrap_or(params.final_albedo_sigma);
+    albedo_map(pr, &obj.dct, pr.dem, &obj.observed, sigma)
+}
+
+/// Solve one surface problem at fixed albedo from `z`, calling `observe` after each iteration
+/// with the current energy (the benchmark times convergence with it).
+pub fn solve_fixed_albedo(
+    pr: &Problem,
+    params: &FusionParams,
+    rho: ArrayView2<f64>,
+    z: &mut Array2<f64>,
+    observe: &mut dyn FnMut(&Energy),
+) -> Result<Vec<IterationRecord>, FusionError> {
+    let obj = objective(pr, params)?;
+    Ok(minimise(&obj, z, rho, params, observe))
+}

@@ -1,0 +1,200 @@
+//! The fusion energy as a function of the surface z (slopes dimensionless, z in metres):
+//!
+//! E(z) = E_I + δ·E_DEM + η·E_reg, with
+//! * E_I   = Σ_lit (I/Ī − R(p, q, ρ)/Ī)², (p, q) = central-difference gradient of z, summed over
+//!   pixels that are valid, not image-shadowed (I/Ī ≥ threshold) and lit by the model
+//!   (μ0 > 0, μ > 0);
+//! * E_DEM = Σ ‖f_σ(∇ B z) − f_σ(∇ z_DEM)‖², f_σ the Gaussian low-pass of width σ_DEM, B the
+//!   input DEM's own point-spread (identity for the seed's plain term);
+//! * E_reg = Σ ‖∇(z − z_DEM)‖², the membrane regulariser (ALGORITHM.md).
+//!
+//! ∇ in the last two is the forward difference with Neumann boundaries and the Gaussians act on
+//! gradient fields through their antisymmetric extension, so f_σ∇ = ∇f_σ and both terms are
+//! diagonal in the DCT-II basis: E_DEM = Σ_kl (λ_kl/ε²)(ĝ_s ẑ − ĝ_σ ẑ_DEM)², ĝ_s = ĝ_σ·ĝ_B,
+//! E_reg = Σ_kl (λ_kl/ε²)(ẑ − ẑ_DEM)².
+//!
+//! The seed's integrability term γ·E_int couples auxiliary gradients (p, q) to z. Its Eq. 2
+//! evaluates R at z_x, z_y, which makes γ a step size (ALGORITHM.md): both solvers minimise the
+//! E(z) above, where E_int = 0.
+
+use super::ops;
+use super::Problem;
+use crate::photometry::ReflectanceModel;
+use crate::spectral::{self, Dct2d};
+use ndarray::{Array2, ArrayView2, Zip};
+use serde::Serialize;
+
+/// The terms of the energy at one iterate.
+#[derive(Debug, Clone, Copy, PartialEq, Serialize, Default)]
+pub struct Energy {
+    /// E_I.
+    pub intensity: f64,
+    /// E_int = Σ‖∇z − (p, q)‖² of the `paper` solver's auxiliary gradients (0 for `fast`).
+    pub integrability: f64,
+    /// E_DEM (unweighted).
+    pub dem: f64,
+    /// E_reg (unweighted).
+    pub membrane: f64,
+    /// E_I + δ·E_DEM + η·E_reg.
+    pub total: f64,
+}
+
+/// Photometric quantities at the current surface: residual r = (I − R)/Ī and a = ∂R/∂p/Ī,
+/// b = ∂R/∂q/Ī, all zero where the pixel is not used.
+pub struct Photo {
+    pub res: Array2<f64>,
+    pub a: Array2<f64>,
+    pub b: Array2<f64>,
+    pub used: Array2<bool>,
+}
+
+/// Precomputed operators for one problem.
+pub struct Objective<'a, 'p> {
+    pub problem: &'a Problem<'p>,
+    pub dct: Dct2d,
+    /// λ_kl/ε².
+    pub lam: Array2<f64>,
+    /// ĝ_s = ĝ_σDEM·ĝ_B (solution side).
+    pub gs: Array2<f64>,
+    /// ĝ_σDEM·ẑ_DEM (DEM side, constant).
+    pub dem_target: Array2<f64>,
+    /// ẑ_DEM.
+    pub dem_hat: Array2<f64>,
+    pub delta: f64,
+    pub eta: f64,
+    /// Ī: intensities are divided by it.
+    pub scale: f64,
+    /// Pixels whose observation is usable: valid and not image-shadowed.
+    pub observed: Array2<bool>,
+}
+
+impl<'a, 'p> Objective<'a, 'p> {
+    pub fn new(
+        problem: &'a Problem<'p>,
+        delta: f64,
+        eta: f64,
+        sigma_dem: f64,
+        psf: f64,
+        scale: f64,
+        observed: Array2<bool>,
+    ) -> Self {
+        let (ny, nx) = problem.dem.dim();
+        let dct = Dct2d::new(ny, nx);
+        let e2 = problem.spacing * problem.spacing;
+        let lam = spectral::separable(
+            &spectral::laplacian_eigenvalues(ny),
+            &spectral::laplacian_eigenvalues(nx),
+            |a, b| (a + b) / e2,
+        );
+        let gd = spectral::gaussian_table(ny, nx, sigma_dem);
+        let gs = &gd * &spectral::gaussian_table(ny, nx, psf);
+        let dem_hat = dct.forward(&problem.dem.to_owned());
+        let dem_target = &gd * &dem_hat;
+        Self {
+            problem,
+            dct,
+            lam,
+            gs,
+            dem_target,
+            dem_hat,
+            delta,
+            eta,
+            scale,
+            observed,
+        }
+    }
+
+    /// Photometric residuals and derivatives at surface `z` with albedo `rho`.
+    pub fn photo(&self, z: ArrayView2<f64>, rho: ArrayView2<f64>) -> Photo {
+        let pr = self.problem;
+        let model: &dyn ReflectanceModel = pr.model;
+        let (p, q) = ops::gradient(z, pr.spacing);
+        let dim = z.dim();
+        let mut res = Array2::zeros(dim);
+        let mut a = Array2::zeros(dim);
+        let mut b = Array2::zeros(dim);
+        let mut used = Array2::from_elem(dim, false);
+        let s = self.scale;
+        Zip::indexed(&mut res)
+            .and(&mut a)
+            .and(&mut b)
+            .and(&mut used)
+            .par_for_each(|(i, j), res, a, b, used| {
+                if !self.observed[(i, j)] {
+                    return;
+                }
+                let sh = model.shade(
+                    p[(i, j)],
+                    q[(i, j)],
+                    rho[(i, j)],
+                    pr.sun.at(i, j),
+                    pr.view.at(i, j),
+                );
+                if sh.lit {
+                    *res = (pr.image[(i, j)] - sh.r) / s;
+                    *a = sh.dr_dp / s;
+                    *b = sh.dr_dq / s;
+                    *used = true;
+                }
+            });
+        Photo { res, a, b, used }
+    }
+
+    /// The quadratic terms (E_DEM, E_reg) from the DCT coefficients ẑ.
+    pub fn quadratic(&self, zh: &Array2<f64>) -> (f64, f64) {
+        let dem = Zip::from(&self.lam)
+            .and(&self.gs)
+            .and(zh)
+            .and(&self.dem_target)
+            .map_collect(|&l, &g, &z, &t| {
+                let d = g * z - t;
+                l * d * d
+            });
+        let reg = Zip::from(&self.lam)
+            .and(zh)
+            .and(&self.dem_hat)
+            .map_collect(|&l, &z, &t| l * (z - t) * (z - t));
+        (ops::sum(dem.view()), ops::sum(reg.view()))
+    }
+
+    /// Energy at `z` given its photometric state.
+    pub fn energy(&self, z: ArrayView2<f64>, photo: &Photo) -> Energy {
+        let zh = self.dct.forward(&z.to_owned());
+        self.energy_with(&zh, photo)
+    }
+
+    pub fn energy_with(&self, zh: &Array2<f64>, photo: &Photo) -> Energy {
+        let intensity = ops::dot(photo.res.view(), photo.res.view());
+        let (dem, membrane) = self.quadratic(zh);
+        Energy {
+            intensity,
+            integrability: 0.0,
+            dem,
+            membrane,
+            total: intensity + self.delta * dem + self.eta * membrane,
+        }
+    }
+
+    /// ∂E/∂z (spatial) at `z`, given ẑ and the photometric state.
+    pub fn gradient(&self, zh: &Array2<f64>, photo: &Photo) -> Array2<f64> {
+        let ra = &photo.res * &photo.a;
+        let rb = &photo.res * &photo.b;
+        let data = ops::gradient_adjoint(ra.view(), rb.view(), self.problem.spacing) * -2.0;
+        let quad_hat = Zip::from(&self.lam)
+            .and(&self.gs)
+            .and(zh)
+            .and(&self.dem_target)
+            .and(&self.dem_hat)
+            .map_collect(|&l, &g, &z, &t, &d| {
+                2.0 * l * (self.delta * g * (g * z - t) + self.eta * (z - d))
+            });
+        data + self.dct.inverse(&quad_hat)
+    }
+
+    /// Diagonal of the quadratic terms' Hessian in the DCT basis: 2(λ/ε²)(δĝ_s² + η).
+    pub fn quadratic_hessian(&self) -> Array2<f64> {
+        Zip::from(&self.lam)
+            .and(&self.gs)
+            .map_collect(|&l, &g| 2.0 * l * (self.delta * g * g + self.eta))
+    }
+}

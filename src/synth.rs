@@ -1,0 +1,401 @@
+//! A deterministic synthetic lunar scene with known truth, for the demo, the tests and the
+//! benchmark (issue: "science core", item 4).
+//!
+//! * Truth DEM: smooth relief (random long-wavelength waves) plus fresh bowl craters with a
+//!   power-law size distribution N(>D) ∝ D⁻², depth/diameter ≈ 0.2, raised rims (0.04·D) and
+//!   ejecta decaying as (R/r)³ out to 3R. Slopes are analytic.
+//! * Truth albedo (Hapke w, mean 0.44): dark soft-edged patches, bright ejecta rings around the
+//!   larger craters, and a weak fine-scale texture.
+//! * Image: Hapke IMSA (lunar parameters) rendered from the analytic slopes under the given
+//!   Sun and view, averaged over 3 × 3 subsamples per pixel (a detector integrates over its
+//!   footprint), cast shadows by ray marching, plus Gaussian noise of `noise` × the mean lit
+//!   reflectance.
+//! * Input DEM, LOLA-like: the truth low-passed (Gaussian σ = factor/2), averaged over
+//!   factor × factor blocks, plus white noise and along-track (north–south) striping per coarse
+//!   column, then resampled bilinearly to the grid.
+
+use crate::fusion::Directions;
+use crate::photometry::{Hapke, ReflectanceModel, Vec3};
+use crate::rng::Rng;
+use crate::spectral::{gaussian_filter, Dct2d};
+use ndarray::{Array2, Zip};
+use serde::Serialize;
+
+/// What to generate.
+#[derive(Debug, Clone, Serialize)]
+pub struct SceneSpec {
+    pub size: usize,
+    /// Metres per pixel.
+    pub spacing: f64,
+    pub seed: u64,
+    /// Sun incidence (zenith) angle and azimuth (clockwise from north), degrees.
+    pub sun_incidence_deg: f64,
+    pub sun_azimuth_deg: f64,
+    /// Camera zenith and azimuth, degrees.
+    pub view_zenith_deg: f64,
+    pub view_azimuth_deg: f64,
+    /// Image noise σ as a fraction of the mean lit reflectance.
+    pub noise: f64,
+    /// How many times coarser the input DEM is sampled.
+    pub dem_factor: usize,
+    /// White noise of the coarse input DEM, metres.
+    pub dem_noise_m: f64,
+    /// σ of the per-track (coarse column) offsets, metres.
+    pub dem_stripe_m: f64,
+    /// Smallest crater diameter, pixels.
+    pub crater_min_px: f64,
+    /// Craters per megapixel.
+    pub crater_density: f64,
+}
+
+impl Default for SceneSpec {
+    /// The demo scene: 512² at 140 m/px (the seed's M3 resolution), Sun 60° from zenith in the
+    /// east-south-east, near-nadir view, 1 % noise, input DEM 4× coarser.
+    fn default() -> Self {
+        Self {
+            size: 512,
+            spacing: 140.0,
+            seed: 1,
+            sun_incidence_deg: 60.0,
+            sun_azimuth_deg: 105.0,
+            view_zenith_deg: 3.0,
+            view_azimuth_deg: 250.0,
+            noise: 0.01,
+            dem_factor: 4,
+            dem_noise_m: 5.0,
+            dem_stripe_m: 8.0,
+            crater_min_px: 3.0,
+            crater_density: 1100.0,
+        }
+    }
+}
+
+/// A generated scene.
+#[derive(Debug, Clone)]
+pub struct Scene {
+    pub spec: SceneSpec,
+    pub truth_height: Array2<f64>,
+    pub truth_albedo: Array2<f64>,
+    /// Bidirectional reflectance r (sr⁻¹) with noise; 0 + noise in cast shadow.
+    pub image: Array2<f64>,
+    /// True where the truth surface is in cast or self shadow.
+    pub shadow: Array2<bool>,
+    pub input_dem: Array2<f64>,
+    pub sun: Vec3,
+    pub view: Vec3,
+    pub model: Hapke,
+}
+
+/// Unit vector in east-north-up from zenith and azimuth (clockwise from north), degrees: FORMATS.md's
+/// (sin z·sin az, sin z·cos az, cos z).
+pub fn direction(zenith_deg: f64, azimuth_deg: f64) -> Vec3 {
+    let (z, a) = (zenith_deg.to_radians(), azimuth_deg.to_radians());
+    [z.sin() * a.sin(), z.sin() * a.cos(), z.cos()]
+}
+
+struct Crater {
+    x: f64,
+    y: f64,
+    r: f64,
+    depth: f64,
+    rim: f64,
+}
+
+impl Crater {
+    /// Height and (∂/∂x, ∂/∂y) at offset (dx, dy) from the centre, metres.
+    fn eval(&self, dx: f64, dy: f64) -> (f64, f64, f64) {
+        let r = (dx * dx + dy * dy).sqrt();
+        let (h, dh) = if r <= self.r {
+            let u = r / self.r;
+            (
+                self.rim + self.depth * (u * u - 1.0),
+                2.0 * self.depth * r / (self.r * self.r),
+            )
+        } else if r < 3.0 * self.r {
+            let k = 1.0 / (1.0 - 1.0 / 27.0);
+            let c = self.r / r;
+            (
+                self.rim * k * (c * c * c - 1.0 / 27.0),
+                -3.0 * self.rim * k * c * c * c / r,
+            )
+        } else {
+            return (0.0, 0.0, 0.0);
+        };
+        if r == 0.0 {
+            return (h, 0.0, 0.0);
+        }
+        (h, dh * dx / r, dh * dy / r)
+    }
+}
+
+struct Wave {
+    kx: f64,
+    ky: f64,
+    phase: f64,
+    amp: f64,
+}
+
+/// Subsamples per pixel and axis used to render the image.
+const SUB: usize = 3;
+
+/// Generate the scene for `spec`.
+pub fn generate(spec: &SceneSpec) -> Scene {
+    let n = spec.size;
+    let eps = spec.spacing;
+    let extent = n as f64 * eps;
+    let mut rng = Rng::new(spec.seed);
+
+    // Smooth relief: waves with wavelengths 25–120 km, a few hundred metres in all.
+    let waves: Vec<Wave> = (0..8)
+        .map(|_| {
+            let lambda = rng.range(25e3, 120e3);
+            let th = rng.range(0.0, std::f64::consts::TAU);
+            let k = std::f64::consts::TAU / lambda;
+            Wave {
+                kx: k * th.cos(),
+                ky: k * th.sin(),
+                phase: rng.range(0.0, std::f64::consts::TAU),
+                amp: rng.range(40.0, 120.0) * lambda / 60e3,
+            }
+        })
+        .collect();
+
+    // Craters: N(>D) ∝ D⁻², 3 px ≤ D ≤ n/5 px, about one crater per 900 px².
+    let (dmin, dmax) = (spec.crater_min_px * eps, (n as f64 / 5.0) * eps);
+    let count = (spec.crater_density * (n * n) as f64 / 1e6).round() as usize;
+    let mut craters: Vec<Crater> = (0..count)
+        .map(|_| {
+            let u = rng.uniform();
+            // Inverse CDF of the truncated Pareto with exponent 2.
+            let d = dmin / (1.0 - u * (1.0 - (dmin / dmax).powi(2))).sqrt();
+            let ratio = 0.2 * rng.range(0.85, 1.05);
+            Crater {
+                x: rng.range(0.0, extent),
+                y: -rng.range(0.0, extent),
+                r: d / 2.0,
+                depth: ratio * d,
+                rim: 0.04 * d,
+            }
+        })
+        .collect();
+    // Big craters first, so that small ones superpose on them.
+    craters.sort_by(|a, b| b.r.total_cmp(&a.r));
+
+    // Height and analytic slopes on a grid SUB times finer than the pixels; subsample
+    // (SUB/2, SUB/2) of each pixel is its centre (x = j·ε east, y = −i·ε north).
+    let m = n * SUB;
+    let h_sub = eps / SUB as f64;
+    let origin = -((SUB / 2) as f64) * h_sub;
+    let mut height = Array2::zeros((m, m));
+    let mut px = Array2::zeros((m, m));
+    let mut py = Array2::zeros((m, m));
+    Zip::indexed(&mut height)
+        .and(&mut px)
+        .and(&mut py)
+        .par_for_each(|(i, j), h, gx, gy| {
+            let (x, y) = (origin + j as f64 * h_sub, -(origin + i as f64 * h_sub));
+            for w in &waves {
+                let a = w.kx * x + w.ky * y + w.phase;
+                *h += w.amp * a.sin();
+                *gx += w.amp * w.kx * a.cos();
+                *gy += w.amp * w.ky * a.cos();
+            }
+        });
+    for c in &craters {
+        let reach = 3.0 * c.r;
+        let lo = |v: f64| (((v - reach - origin) / h_sub).floor().max(0.0) as usize).min(m);
+        let hi =
+            |v: f64| ((((v + reach - origin) / h_sub).ceil()).max(-1.0) as i64).min(m as i64 - 1);
+        let (j0, j1) = (lo(c.x), hi(c.x));
+        let (i0, i1) = (lo(-c.y), hi(-c.y));
+        for i in i0 as i64..=i1 {
+            for j in j0 as i64..=j1 {
+                let (i, j) = (i as usize, j as usize);
+                let (h, gx, gy) = c.eval(
+                    origin + j as f64 * h_sub - c.x,
+                    -(origin + i as f64 * h_sub) - c.y,
+                );
+                height[(i, j)] += h;
+                px[(i, j)] += gx;
+                py[(i, j)] += gy;
+            }
+        }
+    }
+
+    // Albedo.
+    let mut albedo = Array2::from_elem((n, n), 0.0);
+    let patches: Vec<(f64, f64, f64, f64)> = (0..(n * n / 40000).max(3))
+        .map(|_| {
+            (
+                rng.range(0.0, n as f64),
+                rng.range(0.0, n as f64),
+                rng.range(15.0, 55.0),
+                rng.range(0.06, 0.14),
+            )
+        })
+        .collect();
+    let bright: Vec<&Crater> = craters.iter().filter(|c| c.r * 2.0 >= 6.0 * eps).collect();
+    Zip::indexed(&mut albedo).par_for_each(|(i, j), w| {
+        let (fi, fj) = (i as f64, j as f64);
+        for &(ci, cj, rad, amp) in &patches {
+            let d = ((fi - ci).powi(2) + (fj - cj).powi(2)).sqrt();
+            // Soft edge about 4 px wide.
+            *w -= amp / (1.0 + ((d - rad) / 2.0).exp());
+        }
+        for c in &bright {
+            let d = ((fj * eps - c.x).powi(2) + (-fi * eps - c.y).powi(2)).sqrt();
+            let t = (d - c.r) / (0.6 * c.r);
+            *w += 0.05 * (-t * t).exp();
+        }
+    });
+    // Fine texture: white noise smoothed over ~1.5 px, σ ≈ 0.01.
+    let dct = Dct2d::new(n, n);
+    let white = Array2::from_shape_simple_fn((n, n), || rng.normal());
+    let texture = gaussian_filter(&dct, &white, 1.5);
+    let tstd = (texture.iter().map(|x| x * x).sum::<f64>() / (n * n) as f64).sqrt();
+    albedo.zip_mut_with(&texture, |w, t| *w += 0.01 * t / tstd);
+    let mean = albedo.mean().unwrap_or(0.0);
+    albedo.mapv_inplace(|w| (w - mean + 0.44).clamp(0.05, 0.95));
+
+    // Rendering: each pixel averages the radiance of its SUB × SUB subsamples, as a detector
+    // integrates over its footprint; the albedo is constant over a pixel.
+    let model = Hapke::moon();
+    let sun = direction(spec.sun_incidence_deg, spec.sun_azimuth_deg);
+    let view = direction(spec.view_zenith_deg, spec.view_azimuth_deg);
+    let cast = cast_shadow(&height, h_sub, &sun);
+    let mut image = Array2::zeros((n, n));
+    let mut shadow = Array2::from_elem((n, n), false);
+    Zip::indexed(&mut image)
+        .and(&mut shadow)
+        .par_for_each(|(i, j), r, s| {
+            let (mut sum, mut dark) = (0.0, 0);
+            for si in i * SUB..(i + 1) * SUB {
+                for sj in j * SUB..(j + 1) * SUB {
+                    let sh = model.shade(px[(si, sj)], py[(si, sj)], albedo[(i, j)], &sun, &view);
+                    if sh.lit && !cast[(si, sj)] {
+                        sum += sh.r;
+                    } else {
+                        dark += 1;
+                    }
+                }
+            }
+            *r = sum / (SUB * SUB) as f64;
+            *s = 2 * dark > SUB * SUB;
+        });
+    let lit: Vec<f64> = image
+        .iter()
+        .zip(&shadow)
+        .filter(|(_, s)| !**s)
+        .map(|(r, _)| *r)
+        .collect();
+    let sigma = spec.noise * lit.iter().sum::<f64>() / lit.len().max(1) as f64;
+    image.mapv_inplace(|r| r + sigma * rng.normal());
+    let height = Array2::from_shape_fn((n, n), |(i, j)| {
+        height[(i * SUB + SUB / 2, j * SUB + SUB / 2)]
+    });
+
+    let input_dem = lola_like(&height, spec, &dct, &mut rng);
+    Scene {
+        spec: spec.clone(),
+        truth_height: height,
+        truth_albedo: albedo,
+        image,
+        shadow,
+        input_dem,
+        sun,
+        view,
+        model,
+    }
+}
+
+/// Cast shadows: march from each pixel towards the Sun over the bilinearly interpolated DEM.
+fn cast_shadow(h: &Array2<f64>, eps: f64, sun: &Vec3) -> Array2<bool> {
+    let (ny, nx) = h.dim();
+    let horiz = (sun[0] * sun[0] + sun[1] * sun[1]).sqrt();
+    let mut out = Array2::from_elem((ny, nx), false);
+    if horiz < 1e-12 {
+        return out;
+    }
+    let rise = sun[2] / horiz; // metres of ray rise per metre travelled
+    let (dj, di) = (sun[0] / horiz, -sun[1] / horiz); // per pixel step, columns east, rows south
+    let hmax = h.iter().cloned().fold(f64::MIN, f64::max);
+    let sample = |fi: f64, fj: f64| {
+        let (i0, j0) = (fi.floor() as usize, fj.floor() as usize);
+        let (i1, j1) = ((i0 + 1).min(ny - 1), (j0 + 1).min(nx - 1));
+        let (ti, tj) = (fi - i0 as f64, fj - j0 as f64);
+        (1.0 - ti) * ((1.0 - tj) * h[(i0, j0)] + tj * h[(i0, j1)])
+            + ti * ((1.0 - tj) * h[(i1, j0)] + tj * h[(i1, j1)])
+    };
+    Zip::indexed(&mut out).par_for_each(|(i, j), s| {
+        let h0 = h[(i, j)];
+        let step = 0.5;
+        let mut t = step;
+        loop {
+            let (fi, fj) = (i as f64 + di * t, j as f64 + dj * t);
+            if fi < 0.0 || fj < 0.0 || fi > (ny - 1) as f64 || fj > (nx - 1) as f64 {
+                break;
+            }
+            let ray = h0 + rise * t * eps;
+            if ray > hmax {
+                break;
+            }
+            if sample(fi, fj) > ray {
+                *s = true;
+                break;
+            }
+            t += step;
+        }
+    });
+    out
+}
+
+/// The LOLA-like input DEM (see the module documentation).
+fn lola_like(truth: &Array2<f64>, spec: &SceneSpec, dct: &Dct2d, rng: &mut Rng) -> Array2<f64> {
+    let n = spec.size;
+    let f = spec.dem_factor.max(1);
+    let smooth = gaussian_filter(dct, truth, f as f64 / 2.0);
+    let nc = n.div_ceil(f);
+    let stripes: Vec<f64> = (0..nc).map(|_| spec.dem_stripe_m * rng.normal()).collect();
+    let mut coarse = Array2::zeros((nc, nc));
+    for ((ci, cj), v) in coarse.indexed_iter_mut() {
+        let (mut s, mut k) = (0.0, 0);
+        for i in ci * f..((ci + 1) * f).min(n) {
+            for j in cj * f..((cj + 1) * f).min(n) {
+                s += smooth[(i, j)];
+                k += 1;
+            }
+        }
+        *v = s / k as f64 + spec.dem_noise_m * rng.normal() + stripes[cj];
+    }
+    // Bilinear back to the grid: coarse pixel k is centred on fine coordinate k·f + (f−1)/2.
+    let c = |x: f64| ((x - (f as f64 - 1.0) / 2.0) / f as f64).clamp(0.0, (nc - 1) as f64);
+    Array2::from_shape_fn((n, n), |(i, j)| {
+        let (u, v) = (c(i as f64), c(j as f64));
+        let (i0, j0) = (u.floor() as usize, v.floor() as usize);
+        let (i1, j1) = ((i0 + 1).min(nc - 1), (j0 + 1).min(nc - 1));
+        let (ti, tj) = (u - i0 as f64, v - j0 as f64);
+        (1.0 - ti) * ((1.0 - tj) * coarse[(i0, j0)] + tj * coarse[(i0, j1)])
+            + ti * ((1.0 - tj) * coarse[(i1, j0)] + tj * coarse[(i1, j1)])
+    })
+}
+
+impl Scene {
+    /// The fusion problem this scene poses.
+    pub fn problem(&self) -> crate::fusion::Problem<'_> {
+        crate::fusion::Problem {
+            image: self.image.view(),
+            dem: self.input_dem.view(),
+            spacing: self.spec.spacing,
+            dem_psf_sigma: crate::fusion::dem_psf_sigma(self.spec.dem_factor as f64),
+            sun: Directions::Uniform(self.sun),
+            view: Directions::Uniform(self.view),
+            model: &self.model,
+        }
+    }
+}
+
+/// Root-mean-square difference of two arrays.
+pub fn rmse(a: &Array2<f64>, b: &Array2<f64>) -> f64 {
+    let s: f64 = a.iter().zip(b).map(|(x, y)| (x - y) * (x - y)).sum();
+    (s / a.len() as f64).sqrt()
+}
