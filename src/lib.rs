@@ -1,6 +1,15 @@
 //! sfsfuse: shape-from-shading fusion of lunar imagery with laser altimetry.
+//!
+//! The map of the code is docs/architecture.md.
+pub mod bench;
+pub mod demo;
+pub mod error;
 pub mod fusion;
 pub mod photometry;
+pub mod quicklook;
+pub mod raster;
 pub mod rng;
 pub mod spectral;
 pub mod synth;
+
+pub use error::{Error, Result};

@@ -112,16 +112,16 @@ impl Default for FusionParams {
         Self {
             solver: SolverKind::Fast,
             gamma: 2.5,
-            delta: 1.0,
+            delta: 50.0,
             eta: 0.1,
             sigma_dem: 3.0,
-            albedo_sigmas: vec![100.0, 30.0, 10.0],
-            final_albedo_sigma: 1.0,
+            albedo_sigmas: vec![100.0, 10.0, 4.0],
+            final_albedo_sigma: 1.5,
             shadow_threshold: 0.1,
             max_iterations: 30,
-            tolerance: 1e-5,
+            tolerance: 1e-3,
             cg_iterations: 60,
-            cg_tolerance: 1e-2,
+            cg_tolerance: 0.1,
         }
     }
 }

@@ -180,14 +180,16 @@ impl<'a, 'p> Objective<'a, 'p> {
         let ra = &photo.res * &photo.a;
         let rb = &photo.res * &photo.b;
         let data = ops::gradient_adjoint(ra.view(), rb.view(), self.problem.spacing) * -2.0;
-        let quad_hat = Zip::from(&self.lam)
+        let mut quad_hat = Zip::from(&self.lam)
             .and(&self.gs)
             .and(zh)
             .and(&self.dem_target)
+            .map_collect(|&l, &g, &z, &t| 2.0 * l * self.delta * g * (g * z - t));
+        Zip::from(&mut quad_hat)
+            .and(&self.lam)
+            .and(zh)
             .and(&self.dem_hat)
-            .map_collect(|&l, &g, &z, &t, &d| {
-                2.0 * l * (self.delta * g * (g * z - t) + self.eta * (z - d))
-            });
+            .for_each(|o, &l, &z, &d| *o += 2.0 * l * self.eta * (z - d));
         data + self.dct.inverse(&quad_hat)
     }
 

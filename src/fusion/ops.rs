@@ -5,7 +5,7 @@
 //! one-sided at the edges: p = ∂z/∂x (east), q = ∂z/∂y (north, i.e. towards row − 1). The
 //! quadratic terms use forward differences, which the DCT diagonalises (see `spectral`).
 
-use ndarray::{Array2, ArrayView2, Axis, Zip};
+use ndarray::{Array2, ArrayView2, Axis};
 use rayon::prelude::*;
 
 /// Coefficient D[j][k]·ε of the 1-D central difference (one-sided at both ends) on `n` points.
@@ -38,31 +38,76 @@ fn coef(n: usize, j: usize, k: usize) -> f64 {
     }
 }
 
-/// (D v)[j] along a line accessed through `get`.
-fn apply_1d(n: usize, j: usize, get: impl Fn(usize) -> f64) -> f64 {
-    let lo = j.saturating_sub(1);
-    let hi = (j + 1).min(n.saturating_sub(1));
-    (lo..=hi).map(|k| coef(n, j, k) * get(k)).sum()
-}
-
-/// (Dᵀ u)[k] along a line accessed through `get`.
-fn adjoint_1d(n: usize, k: usize, get: impl Fn(usize) -> f64) -> f64 {
+/// (Dᵀu)[k]·ε for one line, gathered from u[k−1], u[k], u[k+1] via `get`.
+#[inline]
+fn adjoint_at(n: usize, k: usize, get: impl Fn(usize) -> f64) -> f64 {
     let lo = k.saturating_sub(1);
     let hi = (k + 1).min(n.saturating_sub(1));
     (lo..=hi).map(|j| coef(n, j, k) * get(j)).sum()
 }
 
+/// D v·ε along one contiguous line.
+fn diff_line(v: &[f64], out: &mut [f64]) {
+    let n = v.len();
+    if n < 2 {
+        out.iter_mut().for_each(|o| *o = 0.0);
+        return;
+    }
+    out[0] = v[1] - v[0];
+    out[n - 1] = v[n - 1] - v[n - 2];
+    for j in 1..n - 1 {
+        out[j] = 0.5 * (v[j + 1] - v[j - 1]);
+    }
+}
+
+/// Dᵀu·ε along one contiguous line.
+fn adjoint_line(u: &[f64], out: &mut [f64]) {
+    let n = u.len();
+    for k in 0..n {
+        out[k] = if k >= 2 && k + 2 < n {
+            0.5 * (u[k - 1] - u[k + 1])
+        } else {
+            adjoint_at(n, k, |j| u[j])
+        };
+    }
+}
+
 /// Surface gradients (p, q) at pixel centres.
 pub fn gradient(z: ArrayView2<f64>, eps: f64) -> (Array2<f64>, Array2<f64>) {
     let (ny, nx) = z.dim();
+    let z = z.as_standard_layout();
     let mut p = Array2::zeros((ny, nx));
     let mut q = Array2::zeros((ny, nx));
-    Zip::indexed(&mut p)
-        .and(&mut q)
-        .par_for_each(|(i, j), p, q| {
-            *p = apply_1d(nx, j, |k| z[(i, k)]) / eps;
-            // y points north = towards smaller row index.
-            *q = -apply_1d(ny, i, |k| z[(k, j)]) / eps;
+    let inv = 1.0 / eps;
+    p.axis_iter_mut(Axis(0))
+        .into_par_iter()
+        .zip(q.axis_iter_mut(Axis(0)))
+        .enumerate()
+        .for_each(|(i, (mut prow, mut qrow))| {
+            let pr = prow.as_slice_mut().expect("standard layout");
+            diff_line(z.row(i).as_slice().expect("standard layout"), pr);
+            pr.iter_mut().for_each(|x| *x *= inv);
+            // y points north = towards smaller row index: q = −(D along rows).
+            let qr = qrow.as_slice_mut().expect("standard layout");
+            if ny < 2 {
+                qr.iter_mut().for_each(|x| *x = 0.0);
+                return;
+            }
+            let (a, b, w) = if i == 0 {
+                (1, 0, 1.0)
+            } else if i == ny - 1 {
+                (ny - 1, ny - 2, 1.0)
+            } else {
+                (i + 1, i - 1, 0.5)
+            };
+            let (ra, rb) = (z.row(a), z.row(b));
+            let (ra, rb) = (
+                ra.as_slice().expect("standard layout"),
+                rb.as_slice().expect("standard layout"),
+            );
+            for ((o, x), y) in qr.iter_mut().zip(ra).zip(rb) {
+                *o = -w * (x - y) * inv;
+            }
         });
     (p, q)
 }
@@ -70,10 +115,30 @@ pub fn gradient(z: ArrayView2<f64>, eps: f64) -> (Array2<f64>, Array2<f64>) {
 /// Adjoint of [`gradient`]: D_xᵀu + D_yᵀv (a negative divergence).
 pub fn gradient_adjoint(u: ArrayView2<f64>, v: ArrayView2<f64>, eps: f64) -> Array2<f64> {
     let (ny, nx) = u.dim();
+    let u = u.as_standard_layout();
+    let v = v.as_standard_layout();
     let mut out = Array2::zeros((ny, nx));
-    Zip::indexed(&mut out).par_for_each(|(i, j), o| {
-        *o = (adjoint_1d(nx, j, |k| u[(i, k)]) - adjoint_1d(ny, i, |k| v[(k, j)])) / eps;
-    });
+    let inv = 1.0 / eps;
+    out.axis_iter_mut(Axis(0))
+        .into_par_iter()
+        .enumerate()
+        .for_each(|(k, mut orow)| {
+            let o = orow.as_slice_mut().expect("standard layout");
+            adjoint_line(u.row(k).as_slice().expect("standard layout"), o);
+            // Rows j ∈ {k−1, k, k+1} of v with coefficient coef(ny, j, k); q = −D_rows, so subtract.
+            let lo = k.saturating_sub(1);
+            let hi = (k + 1).min(ny.saturating_sub(1));
+            for j in lo..=hi {
+                let c = coef(ny, j, k);
+                if c != 0.0 {
+                    let vr = v.row(j);
+                    for (x, y) in o.iter_mut().zip(vr.as_slice().expect("standard layout")) {
+                        *x -= c * y;
+                    }
+                }
+            }
+            o.iter_mut().for_each(|x| *x *= inv);
+        });
     out
 }
 

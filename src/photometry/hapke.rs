@@ -157,9 +157,20 @@ fn e1_e2<const N: usize>(cos_x: Dual<N>, sin_x: Dual<N>, cot_tb: f64) -> (Dual<N
         return (Dual::constant(0.0), Dual::constant(0.0));
     }
     let cot_x = cos_x / sin_x;
-    let e1 = (cot_x * (-2.0 / PI * cot_tb)).exp();
-    let e2 = (cot_x * cot_x * (-cot_tb * cot_tb / PI)).exp();
-    (e1, e2)
+    (
+        neg_exp(cot_x * (2.0 / PI * cot_tb)),
+        neg_exp(cot_x * cot_x * (cot_tb * cot_tb / PI)),
+    )
+}
+
+/// exp(−a) for a ≥ 0, returning an exact 0 (with zero derivatives) once it underflows, so
+/// that libm's slow underflow path is never taken.
+fn neg_exp<const N: usize>(a: Dual<N>) -> Dual<N> {
+    if a.v > 700.0 {
+        Dual::constant(0.0)
+    } else {
+        (-a).exp()
+    }
 }
 
 /// The roughness correction (μ0e, μe, S) of Hapke 1984 as PHOTOMETRY.md states it.

@@ -1,0 +1,180 @@
+//! `sfsfuse bench`: speed and memory of the solvers, measured in one run so that ratios compare
+//! like with like (docs/performance.md records the figures).
+//!
+//! (a) One surface solve at fixed albedo (the first stage's, σ_ρ = 100 px), both z-solvers
+//!     started from the input DEM: time until the energy is within 0.1 % of the converged energy
+//!     E* (the lowest energy either solver reached; the fast solver is run to a tight tolerance
+//!     for it), and the ratio paper/fast.
+//! (b) The full fusion with the albedo loop and default parameters: seconds per megapixel and
+//!     the process's peak resident memory during it (VmHWM after resetting it through
+//!     /proc/self/clear_refs on Linux).
+
+use crate::error::Result;
+use crate::fusion::{fuse, initial_albedo, solve_fixed_albedo, FusionParams, SolverKind};
+use crate::synth::{generate, SceneSpec};
+use serde::Serialize;
+use std::time::Instant;
+
+/// One solver's convergence trace: (seconds, energy) after each iteration.
+#[derive(Debug, Clone, Serialize)]
+pub struct Trace {
+    pub solver: SolverKind,
+    pub iterations: usize,
+    pub seconds: f64,
+    pub final_energy: f64,
+    /// Seconds until E ≤ E*·(1 + 10⁻³); None if never reached.
+    pub seconds_to_tolerance: Option<f64>,
+}
+
+#[derive(Debug, Clone, Serialize)]
+pub struct BenchReport {
+    pub size: usize,
+    pub threads: usize,
+    pub converged_energy: f64,
+    pub fast: Trace,
+    pub paper: Trace,
+    /// paper seconds-to-tolerance / fast seconds-to-tolerance (a lower bound when the paper
+    /// solver did not reach the tolerance: then its total time is used).
+    pub speedup: f64,
+    pub speedup_is_lower_bound: bool,
+    pub fusion_seconds: f64,
+    pub fusion_seconds_per_megapixel: f64,
+    pub fusion_peak_memory_mib: Option<f64>,
+}
+
+fn trace(samples: &[(f64, f64)], solver: SolverKind, target: f64) -> Trace {
+    let last = samples.last().copied().unwrap_or((0.0, f64::NAN));
+    Trace {
+        solver,
+        iterations: samples.len().saturating_sub(1),
+        seconds: last.0,
+        final_energy: last.1,
+        seconds_to_tolerance: samples.iter().find(|(_, e)| *e <= target).map(|(t, _)| *t),
+    }
+}
+
+fn timed_solve(
+    scene: &crate::synth::Scene,
+    params: &FusionParams,
+    rho: &ndarray::Array2<f64>,
+) -> Result<Vec<(f64, f64)>> {
+    let pr = scene.problem();
+    let mut z = scene.input_dem.clone();
+    let mut samples = Vec::new();
+    let t0 = Instant::now();
+    solve_fixed_albedo(&pr, params, rho.view(), &mut z, &mut |e| {
+        samples.push((t0.elapsed().as_secs_f64(), e.total))
+    })?;
+    Ok(samples)
+}
+
+/// Reset the peak-RSS counter (Linux); false where unsupported.
+fn reset_peak() -> bool {
+    std::fs::write("/proc/self/clear_refs", "5").is_ok()
+}
+
+fn peak_mib() -> Option<f64> {
+    let s = std::fs::read_to_string("/proc/self/status").ok()?;
+    let line = s.lines().find(|l| l.starts_with("VmHWM:"))?;
+    let kib: f64 = line.split_whitespace().nth(1)?.parse().ok()?;
+    Some(kib / 1024.0)
+}
+
+pub fn run(size: usize, paper_sweeps: usize) -> Result<BenchReport> {
+    let scene = generate(&SceneSpec {
+        size,
+        ..SceneSpec::default()
+    });
+    let base = FusionParams::default();
+    let rho = initial_albedo(&scene.problem(), &base)?;
+
+    let fast_params = FusionParams {
+        max_iterations: 100,
+        tolerance: 1e-9,
+        ..base.clone()
+    };
+    let fast = timed_solve(&scene, &fast_params, &rho)?;
+    let paper_params = FusionParams {
+        max_iterations: paper_sweeps,
+        tolerance: 1e-12,
+        ..FusionParams::paper()
+    };
+    let paper = timed_solve(&scene, &paper_params, &rho)?;
+    let best = fast
+        .iter()
+        .chain(&paper)
+        .map(|s| s.1)
+        .fold(f64::INFINITY, f64::min);
+    let target = best * (1.0 + 1e-3);
+    let ft = trace(&fast, SolverKind::Fast, target);
+    let pt = trace(&paper, SolverKind::Paper, target);
+    let fast_t = ft.seconds_to_tolerance.unwrap_or(ft.seconds);
+    let (paper_t, lower) = match pt.seconds_to_tolerance {
+        Some(t) => (t, false),
+        None => (pt.seconds, true),
+    };
+
+    let peak_ok = reset_peak();
+    let t0 = Instant::now();
+    fuse(&scene.problem(), &base)?;
+    let fusion_seconds = t0.elapsed().as_secs_f64();
+    let mp = (size * size) as f64 / 1e6;
+    Ok(BenchReport {
+        size,
+        threads: rayon::current_num_threads(),
+        converged_energy: best,
+        fast: ft,
+        paper: pt,
+        speedup: paper_t / fast_t,
+        speedup_is_lower_bound: lower,
+        fusion_seconds,
+        fusion_seconds_per_megapixel: fusion_seconds / mp,
+        fusion_peak_memory_mib: if peak_ok { peak_mib() } else { None },
+    })
+}
+
+impl BenchReport {
+    pub fn table(&self) -> String {
+        let fmt = |t: &Trace| {
+            format!(
+                "{:>6} iterations, {:8.2} s total, E = {:.6e}, within 0.1 % of E* after {}",
+                t.iterations,
+                t.seconds,
+                t.final_energy,
+                t.seconds_to_tolerance
+                    .map(|s| format!("{s:.2} s"))
+                    .unwrap_or_else(|| "— (not reached)".into())
+            )
+        };
+        let mut s = format!(
+            "scene {0}×{0} ({1:.2} MP), {2} threads\n",
+            self.size,
+            (self.size * self.size) as f64 / 1e6,
+            self.threads
+        );
+        s += &format!(
+            "(a) surface solve at fixed albedo, E* = {:.6e}\n",
+            self.converged_energy
+        );
+        s += &format!("    fast : {}\n", fmt(&self.fast));
+        s += &format!("    paper: {}\n", fmt(&self.paper));
+        s += &format!(
+            "    paper/fast time to 0.1 %: {}{:.1}×\n",
+            if self.speedup_is_lower_bound {
+                "≥ "
+            } else {
+                ""
+            },
+            self.speedup
+        );
+        s += &format!(
+            "(b) full fusion with albedo loop: {:.2} s, {:.2} s/MP",
+            self.fusion_seconds, self.fusion_seconds_per_megapixel
+        );
+        match self.fusion_peak_memory_mib {
+            Some(m) => s += &format!(", peak resident memory {m:.0} MiB\n"),
+            None => s += ", peak memory not measurable on this platform\n",
+        }
+        s
+    }
+}
