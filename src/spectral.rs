@@ -195,26 +195,38 @@ pub fn masked_gaussian(
     mask: &Array2<bool>,
     sigma: f64,
 ) -> Option<Array2<f64>> {
-    let m = mask.mapv(|b| if b { 1.0 } else { 0.0 });
-    let count = m.sum();
-    if count == 0.0 {
+    weighted_gaussian(dct, a, &mask.mapv(|b| if b { 1.0 } else { 0.0 }), sigma)
+}
+
+/// Normalised weighted Gaussian G(w·a)/G(w) (w ≥ 0; w = 0 excludes a pixel). Where the
+/// weights vanish within reach, the weighted mean of all pixels is used. `None` when all
+/// weights are 0.
+pub fn weighted_gaussian(
+    dct: &Dct2d,
+    a: &Array2<f64>,
+    w: &Array2<f64>,
+    sigma: f64,
+) -> Option<Array2<f64>> {
+    let total = w.sum();
+    if total <= 0.0 {
         return None;
     }
-    let ma = Zip::from(a).and(&m).map_collect(|&x, &w| x * w);
-    let mean = ma.sum() / count;
+    let wa = Zip::from(a).and(w).map_collect(|&x, &w| x * w);
+    let mean = wa.sum() / total;
     if sigma <= 0.0 {
         return Some(
             Zip::from(a)
-                .and(mask)
-                .map_collect(|&x, &k| if k { x } else { mean }),
+                .and(w)
+                .map_collect(|&x, &w| if w > 0.0 { x } else { mean }),
         );
     }
-    let num = gaussian_filter(dct, &ma, sigma);
-    let den = gaussian_filter(dct, &m, sigma);
+    let num = gaussian_filter(dct, &wa, sigma);
+    let den = gaussian_filter(dct, w, sigma);
+    let floor = 1e-6 * total / w.len() as f64;
     Some(
         Zip::from(&num)
             .and(&den)
-            .map_collect(|&n, &d| if d > 1e-6 { n / d } else { mean }),
+            .map_collect(|&n, &d| if d > floor { n / d } else { mean }),
     )
 }
 

@@ -331,6 +331,38 @@ fn albedo_map(
     spectral::masked_gaussian(dct, &raw, &ok, sigma).ok_or(FusionError::NoObservations)
 }
 
+/// The final albedo: the per-pixel inversion on the final surface, smoothed by
+/// `final_albedo_sigma` where it is defined; pixels without an inversion (shadow, no data) take
+/// the wider last-stage estimate (σ_ρ of the last stage), which draws on more context.
+fn final_albedo(
+    pr: &Problem,
+    dct: &Dct2d,
+    z: ArrayView2<f64>,
+    usable: &Array2<bool>,
+    params: &FusionParams,
+) -> Result<Array2<f64>, FusionError> {
+    let (raw, ok) = invert_albedo(pr, z, usable);
+    // Weight each inversion by its brightness²: dim pixels (near the terminator) amplify slope
+    // errors into albedo errors by ∂w/∂R ∝ 1/R.
+    let weights = Zip::from(&pr.image)
+        .and(&ok)
+        .map_collect(|&i, &k| if k { i * i } else { 0.0 });
+    let fine = spectral::weighted_gaussian(dct, &raw, &weights, params.final_albedo_sigma)
+        .ok_or(FusionError::NoObservations)?;
+    let wide_sigma = params
+        .albedo_sigmas
+        .last()
+        .copied()
+        .unwrap_or(params.final_albedo_sigma)
+        .max(params.final_albedo_sigma);
+    let wide =
+        spectral::masked_gaussian(dct, &raw, &ok, wide_sigma).ok_or(FusionError::NoObservations)?;
+    Ok(Zip::from(&fine)
+        .and(&wide)
+        .and(&ok)
+        .map_collect(|&f, &w, &k| if k { f } else { w }))
+}
+
 /// Validate the problem and set up its energy: Ī and the usable-pixel mask.
 fn objective<'a, 'p>(
     pr: &'a Problem<'p>,
@@ -375,13 +407,7 @@ pub fn fuse(pr: &Problem, params: &FusionParams) -> Result<Fusion, FusionError> 
             seconds: t0.elapsed().as_secs_f64(),
         });
     }
-    let albedo = albedo_map(
-        pr,
-        &obj.dct,
-        z.view(),
-        &obj.observed,
-        params.final_albedo_sigma,
-    )?;
+    let albedo = final_albedo(pr, &obj.dct, z.view(), &obj.observed, params)?;
     let photo = obj.photo(z.view(), albedo.view());
     let residual = Zip::from(&photo.res)
         .and(&photo.used)
