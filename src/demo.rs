@@ -69,6 +69,10 @@ pub fn run(spec: &SceneSpec, params: &FusionParams, out: Option<&Path>) -> Resul
             spec.size
         )));
     }
+    // Fail before computing if the products cannot be written.
+    if let Some(dir) = out {
+        std::fs::create_dir_all(dir).map_err(|e| Error::io(dir, e))?;
+    }
     let t0 = Instant::now();
     let scene = generate(spec);
     let generate_seconds = t0.elapsed().as_secs_f64();
@@ -79,7 +83,6 @@ pub fn run(spec: &SceneSpec, params: &FusionParams, out: Option<&Path>) -> Resul
     let input_rmse_m = rmse(&scene.input_dem, &scene.truth_height);
     let mut outputs = Vec::new();
     if let Some(dir) = out {
-        std::fs::create_dir_all(dir).map_err(|e| Error::io(dir, e))?;
         let eps = spec.spacing;
         outputs.push(write_envi(
             dir,

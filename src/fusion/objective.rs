@@ -200,3 +200,59 @@ impl<'a, 'p> Objective<'a, 'p> {
             .map_collect(|&l, &g| 2.0 * l * (self.delta * g * g + self.eta))
     }
 }
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use crate::fusion::Directions;
+    use crate::photometry::Hapke;
+
+    /// ∂E/∂z against central differences of E on a small smooth problem.
+    #[test]
+    fn gradient_matches_finite_differences() {
+        let (ny, nx) = (12, 10);
+        let z = Array2::from_shape_fn((ny, nx), |(i, j)| {
+            30.0 * (0.4 * i as f64).sin() + 20.0 * (0.3 * j as f64).cos()
+        });
+        let dem = Array2::from_shape_fn((ny, nx), |(i, j)| {
+            25.0 * (0.35 * i as f64).sin() + 0.5 * j as f64
+        });
+        let image =
+            Array2::from_shape_fn((ny, nx), |(i, j)| 0.03 + 0.002 * ((i * 3 + j) % 5) as f64);
+        let model = Hapke::moon();
+        let pr = Problem {
+            image: image.view(),
+            dem: dem.view(),
+            spacing: 100.0,
+            dem_psf_sigma: 1.5,
+            sun: Directions::Uniform(crate::synth::direction(50.0, 100.0)),
+            view: Directions::Uniform(crate::synth::direction(5.0, 200.0)),
+            model: &model,
+        };
+        let obj = Objective::new(
+            &pr,
+            3.0,
+            0.2,
+            1.2,
+            1.5,
+            0.03,
+            Array2::from_elem((ny, nx), true),
+        );
+        let rho = Array2::from_elem((ny, nx), 0.4);
+        let e = |z: &Array2<f64>| obj.energy(z.view(), &obj.photo(z.view(), rho.view())).total;
+        let g = obj.gradient(&obj.dct.forward(&z), &obj.photo(z.view(), rho.view()));
+        for &(i, j) in &[(0, 0), (3, 4), (11, 9), (6, 0), (0, 7)] {
+            let h = 1e-3;
+            let mut zp = z.clone();
+            zp[(i, j)] += h;
+            let mut zm = z.clone();
+            zm[(i, j)] -= h;
+            let num = (e(&zp) - e(&zm)) / (2.0 * h);
+            assert!(
+                (g[(i, j)] - num).abs() < 1e-6 * num.abs().max(1e-3),
+                "({i},{j}): {} vs {num}",
+                g[(i, j)]
+            );
+        }
+    }
+}

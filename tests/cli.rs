@@ -1,0 +1,93 @@
+//! The command line as a user meets it.
+
+use std::process::Command;
+
+fn sfsfuse() -> Command {
+    Command::new(env!("CARGO_BIN_EXE_sfsfuse"))
+}
+
+fn scratch(name: &str) -> std::path::PathBuf {
+    let d = std::env::temp_dir().join(format!("sfsfuse-cli-{}-{name}", std::process::id()));
+    let _ = std::fs::remove_dir_all(&d);
+    d
+}
+
+#[test]
+fn demo_writes_products_and_a_json_report() {
+    let out = scratch("demo");
+    let o = sfsfuse()
+        .args(["demo", "--size", "48", "--json", "--out"])
+        .arg(&out)
+        .output()
+        .unwrap();
+    assert!(o.status.success(), "{}", String::from_utf8_lossy(&o.stderr));
+    let r: serde_json::Value = serde_json::from_slice(&o.stdout).unwrap();
+    assert_eq!(r["size"], 48);
+    for k in [
+        "input_rmse_m",
+        "result_rmse_m",
+        "albedo_rmse",
+        "fusion_seconds",
+        "megapixels_per_second",
+    ] {
+        assert!(
+            r[k].as_f64().is_some_and(|v| v.is_finite() && v > 0.0),
+            "{k}: {}",
+            r[k]
+        );
+    }
+    assert!(r["iterations"].as_u64().unwrap() > 0);
+    for f in [
+        "dem.img",
+        "dem.hdr",
+        "albedo.img",
+        "albedo.hdr",
+        "residual.img",
+        "quicklook.png",
+    ] {
+        assert!(out.join(f).is_file(), "{f} missing");
+    }
+    let dem = sfsfuse::raster::read_envi(&out.join("dem.img")).unwrap();
+    assert_eq!(dem.dim(), (48, 48));
+    assert!(dem.iter().all(|v| v.is_finite()));
+    let png = std::fs::read(out.join("quicklook.png")).unwrap();
+    // IHDR width: three 48-px panels and two 4-px gaps.
+    assert_eq!(
+        u32::from_be_bytes([png[16], png[17], png[18], png[19]]),
+        3 * 48 + 8
+    );
+    let leftovers: Vec<_> = std::fs::read_dir(&out)
+        .unwrap()
+        .filter_map(|e| e.ok())
+        .filter(|e| e.file_name().to_string_lossy().ends_with(".tmp"))
+        .collect();
+    assert!(leftovers.is_empty());
+    std::fs::remove_dir_all(&out).unwrap();
+}
+
+#[test]
+fn bad_arguments_fail_with_a_clear_message() {
+    let o = sfsfuse()
+        .args(["demo", "--size", "8", "--out"])
+        .arg(scratch("small"))
+        .output()
+        .unwrap();
+    assert!(!o.status.success());
+    let e = String::from_utf8_lossy(&o.stderr);
+    assert!(e.contains("--size 8"), "{e}");
+
+    // The output directory cannot be created under a regular file: the error names the path.
+    let base = scratch("file");
+    std::fs::create_dir_all(&base).unwrap();
+    let file = base.join("not-a-dir");
+    std::fs::write(&file, b"x").unwrap();
+    let o = sfsfuse()
+        .args(["demo", "--size", "16", "--out"])
+        .arg(file.join("out"))
+        .output()
+        .unwrap();
+    assert!(!o.status.success());
+    let e = String::from_utf8_lossy(&o.stderr);
+    assert!(e.contains("not-a-dir"), "{e}");
+    std::fs::remove_dir_all(&base).unwrap();
+}

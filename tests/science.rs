@@ -1,0 +1,153 @@
+//! End-to-end checks of the science core on synthetic scenes with known truth.
+
+use sfsfuse::demo::score;
+use sfsfuse::fusion::{fuse, initial_albedo, solve_fixed_albedo, FusionParams, SolverKind};
+use sfsfuse::synth::{generate, rmse, SceneSpec};
+
+/// The accuracy bar of the science-core issue, on a scene the defaults were not tuned on
+/// (seed 10; seeds 7–9 give inputs under 20 m RMSE, too easy to count): 140 m/px, 1 % image noise, an input DEM 4× coarser with RMSE ≥ 20 m; the fused DEM
+/// must be ≤ 10 m RMSE and at least 2× better than the input, the albedo ≤ 0.01 RMSE.
+#[test]
+fn meets_the_accuracy_bar_on_an_unseen_scene() {
+    let spec = SceneSpec {
+        size: 256,
+        seed: 10,
+        ..SceneSpec::default()
+    };
+    let scene = generate(&spec);
+    assert_eq!(spec.spacing, 140.0);
+    assert_eq!(spec.noise, 0.01);
+    assert_eq!(spec.dem_factor, 4);
+    let input = rmse(&scene.input_dem, &scene.truth_height);
+    assert!(
+        input >= 20.0,
+        "the scene must be at least as hard as the seed's: input RMSE {input:.2} m"
+    );
+    let f = fuse(&scene.problem(), &FusionParams::default()).unwrap();
+    let (height, albedo, albedo_lit) = score(&scene, &f);
+    eprintln!("input {input:.2} m, fused {height:.2} m, albedo {albedo:.4} (lit {albedo_lit:.4})");
+    assert!(height <= 10.0, "elevation RMSE {height:.2} m > 10 m");
+    assert!(
+        height * 2.0 <= input,
+        "elevation RMSE {height:.2} m is not 2× below the input's {input:.2} m"
+    );
+    assert!(albedo <= 0.01, "albedo RMSE {albedo:.4} > 0.01");
+}
+
+/// Both z-solvers minimise the same energy: from the same start at fixed albedo the `paper`
+/// iteration approaches the energy the fast solver reaches, and never goes below it.
+#[test]
+fn paper_and_fast_solvers_reach_the_same_energy() {
+    let scene = generate(&SceneSpec {
+        size: 32,
+        seed: 3,
+        ..SceneSpec::default()
+    });
+    let pr = scene.problem();
+    let base = FusionParams::default();
+    let rho = initial_albedo(&pr, &base).unwrap();
+    let mut zf = scene.input_dem.clone();
+    let fast = FusionParams {
+        max_iterations: 200,
+        tolerance: 1e-12,
+        cg_tolerance: 1e-6,
+        cg_iterations: 500,
+        ..base.clone()
+    };
+    let lf = solve_fixed_albedo(&pr, &fast, rho.view(), &mut zf, &mut |_| {}).unwrap();
+    let mut zp = scene.input_dem.clone();
+    let paper = FusionParams {
+        max_iterations: 20000,
+        tolerance: 1e-13,
+        ..FusionParams::paper()
+    };
+    let lp = solve_fixed_albedo(&pr, &paper, rho.view(), &mut zp, &mut |_| {}).unwrap();
+    let (e0, ef, ep) = (
+        lf[0].energy.total,
+        lf.last().unwrap().energy.total,
+        lp.last().unwrap().energy.total,
+    );
+    eprintln!(
+        "start {e0:.10e}, fast {ef:.10e} ({} its), paper {ep:.10e} ({} sweeps)",
+        lf.len() - 1,
+        lp.len() - 1
+    );
+    assert!(ef < 0.9 * e0, "the fast solver barely moved: {e0} → {ef}");
+    assert!(
+        ep >= ef * (1.0 - 1e-6),
+        "paper went below the fast solver's minimum: {ep} < {ef}"
+    );
+    assert!(
+        ep <= ef * (1.0 + 1e-2),
+        "paper did not approach the same minimum: {ep} vs {ef}"
+    );
+    assert!(
+        lp.windows(2)
+            .all(|w| w[1].energy.total <= w[0].energy.total),
+        "paper energy must not increase"
+    );
+    assert!(
+        rmse(&zf, &zp) < 2.0,
+        "the two minimisers differ by {:.2} m RMS",
+        rmse(&zf, &zp)
+    );
+    assert_eq!(paper.solver, SolverKind::Paper);
+}
+
+/// The same inputs give bit-identical outputs with 1 and 2 threads.
+#[test]
+fn results_do_not_depend_on_the_thread_count() {
+    let run = |threads: usize| {
+        rayon::ThreadPoolBuilder::new()
+            .num_threads(threads)
+            .build()
+            .unwrap()
+            .install(|| {
+                let scene = generate(&SceneSpec {
+                    size: 64,
+                    seed: 11,
+                    ..SceneSpec::default()
+                });
+                let f = fuse(&scene.problem(), &FusionParams::default()).unwrap();
+                (scene.image, f.height, f.albedo)
+            })
+    };
+    let (i1, h1, a1) = run(1);
+    let (i2, h2, a2) = run(2);
+    let bits = |a: &ndarray::Array2<f64>| a.iter().map(|x| x.to_bits()).collect::<Vec<_>>();
+    assert_eq!(bits(&i1), bits(&i2));
+    assert_eq!(bits(&h1), bits(&h2));
+    assert_eq!(bits(&a1), bits(&a2));
+}
+
+/// Bad problems are refused with a message naming the problem.
+#[test]
+fn bad_problems_are_reported() {
+    let scene = generate(&SceneSpec {
+        size: 16,
+        seed: 1,
+        ..SceneSpec::default()
+    });
+    let mut dem = scene.input_dem.clone();
+    dem[(3, 5)] = f64::NAN;
+    let mut pr = scene.problem();
+    pr.dem = dem.view();
+    let e = fuse(&pr, &FusionParams::default()).unwrap_err().to_string();
+    assert!(e.contains("row 3") && e.contains("column 5"), "{e}");
+    let small = ndarray::Array2::<f64>::zeros((8, 8));
+    let mut pr = scene.problem();
+    pr.dem = small.view();
+    let e = fuse(&pr, &FusionParams::default()).unwrap_err().to_string();
+    assert!(e.contains("(16, 16)") && e.contains("(8, 8)"), "{e}");
+    let dark = ndarray::Array2::<f64>::zeros((16, 16));
+    let mut pr = scene.problem();
+    pr.image = dark.view();
+    let e = fuse(&pr, &FusionParams::default()).unwrap_err().to_string();
+    assert!(e.contains("no pixel"), "{e}");
+    let params = FusionParams {
+        eta: -1.0,
+        ..FusionParams::default()
+    };
+    let e = fuse(&scene.problem(), &params).unwrap_err().to_string();
+    assert!(e.contains("eta"), "{e}");
+}
