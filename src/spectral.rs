@@ -12,16 +12,123 @@
 
 use ndarray::{Array2, ArrayView2, Axis, Zip};
 use rayon::prelude::*;
-use rustdct::{DctPlanner, TransformType2And3};
+use rustfft::num_complex::Complex;
+use rustfft::{Fft, FftPlanner};
 use std::sync::Arc;
+
+/// Orthonormal DCT-II / DCT-III of one length by Makhoul's algorithm: reorder
+/// v = (x₀, x₂, x₄, …, x₅, x₃, x₁), take an N-point FFT, and X_k = Re(e^{−iπk/2N}·V_k). Two real
+/// lines are transformed with one complex FFT (the second as the imaginary part).
+#[derive(Clone)]
+struct LineDct {
+    n: usize,
+    fwd: Arc<dyn Fft<f64>>,
+    inv: Arc<dyn Fft<f64>>,
+    /// e^{−iπk/2N}.
+    tw: Vec<Complex<f64>>,
+    scratch_len: usize,
+}
+
+impl LineDct {
+    fn new(planner: &mut FftPlanner<f64>, n: usize) -> Self {
+        let fwd = planner.plan_fft_forward(n);
+        let inv = planner.plan_fft_inverse(n);
+        let tw = (0..n)
+            .map(|k| Complex::from_polar(1.0, -std::f64::consts::PI * k as f64 / (2 * n) as f64))
+            .collect();
+        let scratch_len = fwd
+            .get_inplace_scratch_len()
+            .max(inv.get_inplace_scratch_len());
+        Self {
+            n,
+            fwd,
+            inv,
+            tw,
+            scratch_len,
+        }
+    }
+
+    fn scales(&self) -> (f64, f64) {
+        let n = self.n as f64;
+        ((1.0 / n).sqrt(), (2.0 / n).sqrt())
+    }
+
+    /// Orthonormal DCT-II of `a` and `b` in place.
+    fn forward_pair(
+        &self,
+        a: &mut [f64],
+        b: &mut [f64],
+        buf: &mut [Complex<f64>],
+        scratch: &mut [Complex<f64>],
+    ) {
+        let n = self.n;
+        let half = n.div_ceil(2);
+        for m in 0..half {
+            buf[m] = Complex::new(a[2 * m], b[2 * m]);
+        }
+        for m in 0..n / 2 {
+            buf[n - 1 - m] = Complex::new(a[2 * m + 1], b[2 * m + 1]);
+        }
+        self.fwd.process_with_scratch(buf, scratch);
+        let (c0, ck) = self.scales();
+        for k in 0..n {
+            let w = buf[k];
+            let wc = buf[(n - k) % n].conj();
+            let va = (w + wc) * 0.5;
+            let vb = (w - wc) * Complex::new(0.0, -0.5);
+            let c = if k == 0 { c0 } else { ck };
+            a[k] = (va * self.tw[k]).re * c;
+            b[k] = (vb * self.tw[k]).re * c;
+        }
+    }
+
+    /// Orthonormal DCT-III (the inverse of [`Self::forward_pair`]) of `a` and `b` in place.
+    fn inverse_pair(
+        &self,
+        a: &mut [f64],
+        b: &mut [f64],
+        buf: &mut [Complex<f64>],
+        scratch: &mut [Complex<f64>],
+    ) {
+        let n = self.n;
+        let (c0, ck) = self.scales();
+        // Unnormalised coefficients X_k = Y_k / c_k; V_k = e^{iπk/2N}(X_k − i·X_{N−k}).
+        let x = |y: &[f64], k: usize| {
+            if k == 0 {
+                y[0] / c0
+            } else if k < n {
+                y[k] / ck
+            } else {
+                0.0
+            }
+        };
+        for (k, slot) in buf.iter_mut().enumerate() {
+            let t = self.tw[k].conj();
+            let va = t * Complex::new(x(a, k), -x(a, n - k));
+            let vb = t * Complex::new(x(b, k), -x(b, n - k));
+            *slot = va + vb * Complex::new(0.0, 1.0);
+        }
+        self.inv.process_with_scratch(buf, scratch);
+        let inv_n = 1.0 / n as f64;
+        let half = n.div_ceil(2);
+        for m in 0..half {
+            a[2 * m] = buf[m].re * inv_n;
+            b[2 * m] = buf[m].im * inv_n;
+        }
+        for m in 0..n / 2 {
+            a[2 * m + 1] = buf[n - 1 - m].re * inv_n;
+            b[2 * m + 1] = buf[n - 1 - m].im * inv_n;
+        }
+    }
+}
 
 /// A planned orthonormal 2-D DCT for arrays of `ny` rows × `nx` columns.
 #[derive(Clone)]
 pub struct Dct2d {
     ny: usize,
     nx: usize,
-    rows: Arc<dyn TransformType2And3<f64>>,
-    cols: Arc<dyn TransformType2And3<f64>>,
+    rows: LineDct,
+    cols: LineDct,
 }
 
 impl std::fmt::Debug for Dct2d {
@@ -32,12 +139,12 @@ impl std::fmt::Debug for Dct2d {
 
 impl Dct2d {
     pub fn new(ny: usize, nx: usize) -> Self {
-        let mut planner = DctPlanner::new();
+        let mut planner = FftPlanner::new();
         Self {
             ny,
             nx,
-            rows: planner.plan_dct2(nx),
-            cols: planner.plan_dct2(ny),
+            rows: LineDct::new(&mut planner, nx),
+            cols: LineDct::new(&mut planner, ny),
         }
     }
 
@@ -71,41 +178,65 @@ impl Dct2d {
     }
 }
 
-fn rows_apply(a: &mut Array2<f64>, plan: &Arc<dyn TransformType2And3<f64>>, forward: bool) {
+/// Transform every row, two at a time; an odd last row is paired with a zero line.
+fn rows_apply(a: &mut Array2<f64>, plan: &LineDct, forward: bool) {
     let n = a.ncols();
-    let c0 = (1.0 / n as f64).sqrt();
-    let ck = (2.0 / n as f64).sqrt();
-    a.axis_iter_mut(Axis(0)).into_par_iter().for_each_init(
-        || vec![0.0; plan.get_scratch_len()],
-        |scratch, mut row| {
-            let buf = row.as_slice_mut().expect("standard layout rows");
-            if forward {
-                plan.process_dct2_with_scratch(buf, scratch);
-                buf[0] *= c0;
-                buf[1..].iter_mut().for_each(|x| *x *= ck);
-            } else {
-                buf[0] *= 2.0 * c0;
-                buf[1..].iter_mut().for_each(|x| *x *= ck);
-                plan.process_dct3_with_scratch(buf, scratch);
-            }
-        },
-    );
+    a.axis_chunks_iter_mut(Axis(0), 2)
+        .into_par_iter()
+        .for_each_init(
+            || {
+                (
+                    vec![Complex::new(0.0, 0.0); n],
+                    vec![Complex::new(0.0, 0.0); plan.scratch_len],
+                    vec![0.0; n],
+                )
+            },
+            |(buf, scratch, spare), mut rows| {
+                let mut it = rows.axis_iter_mut(Axis(0));
+                let mut r0 = it.next().expect("chunk has a row");
+                let a0 = r0.as_slice_mut().expect("standard layout rows");
+                match it.next() {
+                    Some(mut r1) => {
+                        let a1 = r1.as_slice_mut().expect("standard layout rows");
+                        if forward {
+                            plan.forward_pair(a0, a1, buf, scratch);
+                        } else {
+                            plan.inverse_pair(a0, a1, buf, scratch);
+                        }
+                    }
+                    None => {
+                        spare.iter_mut().for_each(|x| *x = 0.0);
+                        if forward {
+                            plan.forward_pair(a0, spare, buf, scratch);
+                        } else {
+                            plan.inverse_pair(a0, spare, buf, scratch);
+                        }
+                    }
+                }
+            },
+        );
 }
 
 /// Cache-blocked parallel transpose into a new standard-layout array.
 pub fn transpose(a: ArrayView2<f64>) -> Array2<f64> {
     const B: usize = 32;
     let (ny, nx) = a.dim();
+    let a = a.as_standard_layout();
+    let src = a.as_slice().expect("standard layout");
     let mut out = Array2::<f64>::zeros((nx, ny));
-    out.axis_chunks_iter_mut(Axis(0), B)
-        .into_par_iter()
+    out.as_slice_mut()
+        .expect("standard layout")
+        .par_chunks_mut(B * ny)
         .enumerate()
-        .for_each(|(bi, mut block)| {
+        .for_each(|(bi, block)| {
             let x0 = bi * B;
+            let w = block.len() / ny.max(1);
             for y0 in (0..ny).step_by(B) {
-                for y in y0..(y0 + B).min(ny) {
-                    for (dx, mut orow) in block.axis_iter_mut(Axis(0)).enumerate() {
-                        orow[y] = a[(y, x0 + dx)];
+                let y1 = (y0 + B).min(ny);
+                for y in y0..y1 {
+                    let row = &src[y * nx + x0..y * nx + x0 + w];
+                    for (dx, v) in row.iter().enumerate() {
+                        block[dx * ny + y] = *v;
                     }
                 }
             }
@@ -267,6 +398,40 @@ mod tests {
             })
         };
         pass(&pass(a, 0), 1)
+    }
+
+    #[test]
+    fn matches_the_dct_ii_definition() {
+        for (ny, nx) in [(5, 7), (6, 4), (1, 3), (9, 2)] {
+            let a = test_array(ny, nx);
+            let c = Dct2d::new(ny, nx).forward(&a);
+            let pi = std::f64::consts::PI;
+            let ck = |k: usize, n: usize| {
+                if k == 0 {
+                    (1.0 / n as f64).sqrt()
+                } else {
+                    (2.0 / n as f64).sqrt()
+                }
+            };
+            for l in 0..ny {
+                for k in 0..nx {
+                    let mut s = 0.0;
+                    for i in 0..ny {
+                        for j in 0..nx {
+                            s += a[(i, j)]
+                                * (pi * l as f64 * (i as f64 + 0.5) / ny as f64).cos()
+                                * (pi * k as f64 * (j as f64 + 0.5) / nx as f64).cos();
+                        }
+                    }
+                    let want = s * ck(l, ny) * ck(k, nx);
+                    assert!(
+                        (c[(l, k)] - want).abs() < 1e-10,
+                        "{ny}×{nx} ({l},{k}): {} vs {want}",
+                        c[(l, k)]
+                    );
+                }
+            }
+        }
     }
 
     #[test]

@@ -121,7 +121,7 @@ impl Default for FusionParams {
             max_iterations: 30,
             tolerance: 1e-3,
             cg_iterations: 60,
-            cg_tolerance: 0.1,
+            cg_tolerance: 0.2,
         }
     }
 }

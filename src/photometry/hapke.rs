@@ -103,6 +103,30 @@ impl Hapke {
         }
     }
 
+    /// M(g) = (1 + B(g))·P(g). Within one scene g is often the same for every pixel, so the
+    /// last value is memoised per thread (keyed on g and every parameter it depends on).
+    fn phase_term(&self, cos_g: f64) -> f64 {
+        use std::cell::Cell;
+        type Key = (u64, u64, u64, PhaseFunction);
+        thread_local! {
+            static LAST: Cell<Option<(Key, f64)>> = const { Cell::new(None) };
+        }
+        let key: Key = (
+            cos_g.to_bits(),
+            self.b0.to_bits(),
+            self.h.to_bits(),
+            self.phase,
+        );
+        LAST.with(|c| match c.get() {
+            Some((k, m)) if k == key => m,
+            _ => {
+                let m = (1.0 + self.opposition(cos_g)) * self.phase.eval(cos_g);
+                c.set(Some((key, m)));
+                m
+            }
+        })
+    }
+
     /// B(g) = B0/(1 + tan(g/2)/h).
     pub fn opposition(&self, cos_g: f64) -> f64 {
         if self.h == 0.0 {
@@ -120,7 +144,7 @@ impl Hapke {
         mu: Dual<N>,
         cos_g: f64,
     ) -> (Dual<N>, Dual<N>, Dual<N>, f64) {
-        let m = (1.0 + self.opposition(cos_g)) * self.phase.eval(cos_g);
+        let m = self.phase_term(cos_g);
         if self.theta_bar_deg == 0.0 {
             return (mu0, mu, Dual::constant(1.0), m);
         }
