@@ -1,0 +1,7 @@
+//! Read PDS3 (ODL) labels and the products they describe. This crate knows file formats and
+//! no science: it turns bytes into values and arrays and says precisely what is wrong with
+//! a file that does not match its label.
+
+pub mod odl;
+
+pub use odl::{parse_label, Label, Object, ParseError, Pointer, Value};
