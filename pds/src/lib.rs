@@ -2,6 +2,10 @@
 //! no science: it turns bytes into values and arrays and says precisely what is wrong with
 //! a file that does not match its label.
 
+mod error;
+pub mod lola;
 pub mod odl;
+pub mod raw;
 
+pub use error::{Error, Result};
 pub use odl::{parse_label, Label, Object, ParseError, Pointer, Value};

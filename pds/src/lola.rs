@@ -1,0 +1,221 @@
+//! LRO LOLA GDR DEMs (LRO-L-LOLA-4-GDR): `LDEM_*` labels with an `^IMAGE` pointer, an `IMAGE`
+//! object and an `IMAGE_MAP_PROJECTION` (FORMATS.md).
+//!
+//! Height above the 1737.4 km sphere = DN × SCALING_FACTOR; radius = that + OFFSET.
+//! Simple cylindrical pixel centres, 1-based LINE/SAMPLE (DSMAP.CAT):
+//! lon = CENTER_LONGITUDE + (SAMPLE − SAMPLE_PROJECTION_OFFSET − 1)/MAP_RESOLUTION,
+//! lat = CENTER_LATITUDE − (LINE − LINE_PROJECTION_OFFSET − 1)/MAP_RESOLUTION.
+//! This API is 0-based: line = LINE − 1, sample = SAMPLE − 1.
+
+use crate::error::{Error, Result};
+use crate::odl::{parse_label, Label, Object, Pointer};
+use crate::raw::{locate, Raster};
+use std::path::{Path, PathBuf};
+
+/// The map projection of a GDR product.
+#[derive(Debug, Clone, PartialEq)]
+pub enum Projection {
+    SimpleCylindrical {
+        /// Pixels per degree.
+        resolution: f64,
+        center_lat: f64,
+        center_lon: f64,
+        line_offset: f64,
+        sample_offset: f64,
+    },
+}
+
+/// An opened LOLA GDR DEM.
+#[derive(Debug, Clone)]
+pub struct LolaDem {
+    pub label_path: PathBuf,
+    pub label: Label,
+    pub raster: Raster,
+    pub scaling_factor: f64,
+    /// Reference radius (OFFSET), metres.
+    pub offset: f64,
+    pub projection: Projection,
+    /// MAP_SCALE in metres per pixel, whatever unit the label used.
+    pub map_scale_m: f64,
+    /// A_AXIS_RADIUS in metres.
+    pub radius_m: f64,
+}
+
+fn number(path: &Path, obj: &Object, key: &str) -> Result<f64> {
+    let v = obj.get(key).ok_or_else(|| Error::missing(path, key))?;
+    v.as_f64()
+        .ok_or_else(|| Error::invalid(path, key, format!("{v:?} is not a number")))
+}
+
+/// Convert a length with unit (km or m; none = `default_unit`) to metres.
+fn metres(path: &Path, obj: &Object, key: &str, default_unit: &str) -> Result<f64> {
+    let v = obj.get(key).ok_or_else(|| Error::missing(path, key))?;
+    let x = v
+        .as_f64()
+        .ok_or_else(|| Error::invalid(path, key, format!("{v:?} is not a number")))?;
+    let unit = v.unit().unwrap_or(default_unit).to_ascii_lowercase();
+    match unit.split('/').next().unwrap_or("") {
+        "km" => Ok(x * 1000.0),
+        "m" | "meter" | "meters" | "metre" => Ok(x),
+        other => Err(Error::invalid(
+            path,
+            key,
+            format!("unit <{other}> is not a length"),
+        )),
+    }
+}
+
+/// Resolve a pointer in `obj` to (file, byte offset); `record_bytes` from the enclosing file object.
+pub(crate) fn resolve(
+    label_path: &Path,
+    obj: &Object,
+    name: &str,
+    record_bytes: Option<u64>,
+) -> Result<(PathBuf, u64)> {
+    let p = obj
+        .pointer(name)
+        .ok_or_else(|| Error::missing(label_path, &format!("^{name}")))?;
+    let p = p.map_err(|why| Error::invalid(label_path, &format!("^{name}"), why))?;
+    let rec = |n: u64| -> Result<u64> {
+        let rb = record_bytes.ok_or_else(|| {
+            Error::missing(label_path, "RECORD_BYTES (needed by a record pointer)")
+        })?;
+        Ok(n.saturating_sub(1).saturating_mul(rb))
+    };
+    Ok(match p {
+        Pointer::File(f) => (locate(label_path, &f)?, 0),
+        Pointer::FileRecord(f, n) => (locate(label_path, &f)?, rec(n)?),
+        Pointer::FileBytes(f, n) => (locate(label_path, &f)?, n.saturating_sub(1)),
+        Pointer::Record(n) => (label_path.to_path_buf(), rec(n)?),
+        Pointer::Bytes(n) => (label_path.to_path_buf(), n.saturating_sub(1)),
+    })
+}
+
+pub(crate) fn read_label(path: &Path) -> Result<Label> {
+    let bytes = std::fs::read(path).map_err(|e| Error::Io {
+        path: path.into(),
+        source: e,
+    })?;
+    parse_label(&bytes).map_err(|e| Error::Label {
+        path: path.into(),
+        source: e,
+    })
+}
+
+impl LolaDem {
+    /// Open the product described by the label at `path` (detached or attached).
+    pub fn open(path: &Path) -> Result<Self> {
+        let label = read_label(path)?;
+        let holder = label.child("UNCOMPRESSED_FILE").unwrap_or(&label.root);
+        let record_bytes = holder
+            .get("RECORD_BYTES")
+            .and_then(|v| v.as_i64())
+            .map(|v| v.max(0) as u64);
+        let (data, offset) = resolve(path, holder, "IMAGE", record_bytes)?;
+        let image = holder
+            .child("IMAGE")
+            .ok_or_else(|| Error::missing(path, "OBJECT = IMAGE"))?;
+        let raster = Raster::from_object(path, image, data, offset)?;
+        let scaling_factor = image
+            .get("SCALING_FACTOR")
+            .and_then(|v| v.as_f64())
+            .unwrap_or(1.0);
+        let ref_offset = image.get("OFFSET").and_then(|v| v.as_f64()).unwrap_or(0.0);
+        let map = label
+            .find("IMAGE_MAP_PROJECTION")
+            .ok_or_else(|| Error::missing(path, "OBJECT = IMAGE_MAP_PROJECTION"))?;
+        let kind = map
+            .get("MAP_PROJECTION_TYPE")
+            .and_then(|v| v.as_str())
+            .ok_or_else(|| Error::missing(path, "MAP_PROJECTION_TYPE"))?;
+        let projection = if kind.eq_ignore_ascii_case("SIMPLE CYLINDRICAL")
+            || kind.eq_ignore_ascii_case("EQUIRECTANGULAR")
+        {
+            Projection::SimpleCylindrical {
+                resolution: number(path, map, "MAP_RESOLUTION")?,
+                center_lat: number(path, map, "CENTER_LATITUDE")?,
+                center_lon: number(path, map, "CENTER_LONGITUDE")?,
+                line_offset: number(path, map, "LINE_PROJECTION_OFFSET")?,
+                sample_offset: number(path, map, "SAMPLE_PROJECTION_OFFSET")?,
+            }
+        } else {
+            return Err(Error::invalid(
+                path,
+                "MAP_PROJECTION_TYPE",
+                format!("{kind} is not supported yet (simple cylindrical only)"),
+            ));
+        };
+        let Projection::SimpleCylindrical { resolution, .. } = projection;
+        if !(resolution.is_finite() && resolution > 0.0) {
+            return Err(Error::invalid(
+                path,
+                "MAP_RESOLUTION",
+                format!("{resolution} must be positive"),
+            ));
+        }
+        Ok(LolaDem {
+            label_path: path.into(),
+            map_scale_m: metres(path, map, "MAP_SCALE", "km/pix")?,
+            radius_m: metres(path, map, "A_AXIS_RADIUS", "km")?,
+            label,
+            raster,
+            scaling_factor,
+            offset: ref_offset,
+            projection,
+        })
+    }
+
+    pub fn lines(&self) -> usize {
+        self.raster.lines
+    }
+    pub fn samples(&self) -> usize {
+        self.raster.samples
+    }
+
+    /// Raw DNs of lines `first..first + count`.
+    pub fn read_dn(&self, first: usize, count: usize) -> Result<Vec<f64>> {
+        self.raster.read_band(0, first, count)
+    }
+
+    /// Heights above the reference sphere (DN × SCALING_FACTOR), metres.
+    pub fn read_heights(&self, first: usize, count: usize) -> Result<Vec<f64>> {
+        Ok(self
+            .read_dn(first, count)?
+            .into_iter()
+            .map(|d| d * self.scaling_factor)
+            .collect())
+    }
+
+    /// (east longitude, latitude) in degrees of the centre of 0-based pixel (line, sample).
+    pub fn lonlat(&self, line: f64, sample: f64) -> (f64, f64) {
+        let Projection::SimpleCylindrical {
+            resolution,
+            center_lat,
+            center_lon,
+            line_offset,
+            sample_offset,
+        } = self.projection;
+        (
+            center_lon + (sample - sample_offset) / resolution,
+            center_lat - (line - line_offset) / resolution,
+        )
+    }
+
+    /// Fractional 0-based (line, sample) of a longitude (east, any range) and latitude.
+    pub fn pixel(&self, lon: f64, lat: f64) -> (f64, f64) {
+        let Projection::SimpleCylindrical {
+            resolution,
+            center_lat,
+            center_lon,
+            line_offset,
+            sample_offset,
+        } = self.projection;
+        let line = line_offset + (center_lat - lat) * resolution;
+        // Longitude is periodic: the 360° turn in [−0.5, 360·res − 0.5) contains the whole
+        // product (it spans at most one turn).
+        let turn = 360.0 * resolution;
+        let sample = sample_offset + (lon - center_lon) * resolution;
+        let sample = (sample + 0.5).rem_euclid(turn) - 0.5;
+        (line, sample)
+    }
+}
