@@ -2,8 +2,10 @@
 //! no science: it turns bytes into values and arrays and says precisely what is wrong with
 //! a file that does not match its label.
 
+pub mod envi;
 mod error;
 pub mod lola;
+pub mod m3;
 pub mod odl;
 pub mod raw;
 

@@ -1,0 +1,166 @@
+//! M3 Level 1B crops (real mission data) read through their labels.
+
+use pds::lola::LolaDem;
+use pds::m3::{band_centres, Mode, Observation};
+use std::path::PathBuf;
+
+fn shared_data() -> Option<PathBuf> {
+    let p = PathBuf::from(env!("CARGO_MANIFEST_DIR")).join("../../shared/data");
+    if p.is_dir() {
+        return Some(p);
+    }
+    assert!(
+        std::env::var_os("CI").is_none(),
+        "CI is set but {} is missing",
+        p.display()
+    );
+    eprintln!("skipping: {} not found", p.display());
+    None
+}
+
+const SETS: [(&str, &str); 3] = [
+    ("forwardAscending", "M3T20090630T083407_V03_L1B_cropped.LBL"),
+    (
+        "forwardDescending",
+        "M3G20081129T171431_V03_L1B_cropped.LBL",
+    ),
+    (
+        "reverseDescending",
+        "M3G20090106T113423_V03_L1B_cropped.LBL",
+    ),
+];
+
+fn enu(zenith: f64, azimuth: f64) -> [f64; 3] {
+    let (z, a) = (zenith.to_radians(), azimuth.to_radians());
+    [z.sin() * a.sin(), z.sin() * a.cos(), z.cos()]
+}
+
+#[test]
+fn obs_phase_equals_the_angle_between_sun_and_view() {
+    let Some(data) = shared_data() else { return };
+    for (dir, lbl) in SETS {
+        let o = Observation::open(&data.join("m3_l1b_crops").join(dir).join(lbl)).unwrap();
+        let obs = o.part("OBS").unwrap();
+        assert_eq!(obs.bands, 10);
+        let b = |k| obs.read_band(k, 0, obs.lines).unwrap();
+        let (saz, sze, vaz, vze, ph) = (b(0), b(1), b(2), b(3), b(4));
+        let mut worst = 0.0f64;
+        for i in 0..saz.len() {
+            let (s, v) = (enu(sze[i], saz[i]), enu(vze[i], vaz[i]));
+            let g = (s[0] * v[0] + s[1] * v[1] + s[2] * v[2])
+                .clamp(-1.0, 1.0)
+                .acos()
+                .to_degrees();
+            worst = worst.max((g - ph[i]).abs());
+        }
+        assert!(worst <= 1e-3, "{dir}: phase differs by {worst}°");
+    }
+}
+
+#[test]
+fn loc_radius_agrees_with_lola() {
+    let Some(data) = shared_data() else { return };
+    let dem = LolaDem::open(&data.join("lola_ldem4/LDEM_4.LBL")).unwrap();
+    let heights = dem.read_heights(0, dem.lines()).unwrap();
+    let (n, m) = (dem.lines(), dem.samples());
+    let bilinear = |lon: f64, lat: f64| {
+        let (l, s) = dem.pixel(lon, lat);
+        let (l0, s0) = (
+            l.floor().clamp(0.0, (n - 2) as f64) as usize,
+            s.floor() as i64,
+        );
+        let (tl, ts) = (l - l0 as f64, s - s0 as f64);
+        let at = |i: usize, j: i64| heights[i * m + j.rem_euclid(m as i64) as usize];
+        (1.0 - tl) * ((1.0 - ts) * at(l0, s0) + ts * at(l0, s0 + 1))
+            + tl * ((1.0 - ts) * at(l0 + 1, s0) + ts * at(l0 + 1, s0 + 1))
+    };
+    for (dir, lbl) in SETS {
+        let o = Observation::open(&data.join("m3_l1b_crops").join(dir).join(lbl)).unwrap();
+        let loc = o.part("LOC").unwrap();
+        let (lon, lat, rad) = (
+            loc.read_band(0, 0, loc.lines).unwrap(),
+            loc.read_band(1, 0, loc.lines).unwrap(),
+            loc.read_band(2, 0, loc.lines).unwrap(),
+        );
+        let diffs: Vec<f64> = (0..lon.len())
+            .map(|i| rad[i] - 1_737_400.0 - bilinear(lon[i], lat[i]))
+            .collect();
+        let mean = diffs.iter().sum::<f64>() / diffs.len() as f64;
+        let rms = (diffs.iter().map(|d| d * d).sum::<f64>() / diffs.len() as f64).sqrt();
+        eprintln!("{dir}: LOC − LDEM_4 mean {mean:.0} m, rms {rms:.0} m");
+        assert!(
+            rms < 500.0,
+            "{dir}: LOC radius and LDEM_4 disagree by {rms:.0} m RMS"
+        );
+    }
+}
+
+#[test]
+fn band_selection_by_wavelength() {
+    let Some(data) = shared_data() else { return };
+    let t = Observation::open(&data.join("m3_l1b_crops/forwardAscending").join(SETS[0].1)).unwrap();
+    assert_eq!(t.mode, Mode::Target);
+    assert_eq!(t.wavelengths, vec![446.02, 456.0, 465.98]);
+    // Nearest to 1209.6 nm in target mode: bands 76 (1204.58) and 77 (1214.56), which this
+    // three-band crop does not hold.
+    let table = band_centres(Mode::Target);
+    assert_eq!((table[76], table[77]), (1204.58, 1214.56));
+    let e = t.bracket(1209.6).unwrap_err().to_string();
+    assert!(
+        e.contains("bands 76 and 77") && e.contains("first 3 bands"),
+        "{e}"
+    );
+    let g =
+        Observation::open(&data.join("m3_l1b_crops/reverseDescending").join(SETS[2].1)).unwrap();
+    assert_eq!(g.mode, Mode::Global);
+    assert_eq!(band_centres(Mode::Global)[31], 1209.57);
+    let e = g.nearest_band(1209.6).unwrap_err().to_string();
+    assert!(e.contains("band 31 (1209.57 nm)"), "{e}");
+    assert_eq!(g.nearest_band(500.0).unwrap(), 1);
+    assert!((g.solar_distance_au - 0.984326066205).abs() < 1e-15);
+    // The radiance band reads as finite positive radiance.
+    let r = g.rdn.read_band(1, 0, g.rdn.lines).unwrap();
+    assert_eq!(r.len(), 304 * 5);
+    assert!(r.iter().all(|v| v.is_finite()));
+}
+
+#[test]
+fn a_missing_or_truncated_part_is_named() {
+    let Some(data) = shared_data() else { return };
+    // linerateNotConstant ships RDN and TIM only: RDN opens, LOC is reported missing.
+    let o = Observation::open(
+        &data.join("m3_l1b_crops/linerateNotConstant/M3G20081118T223204_V03_L1B_cropped.LBL"),
+    )
+    .unwrap();
+    let e = o.part("LOC").unwrap_err().to_string();
+    assert!(
+        e.contains("M3G20081118T223204_V03_LOC_cropped.IMG") && e.contains("not in"),
+        "{e}"
+    );
+    // A truncated OBS file.
+    let src = data.join("m3_l1b_crops/reverseDescending");
+    let dir = std::env::temp_dir().join(format!("pds-m3-bad-{}", std::process::id()));
+    std::fs::create_dir_all(&dir).unwrap();
+    for e in std::fs::read_dir(&src).unwrap() {
+        let p = e.unwrap().path();
+        std::fs::copy(&p, dir.join(p.file_name().unwrap())).unwrap();
+    }
+    let obs = dir.join("M3G20090106T113423_V03_OBS_cropped.IMG");
+    let bytes = std::fs::read(&obs).unwrap();
+    std::fs::write(&obs, &bytes[..bytes.len() - 4]).unwrap();
+    let o = Observation::open(&dir.join(SETS[2].1)).unwrap();
+    let e = o.part("OBS").unwrap_err().to_string();
+    assert!(e.contains("OBS_cropped.IMG") && e.contains("60796"), "{e}");
+    // A label whose RECORD_BYTES disagrees with its dimensions.
+    let lbl = dir.join(SETS[2].1);
+    let text = std::fs::read_to_string(&lbl)
+        .unwrap()
+        .replace("RECORD_BYTES = 3648", "RECORD_BYTES = 3600");
+    std::fs::write(&lbl, text).unwrap();
+    let e = Observation::open(&lbl).unwrap_err().to_string();
+    assert!(
+        e.contains("RECORD_BYTES in RDN_FILE") && e.contains("3600"),
+        "{e}"
+    );
+    std::fs::remove_dir_all(&dir).unwrap();
+}
