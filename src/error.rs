@@ -16,6 +16,8 @@ pub enum Error {
     },
     #[error(transparent)]
     Fusion(#[from] crate::fusion::FusionError),
+    #[error(transparent)]
+    Pds(#[from] pds::Error),
     #[error("{0}")]
     Usage(String),
 }

@@ -5,6 +5,7 @@ pub mod bench;
 pub mod demo;
 pub mod error;
 pub mod fusion;
+pub mod inspect;
 pub mod photometry;
 pub mod quicklook;
 pub mod raster;

@@ -40,6 +40,14 @@ enum Command {
         #[arg(long)]
         json: bool,
     },
+    /// Describe a PDS product (M3 L1B or LOLA GDR label): kind, size, bands, extent, ranges.
+    Inspect {
+        /// The product's PDS3 label.
+        path: PathBuf,
+        /// Print JSON instead of a table.
+        #[arg(long)]
+        json: bool,
+    },
     /// Benchmark the solvers on one synthetic scene and print timings and ratios.
     Bench {
         /// Scene size in pixels (square).
@@ -86,6 +94,17 @@ fn run(cli: Cli) -> Result<(), sfsfuse::Error> {
                 );
             } else {
                 print!("{}", report.table());
+            }
+        }
+        Command::Inspect { path, json } => {
+            let i = sfsfuse::inspect::inspect(&path)?;
+            if json {
+                println!(
+                    "{}",
+                    serde_json::to_string_pretty(&i).expect("report serialises")
+                );
+            } else {
+                print!("{}", i.table());
             }
         }
         Command::Bench {

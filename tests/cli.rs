@@ -91,3 +91,77 @@ fn bad_arguments_fail_with_a_clear_message() {
     assert!(e.contains("not-a-dir"), "{e}");
     std::fs::remove_dir_all(&base).unwrap();
 }
+
+fn shared_data() -> Option<std::path::PathBuf> {
+    let p = std::path::PathBuf::from(env!("CARGO_MANIFEST_DIR")).join("../shared/data");
+    if p.is_dir() {
+        return Some(p);
+    }
+    assert!(
+        std::env::var_os("CI").is_none(),
+        "CI is set but {} is missing",
+        p.display()
+    );
+    eprintln!("skipping: {} not found", p.display());
+    None
+}
+
+#[test]
+fn inspect_describes_real_products() {
+    let Some(data) = shared_data() else { return };
+    let o = sfsfuse()
+        .args(["inspect", "--json"])
+        .arg(data.join("lola_ldem4/LDEM_4.LBL"))
+        .output()
+        .unwrap();
+    assert!(o.status.success(), "{}", String::from_utf8_lossy(&o.stderr));
+    let r: serde_json::Value = serde_json::from_slice(&o.stdout).unwrap();
+    assert_eq!(r["kind"], "LOLA GDR");
+    assert_eq!(r["lines"], 720);
+    // MANIFEST.md: DN −17757 … 21008, heights are DN × 0.5 m.
+    assert_eq!(r["height_m"]["min"], -8878.5);
+    assert_eq!(r["height_m"]["max"], 10504.0);
+    assert_eq!(r["longitude_deg"]["min"], 0.0);
+    assert_eq!(r["latitude_deg"]["max"], 90.0);
+
+    let o = sfsfuse()
+        .args(["inspect", "--json"])
+        .arg(data.join("m3_l1b_crops/forwardDescending/M3G20081129T171431_V03_L1B_cropped.LBL"))
+        .output()
+        .unwrap();
+    assert!(o.status.success(), "{}", String::from_utf8_lossy(&o.stderr));
+    let r: serde_json::Value = serde_json::from_slice(&o.stdout).unwrap();
+    assert_eq!(r["kind"], "M3 L1B");
+    assert_eq!(r["mode"], "GLOBAL");
+    assert_eq!(r["samples"], 304);
+    // MANIFEST.md: ~29.1°S, 173.7–175.3°E.
+    let (lat0, lat1) = (
+        r["latitude_deg"]["min"].as_f64().unwrap(),
+        r["latitude_deg"]["max"].as_f64().unwrap(),
+    );
+    let (lon0, lon1) = (
+        r["longitude_deg"]["min"].as_f64().unwrap(),
+        r["longitude_deg"]["max"].as_f64().unwrap(),
+    );
+    assert!(lat0 > -29.5 && lat1 < -28.7, "{lat0} {lat1}");
+    assert!(
+        (lon0 - 173.7).abs() < 0.2 && (lon1 - 175.3).abs() < 0.2,
+        "{lon0} {lon1}"
+    );
+
+    let o = sfsfuse()
+        .arg("inspect")
+        .arg(data.join("pds3_syntax/BILtestData_cropped.LBL"))
+        .output()
+        .unwrap();
+    assert!(!o.status.success());
+    assert!(String::from_utf8_lossy(&o.stderr).contains("BILtestData_cropped.LBL"));
+    let o = sfsfuse()
+        .arg("inspect")
+        .arg(data.join("lola_ldem4/LDEM_4.IMG"))
+        .output()
+        .unwrap();
+    assert!(!o.status.success());
+    let e = String::from_utf8_lossy(&o.stderr);
+    assert!(e.contains("LDEM_4.IMG") && e.contains("line"), "{e}");
+}

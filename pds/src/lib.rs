@@ -8,6 +8,7 @@ pub mod lola;
 pub mod m3;
 pub mod odl;
 pub mod raw;
+pub mod solar;
 
 pub use error::{Error, Result};
 pub use odl::{parse_label, Label, Object, ParseError, Pointer, Value};

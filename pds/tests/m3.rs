@@ -164,3 +164,28 @@ fn a_missing_or_truncated_part_is_named() {
     );
     std::fs::remove_dir_all(&dir).unwrap();
 }
+
+#[test]
+fn solar_spectrum_table() {
+    let Some(data) = shared_data() else { return };
+    let s = pds::solar::SolarSpectrum::read(
+        &data.join("m3_calibration/m3t20110224_rfl_solar_spec.tab"),
+    )
+    .unwrap();
+    assert_eq!(s.rows.len(), 256);
+    assert_eq!(s.rows[0], (446.019989, 1915.545166));
+    // FORMATS.md: the target table interpolated at 1209.57 nm gives ≈ 478.3 W/(m² µm).
+    let e = s.at(1209.57).unwrap();
+    assert!((e - 478.3).abs() < 0.5, "{e}");
+    assert!(s.at(100.0).is_none());
+    let bad = std::env::temp_dir().join(format!("pds-solar-bad-{}", std::process::id()));
+    std::fs::write(&bad, "446.0 1915.5\n456.0 x\n").unwrap();
+    let err = pds::solar::SolarSpectrum::read(&bad)
+        .unwrap_err()
+        .to_string();
+    assert!(
+        err.contains("line 2") && err.contains("irradiance"),
+        "{err}"
+    );
+    std::fs::remove_file(&bad).unwrap();
+}

@@ -1,0 +1,186 @@
+//! `sfsfuse inspect PATH`: what a PDS product is — kind, mode, dimensions, bands and
+//! wavelengths, geographic extent, map projection, value ranges.
+
+use crate::error::{Error, Result};
+use pds::lola::{LolaDem, Projection};
+use pds::m3::{Mode, Observation};
+use serde::Serialize;
+use std::path::Path;
+
+#[derive(Debug, Clone, Serialize)]
+pub struct Range {
+    pub min: f64,
+    pub max: f64,
+}
+
+impl Range {
+    fn of(values: impl Iterator<Item = f64>) -> Option<Range> {
+        values.filter(|v| v.is_finite()).fold(None, |r, v| match r {
+            None => Some(Range { min: v, max: v }),
+            Some(Range { min, max }) => Some(Range {
+                min: min.min(v),
+                max: max.max(v),
+            }),
+        })
+    }
+}
+
+/// A description of one product.
+#[derive(Debug, Clone, Serialize)]
+#[serde(tag = "kind")]
+pub enum Inspection {
+    #[serde(rename = "M3 L1B")]
+    M3 {
+        label: String,
+        mode: String,
+        lines: usize,
+        samples: usize,
+        bands: usize,
+        wavelengths_nm: Vec<f64>,
+        wavelength_source: String,
+        solar_distance_au: f64,
+        /// Longitude (east) and latitude ranges from LOC, when the LOC file is present.
+        longitude_deg: Option<Range>,
+        latitude_deg: Option<Range>,
+        /// Why LOC could not be read, if it could not.
+        loc_problem: Option<String>,
+        /// Radiance range of the first band, W/(m² µm sr).
+        radiance_band0: Option<Range>,
+    },
+    #[serde(rename = "LOLA GDR")]
+    Lola {
+        label: String,
+        lines: usize,
+        samples: usize,
+        projection: String,
+        map_scale_m: f64,
+        radius_m: f64,
+        longitude_deg: Range,
+        latitude_deg: Range,
+        /// Heights above the reference sphere (DN × SCALING_FACTOR), metres.
+        height_m: Option<Range>,
+    },
+}
+
+/// Lines read per window when scanning a product for its value range.
+const WINDOW: usize = 256;
+
+fn scan(
+    lines: usize,
+    mut read: impl FnMut(usize, usize) -> pds::Result<Vec<f64>>,
+) -> pds::Result<Option<Range>> {
+    let mut acc: Option<Range> = None;
+    for first in (0..lines).step_by(WINDOW) {
+        let r = Range::of(read(first, WINDOW.min(lines - first))?.into_iter());
+        acc = match (acc, r) {
+            (Some(a), Some(b)) => Some(Range {
+                min: a.min.min(b.min),
+                max: a.max.max(b.max),
+            }),
+            (a, b) => a.or(b),
+        };
+    }
+    Ok(acc)
+}
+
+pub fn inspect(path: &Path) -> Result<Inspection> {
+    let bytes = std::fs::read(path).map_err(|e| Error::io(path, e))?;
+    let label = pds::parse_label(&bytes).map_err(|e| {
+        Error::Pds(pds::Error::Label {
+            path: path.into(),
+            source: e,
+        })
+    })?;
+    let label_s = path.display().to_string();
+    if label.child("RDN_FILE").is_some() {
+        let o = Observation::open(path)?;
+        let (mut lon, mut lat, mut problem) = (None, None, None);
+        match o.part("LOC") {
+            Ok(loc) => {
+                lon = scan(loc.lines, |f, n| loc.read_band(0, f, n))?;
+                lat = scan(loc.lines, |f, n| loc.read_band(1, f, n))?;
+            }
+            Err(e) => problem = Some(e.to_string()),
+        }
+        let rad = scan(o.rdn.lines, |f, n| o.rdn.read_band(0, f, n))?;
+        return Ok(Inspection::M3 {
+            label: label_s,
+            mode: match o.mode {
+                Mode::Global => "GLOBAL".into(),
+                Mode::Target => "TARGET".into(),
+            },
+            lines: o.rdn.lines,
+            samples: o.rdn.samples,
+            bands: o.rdn.bands,
+            wavelengths_nm: o.wavelengths.clone(),
+            wavelength_source: o.wavelength_source.clone(),
+            solar_distance_au: o.solar_distance_au,
+            longitude_deg: lon,
+            latitude_deg: lat,
+            loc_problem: problem,
+            radiance_band0: rad,
+        });
+    }
+    if label.find("IMAGE_MAP_PROJECTION").is_some() {
+        let d = LolaDem::open(path)?;
+        let (lon0, lat0) = d.lonlat(-0.5, -0.5);
+        let (lon1, lat1) = d.lonlat(d.lines() as f64 - 0.5, d.samples() as f64 - 0.5);
+        let Projection::SimpleCylindrical {
+            resolution,
+            center_lon,
+            ..
+        } = d.projection;
+        let heights = scan(d.lines(), |f, n| d.read_heights(f, n))?;
+        return Ok(Inspection::Lola {
+            label: label_s,
+            lines: d.lines(),
+            samples: d.samples(),
+            projection: format!(
+                "simple cylindrical, {resolution} px/deg, centre longitude {center_lon}°"
+            ),
+            map_scale_m: d.map_scale_m,
+            radius_m: d.radius_m,
+            longitude_deg: Range {
+                min: lon0.min(lon1),
+                max: lon0.max(lon1),
+            },
+            latitude_deg: Range {
+                min: lat0.min(lat1),
+                max: lat0.max(lat1),
+            },
+            height_m: heights,
+        });
+    }
+    Err(Error::Usage(format!("{}: a PDS3 label, but neither an M3 L1B observation (no RDN_FILE object) nor a LOLA GDR (no IMAGE_MAP_PROJECTION)", path.display())))
+}
+
+impl Inspection {
+    pub fn table(&self) -> String {
+        let r = |r: &Option<Range>| {
+            r.as_ref()
+                .map(|r| format!("{:.4} … {:.4}", r.min, r.max))
+                .unwrap_or_else(|| "—".into())
+        };
+        match self {
+            Inspection::M3 { label, mode, lines, samples, bands, wavelengths_nm, wavelength_source, solar_distance_au, longitude_deg, latitude_deg, loc_problem, radiance_band0 } => {
+                let mut s = format!("{label}\n  kind           M3 Level 1B, {mode} mode\n  size           {lines} lines × {samples} samples × {bands} bands\n");
+                let wl = if wavelengths_nm.len() > 6 {
+                    format!("{:.2} … {:.2} nm", wavelengths_nm[0], wavelengths_nm[wavelengths_nm.len() - 1])
+                } else {
+                    wavelengths_nm.iter().map(|w| format!("{w:.2}")).collect::<Vec<_>>().join(", ") + " nm"
+                };
+                s += &format!("  wavelengths    {wl} ({wavelength_source})\n  Sun distance   {solar_distance_au} AU\n");
+                s += &format!("  longitude      {}°E\n  latitude       {}°\n", r(longitude_deg), r(latitude_deg));
+                if let Some(p) = loc_problem {
+                    s += &format!("  LOC            {p}\n");
+                }
+                s += &format!("  radiance b0    {} W/(m² µm sr)\n", r(radiance_band0));
+                s
+            }
+            Inspection::Lola { label, lines, samples, projection, map_scale_m, radius_m, longitude_deg, latitude_deg, height_m } => format!(
+                "{label}\n  kind           LOLA GDR DEM\n  size           {lines} lines × {samples} samples\n  projection     {projection}\n  scale          {map_scale_m} m/px on a {radius_m} m sphere\n  longitude      {:.4} … {:.4}°E\n  latitude       {:.4} … {:.4}°\n  height         {} m above the reference sphere\n",
+                longitude_deg.min, longitude_deg.max, latitude_deg.min, latitude_deg.max, r(height_m)
+            ),
+        }
+    }
+}
