@@ -87,25 +87,11 @@ fn run(cli: Cli) -> Result<(), sfsfuse::Error> {
                 SolverKind::Paper => FusionParams::paper(),
             };
             let report = sfsfuse::demo::run(&spec, &params, Some(&out))?;
-            if json {
-                println!(
-                    "{}",
-                    serde_json::to_string_pretty(&report).expect("report serialises")
-                );
-            } else {
-                print!("{}", report.table());
-            }
+            emit(json, &report, report.table());
         }
         Command::Inspect { path, json } => {
             let i = sfsfuse::inspect::inspect(&path)?;
-            if json {
-                println!(
-                    "{}",
-                    serde_json::to_string_pretty(&i).expect("report serialises")
-                );
-            } else {
-                print!("{}", i.table());
-            }
+            emit(json, &i, i.table());
         }
         Command::Bench {
             size,
@@ -113,17 +99,22 @@ fn run(cli: Cli) -> Result<(), sfsfuse::Error> {
             json,
         } => {
             let report = sfsfuse::bench::run(size, paper_sweeps)?;
-            if json {
-                println!(
-                    "{}",
-                    serde_json::to_string_pretty(&report).expect("report serialises")
-                );
-            } else {
-                print!("{}", report.table());
-            }
+            emit(json, &report, report.table());
         }
     }
     Ok(())
+}
+
+/// Print a report as JSON or as its table.
+fn emit<T: serde::Serialize>(json: bool, value: &T, table: String) {
+    if json {
+        println!(
+            "{}",
+            serde_json::to_string_pretty(value).expect("reports serialise")
+        );
+    } else {
+        print!("{table}");
+    }
 }
 
 fn main() -> ExitCode {

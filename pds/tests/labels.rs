@@ -3,24 +3,8 @@
 use pds::{parse_label, Pointer};
 use std::path::PathBuf;
 
-/// ../shared/data beside the project root; `None` (skip) outside that layout, but an error in CI.
-fn shared_data() -> Option<PathBuf> {
-    let p = PathBuf::from(env!("CARGO_MANIFEST_DIR")).join("../../shared/data");
-    if p.is_dir() {
-        return Some(p);
-    }
-    if std::env::var_os("CI").is_some() {
-        panic!(
-            "CI is set but {} is missing: the real-file tests cannot be skipped in CI",
-            p.display()
-        );
-    }
-    eprintln!(
-        "skipping: {} not found (run from the project checkout beside shared/)",
-        p.display()
-    );
-    None
-}
+mod common;
+use common::shared_data;
 
 fn labels(dir: &std::path::Path, out: &mut Vec<PathBuf>) {
     for e in std::fs::read_dir(dir).unwrap() {

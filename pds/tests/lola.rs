@@ -1,21 +1,9 @@
 //! LDEM_4 (the full global 4 px/deg LOLA GDR) read through its label.
 
 use pds::lola::LolaDem;
-use std::path::PathBuf;
 
-fn shared_data() -> Option<PathBuf> {
-    let p = PathBuf::from(env!("CARGO_MANIFEST_DIR")).join("../../shared/data");
-    if p.is_dir() {
-        return Some(p);
-    }
-    assert!(
-        std::env::var_os("CI").is_none(),
-        "CI is set but {} is missing",
-        p.display()
-    );
-    eprintln!("skipping: {} not found", p.display());
-    None
-}
+mod common;
+use common::shared_data;
 
 #[test]
 fn ldem4_extremes_fall_where_the_manifest_says() {

@@ -2,21 +2,9 @@
 
 use pds::lola::LolaDem;
 use pds::m3::{band_centres, Mode, Observation};
-use std::path::PathBuf;
 
-fn shared_data() -> Option<PathBuf> {
-    let p = PathBuf::from(env!("CARGO_MANIFEST_DIR")).join("../../shared/data");
-    if p.is_dir() {
-        return Some(p);
-    }
-    assert!(
-        std::env::var_os("CI").is_none(),
-        "CI is set but {} is missing",
-        p.display()
-    );
-    eprintln!("skipping: {} not found", p.display());
-    None
-}
+mod common;
+use common::shared_data;
 
 const SETS: [(&str, &str); 3] = [
     ("forwardAscending", "M3T20090630T083407_V03_L1B_cropped.LBL"),

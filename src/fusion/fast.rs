@@ -2,7 +2,7 @@
 //! conjugate gradients in the DCT basis, preconditioned by the DCT-diagonal operator
 //! (ALGORITHM.md route 3), with a backtracking line search on the true energy.
 
-use super::objective::{Energy, Objective, Photo};
+use super::objective::{Energy, Iterate, Objective, Photo};
 use super::{ops, FusionParams, IterationRecord};
 use crate::spectral;
 use ndarray::{Array2, ArrayView2, Zip};
@@ -93,9 +93,11 @@ pub fn minimise(
     observe: &mut dyn FnMut(&Energy),
 ) -> Vec<IterationRecord> {
     let hq = obj.quadratic_hessian();
-    let mut photo = obj.photo(z.view(), rho);
-    let mut zh = obj.dct.forward(z);
-    let mut energy = obj.energy_with(&zh, &photo);
+    let Iterate {
+        mut photo,
+        mut zh,
+        mut energy,
+    } = obj.evaluate(z, rho);
     observe(&energy);
     let mut log = vec![IterationRecord {
         iteration: 0,
@@ -114,9 +116,11 @@ pub fn minimise(
         for _ in 0..12 {
             let mut trial = z.clone();
             trial.scaled_add(t, &step);
-            let tp = obj.photo(trial.view(), rho);
-            let th = obj.dct.forward(&trial);
-            let te = obj.energy_with(&th, &tp);
+            let Iterate {
+                photo: tp,
+                zh: th,
+                energy: te,
+            } = obj.evaluate(&trial, rho);
             if te.total <= energy.total + 1e-4 * t * slope {
                 accepted = Some((trial, tp, th, te));
                 break;

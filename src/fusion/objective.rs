@@ -48,6 +48,14 @@ pub struct Photo {
     pub used: Array2<bool>,
 }
 
+/// The state at one iterate z.
+pub struct Iterate {
+    pub photo: Photo,
+    /// ẑ, the DCT coefficients of z.
+    pub zh: Array2<f64>,
+    pub energy: Energy,
+}
+
 /// Precomputed operators for one problem.
 pub struct Objective<'a, 'p> {
     pub problem: &'a Problem<'p>,
@@ -155,6 +163,14 @@ impl<'a, 'p> Objective<'a, 'p> {
             .and(&self.dem_hat)
             .map_collect(|&l, &z, &t| l * (z - t) * (z - t));
         (ops::sum(dem.view()), ops::sum(reg.view()))
+    }
+
+    /// Everything the solvers need at one iterate: photometric state, ẑ and the energy.
+    pub fn evaluate(&self, z: &Array2<f64>, rho: ArrayView2<f64>) -> Iterate {
+        let photo = self.photo(z.view(), rho);
+        let zh = self.dct.forward(z);
+        let energy = self.energy_with(&zh, &photo);
+        Iterate { photo, zh, energy }
     }
 
     /// Energy at `z` given its photometric state.

@@ -7,7 +7,7 @@
 //! computed here, so that it descends the same discrete energy as the fast solver. Should a
 //! sweep raise E (γ too small for stability), γ is doubled: a safeguard, reported in the record.
 
-use super::objective::{Energy, Objective};
+use super::objective::{Energy, Iterate, Objective};
 use super::{ops, FusionParams, IterationRecord};
 use ndarray::{Array2, ArrayView2};
 
@@ -22,9 +22,11 @@ pub fn minimise(
 ) -> Vec<IterationRecord> {
     let eps = obj.problem.spacing;
     let mut gamma = params.gamma;
-    let mut photo = obj.photo(z.view(), rho);
-    let mut zh = obj.dct.forward(z);
-    let mut energy = obj.energy_with(&zh, &photo);
+    let Iterate {
+        mut photo,
+        mut zh,
+        mut energy,
+    } = obj.evaluate(z, rho);
     observe(&energy);
     let mut log = vec![IterationRecord {
         iteration: 0,
@@ -37,9 +39,11 @@ pub fn minimise(
         let tau = eps * eps / (2.0 * KAPPA * gamma);
         let mut trial = z.clone();
         trial.scaled_add(-tau, &g);
-        let tp = obj.photo(trial.view(), rho);
-        let th = obj.dct.forward(&trial);
-        let mut te = obj.energy_with(&th, &tp);
+        let Iterate {
+            photo: tp,
+            zh: th,
+            energy: mut te,
+        } = obj.evaluate(&trial, rho);
         if te.total > energy.total {
             gamma *= 2.0;
             if gamma > 1e12 * params.gamma {
