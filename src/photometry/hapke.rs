@@ -267,9 +267,9 @@ impl ReflectanceModel for Hapke {
             return Albedo::OutOfRange;
         }
         let (mut lo, mut hi) = (0.0, W_MAX);
-        // Start from the single-scattering-only estimate (H ≈ 1): r ≈ w/4π·K·M·S.
-        let lin = r(1e-3).v / 1e-3;
-        let mut w = (observed / lin).clamp(0.0, W_MAX);
+        // Start from the secant through the origin and w = 0.5 (r(w)/w varies slowly in w).
+        let slope = r(0.5).v / 0.5;
+        let mut w = (observed / slope).clamp(0.0, W_MAX);
         for _ in 0..100 {
             let f = r(w);
             let err = f.v - observed;
@@ -278,7 +278,7 @@ impl ReflectanceModel for Hapke {
             } else {
                 lo = w;
             }
-            if err.abs() <= 1e-15 * observed || hi - lo <= 1e-15 {
+            if err.abs() <= 1e-14 * observed || hi - lo <= 1e-15 {
                 break;
             }
             let newton = w - err / f.d[0];
