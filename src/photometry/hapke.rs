@@ -217,10 +217,13 @@ fn roughness<const N: usize>(
     };
     let psi = cos_psi.acos();
     let half_sin2 = (1.0 - cos_psi) * 0.5; // sin²(ψ/2)
+                                           // f(ψ) = exp(−2 tan(ψ/2)), with tan(ψ/2) = √((1 − cos ψ)/(1 + cos ψ)) (cheaper than tan).
     let f = if psi.v >= PI {
         Dual::constant(0.0)
+    } else if cos_psi.v >= 1.0 {
+        Dual::constant(1.0)
     } else {
-        ((psi * 0.5).tan() * -2.0).exp()
+        (((1.0 - cos_psi) / (1.0 + cos_psi)).sqrt() * -2.0).exp()
     };
     let eta =
         |c: Dual<N>, s: Dual<N>, e1: Dual<N>, e2: Dual<N>| (c + s * tan_tb * e2 / (2.0 - e1)) * chi;
