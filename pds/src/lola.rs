@@ -1,7 +1,8 @@
 //! LRO LOLA GDR DEMs (LRO-L-LOLA-4-GDR): `LDEM_*` labels with an `^IMAGE` pointer, an `IMAGE`
 //! object and an `IMAGE_MAP_PROJECTION` (FORMATS.md).
 //!
-//! Height above the 1737.4 km sphere = DN × SCALING_FACTOR; radius = that + OFFSET.
+//! Height above the 1737.4 km sphere = DN × SCALING_FACTOR (in the IMAGE's UNIT, converted to
+//! metres); radius = that + OFFSET.
 //! Simple cylindrical pixel centres, 1-based LINE/SAMPLE (DSMAP.CAT):
 //! lon = CENTER_LONGITUDE + (SAMPLE − SAMPLE_PROJECTION_OFFSET − 1)/MAP_RESOLUTION,
 //! lat = CENTER_LATITUDE − (LINE − LINE_PROJECTION_OFFSET − 1)/MAP_RESOLUTION.
@@ -31,8 +32,10 @@ pub struct LolaDem {
     pub label_path: PathBuf,
     pub label: Label,
     pub raster: Raster,
+    /// Metres per DN: SCALING_FACTOR × the IMAGE UNIT in metres (METER or KILOMETER; absent
+    /// = METER).
     pub scaling_factor: f64,
-    /// Reference radius (OFFSET), metres.
+    /// Reference radius (OFFSET), converted to metres.
     pub offset: f64,
     pub projection: Projection,
     /// MAP_SCALE in metres per pixel, whatever unit the label used.
@@ -120,7 +123,24 @@ impl LolaDem {
             .get("SCALING_FACTOR")
             .and_then(|v| v.as_f64())
             .unwrap_or(1.0);
-        let ref_offset = image.get("OFFSET").and_then(|v| v.as_f64()).unwrap_or(0.0);
+        // The `*_FLOAT` products are in kilometres, the integer ones in metres.
+        let unit = image
+            .get("UNIT")
+            .and_then(|v| v.as_str())
+            .unwrap_or("METER");
+        let unit_m = match unit.to_ascii_uppercase().as_str() {
+            "METER" | "METERS" | "METRE" | "METRES" | "M" => 1.0,
+            "KILOMETER" | "KILOMETERS" | "KILOMETRE" | "KILOMETRES" | "KM" => 1000.0,
+            other => {
+                return Err(Error::invalid(
+                    path,
+                    "UNIT",
+                    format!("{other} is not a length unit this reader knows"),
+                ))
+            }
+        };
+        let scaling_factor = scaling_factor * unit_m;
+        let ref_offset = image.get("OFFSET").and_then(|v| v.as_f64()).unwrap_or(0.0) * unit_m;
         let map = label
             .find("IMAGE_MAP_PROJECTION")
             .ok_or_else(|| Error::missing(path, "OBJECT = IMAGE_MAP_PROJECTION"))?;

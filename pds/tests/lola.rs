@@ -72,6 +72,31 @@ fn truncated_and_mislabelled_products_are_reported() {
         .unwrap_err()
         .to_string();
     assert!(e.contains("SAMPLE_TYPE") && e.contains("VAX_REAL"), "{e}");
+    // A kilometre product (the `*_FLOAT` convention) reads in metres all the same.
+    std::fs::write(dir.join("ldem_4.img"), &img).unwrap();
+    std::fs::write(
+        dir.join("LDEM_4.LBL"),
+        label.replace(
+            "UNIT                  = METER",
+            "UNIT                  = KILOMETER",
+        ),
+    )
+    .unwrap();
+    let km = LolaDem::open(&dir.join("LDEM_4.LBL")).unwrap();
+    assert_eq!(km.scaling_factor, 500.0);
+    assert_eq!(km.offset, 1_737_400_000.0);
+    std::fs::write(
+        dir.join("LDEM_4.LBL"),
+        label.replace(
+            "UNIT                  = METER",
+            "UNIT                  = FURLONG",
+        ),
+    )
+    .unwrap();
+    let e = LolaDem::open(&dir.join("LDEM_4.LBL"))
+        .unwrap_err()
+        .to_string();
+    assert!(e.contains("UNIT") && e.contains("FURLONG"), "{e}");
     // Absurd dimensions: refused against the file length, nothing allocated.
     std::fs::write(
         dir.join("LDEM_4.LBL"),

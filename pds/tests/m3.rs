@@ -177,3 +177,32 @@ fn solar_spectrum_table() {
     );
     std::fs::remove_file(&bad).unwrap();
 }
+
+/// The target-mode crop turned into reflectance: r = L·d²/E with d = SOLAR_DISTANCE + OBS band 6
+/// gives lunar I/F values (π·r) in the range real highland/mare surfaces have at 446 nm.
+#[test]
+fn radiance_to_reflectance_on_the_target_crop() {
+    let Some(data) = shared_data() else { return };
+    let o = Observation::open(&data.join("m3_l1b_crops/forwardAscending").join(SETS[0].1)).unwrap();
+    let s = pds::solar::SolarSpectrum::read(
+        &data.join("m3_calibration/m3t20110224_rfl_solar_spec.tab"),
+    )
+    .unwrap();
+    let obs = o.part("OBS").unwrap();
+    let dpath = obs.read_band(5, 0, obs.lines).unwrap();
+    let l = o.rdn.read_band(0, 0, o.rdn.lines).unwrap();
+    let e = s.at(o.wavelengths[0]).unwrap();
+    let iof: Vec<f64> = l
+        .iter()
+        .zip(&dpath)
+        .map(|(l, dd)| {
+            std::f64::consts::PI * pds::solar::reflectance(*l, o.solar_distance_au + dd, e)
+        })
+        .collect();
+    let mean = iof.iter().sum::<f64>() / iof.len() as f64;
+    assert!(
+        dpath.iter().all(|d| d.abs() < 0.01),
+        "band 6 is a small offset from the scene mean"
+    );
+    assert!(mean > 0.01 && mean < 0.3, "mean I/F {mean}");
+}
