@@ -37,6 +37,8 @@ pub struct DemoReport {
     pub megapixels_per_second: f64,
     pub outputs: Vec<PathBuf>,
     pub params: FusionParams,
+    /// Per albedo stage: σ_ρ, and E with each term after every iteration.
+    pub stages: Vec<crate::fusion::StageReport>,
 }
 
 /// Scores of a fusion against a scene's truth: (height RMSE, albedo RMSE, albedo RMSE on lit
@@ -165,6 +167,7 @@ pub fn run(spec: &SceneSpec, params: &FusionParams, out: Option<&Path>) -> Resul
         megapixels_per_second: (spec.size * spec.size) as f64 / 1e6 / fusion_seconds,
         outputs,
         params: params.clone(),
+        stages: fusion.stages.clone(),
     })
 }
 

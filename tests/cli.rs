@@ -37,6 +37,27 @@ fn demo_writes_products_and_a_json_report() {
         );
     }
     assert!(r["iterations"].as_u64().unwrap() > 0);
+    // Every stage reports E and its terms per iteration, and E never rises.
+    let stages = r["stages"].as_array().unwrap();
+    assert_eq!(
+        stages.len(),
+        r["params"]["albedo_sigmas"].as_array().unwrap().len()
+    );
+    for st in stages {
+        let its = st["iterations"].as_array().unwrap();
+        let totals: Vec<f64> = its
+            .iter()
+            .map(|i| i["energy"]["total"].as_f64().unwrap())
+            .collect();
+        assert!(totals.windows(2).all(|w| w[1] <= w[0]), "{totals:?}");
+        for i in its {
+            let e = &i["energy"];
+            let sum = e["intensity"].as_f64().unwrap()
+                + r["params"]["delta"].as_f64().unwrap() * e["dem"].as_f64().unwrap()
+                + r["params"]["eta"].as_f64().unwrap() * e["membrane"].as_f64().unwrap();
+            assert!((sum - e["total"].as_f64().unwrap()).abs() <= 1e-9 * sum.abs());
+        }
+    }
     for f in [
         "dem.img",
         "dem.hdr",
