@@ -117,7 +117,24 @@ fn emit<T: serde::Serialize>(json: bool, value: &T, table: String) {
     }
 }
 
+/// The solvers allocate and free many megapixel-sized arrays per iteration. glibc serves
+/// allocations above its mmap threshold (128 KiB by default) with fresh zeroed mappings, so each
+/// one costs page faults; keeping blocks up to 32 MiB on the heap and not trimming it lets them be
+/// reused (≈ 10 % of the fusion time on a 1 MP scene).
+#[cfg(all(target_os = "linux", target_env = "gnu"))]
+fn tune_allocator() {
+    // SAFETY: mallopt only changes allocator parameters; called before any other thread exists.
+    unsafe {
+        libc::mallopt(libc::M_MMAP_THRESHOLD, 32 << 20);
+        libc::mallopt(libc::M_TRIM_THRESHOLD, 1 << 30);
+    }
+}
+
+#[cfg(not(all(target_os = "linux", target_env = "gnu")))]
+fn tune_allocator() {}
+
 fn main() -> ExitCode {
+    tune_allocator();
     match run(Cli::parse()) {
         Ok(()) => ExitCode::SUCCESS,
         Err(e) => {
