@@ -296,6 +296,27 @@ impl<'a> Cursor<'a> {
             }
         }
     }
+    /// From an opening delimiter at the cursor to `close` on the same line: the text between.
+    fn delimited_on_line(&mut self, close: u8, what: &str) -> Result<String, ParseError> {
+        let (line, column) = (self.line, self.col);
+        self.bump();
+        let start = self.i;
+        loop {
+            match self.bump() {
+                None | Some(b'\n') => {
+                    return Err(ParseError {
+                        line,
+                        column,
+                        message: format!("{what} is never closed on its line"),
+                    })
+                }
+                Some(b) if b == close => break,
+                _ => {}
+            }
+        }
+        Ok(String::from_utf8_lossy(&self.s[start..self.i - 1]).into_owned())
+    }
+
     fn word(&mut self) -> String {
         let start = self.i;
         while let Some(c) = self.peek() {
@@ -475,25 +496,7 @@ fn parse_value(c: &mut Cursor, depth: usize) -> Result<Value, ParseError> {
             })?;
             Value::Text(fold_lines(raw))
         }
-        Some(b'\'') => {
-            let (l, col) = (c.line, c.col);
-            c.bump();
-            let start = c.i;
-            loop {
-                match c.bump() {
-                    None | Some(b'\n') => {
-                        return Err(ParseError {
-                            line: l,
-                            column: col,
-                            message: "literal `'` is never closed on its line".into(),
-                        })
-                    }
-                    Some(b'\'') => break,
-                    _ => {}
-                }
-            }
-            Value::Symbol(String::from_utf8_lossy(&c.s[start..c.i - 1]).into_owned())
-        }
+        Some(b'\'') => Value::Symbol(c.delimited_on_line(b'\'', "literal `'`")?),
         Some(open @ (b'(' | b'{')) => {
             let close = if open == b'(' { b')' } else { b'}' };
             let (l, col) = (c.line, c.col);
@@ -534,25 +537,7 @@ fn parse_value(c: &mut Cursor, depth: usize) -> Result<Value, ParseError> {
     let save = (c.i, c.line, c.col);
     let crossed = c.skip_ws()?;
     if !crossed && c.peek() == Some(b'<') {
-        let (l, col) = (c.line, c.col);
-        c.bump();
-        let start = c.i;
-        loop {
-            match c.bump() {
-                None | Some(b'\n') => {
-                    return Err(ParseError {
-                        line: l,
-                        column: col,
-                        message: "unit `<` is never closed on its line".into(),
-                    })
-                }
-                Some(b'>') => break,
-                _ => {}
-            }
-        }
-        let unit = String::from_utf8_lossy(&c.s[start..c.i - 1])
-            .trim()
-            .to_string();
+        let unit = c.delimited_on_line(b'>', "unit `<`")?.trim().to_string();
         return Ok(Value::WithUnit(Box::new(v), unit));
     }
     (c.i, c.line, c.col) = save;
@@ -648,7 +633,9 @@ mod tests {
 
     #[test]
     fn errors_name_line_and_column() {
-        let cases: [(&str, usize, &str); 6] = [
+        let cases: [(&str, usize, &str); 8] = [
+            ("A = 1 <m\nEND\n", 1, "unit `<` is never closed"),
+            ("A = 'x\nEND\n", 1, "literal `'` is never closed"),
             ("A = 1\nB = \"open\nEND\n", 2, "never closed"),
             ("A = 1\nOBJECT = X\nB = 2\nEND\n", 4, "still open"),
             ("A = 1\nEND_OBJECT\nEND\n", 2, "without an open"),
