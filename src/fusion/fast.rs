@@ -93,17 +93,14 @@ pub fn minimise(
     observe: &mut dyn FnMut(&Energy),
 ) -> Vec<IterationRecord> {
     let hq = obj.quadratic_hessian();
-    let Iterate {
-        mut photo,
-        mut zh,
-        mut energy,
-    } = obj.evaluate(z, rho);
-    observe(&energy);
-    let mut log = vec![IterationRecord {
-        iteration: 0,
-        energy,
-        inner: 0,
-    }];
+    let (
+        Iterate {
+            mut photo,
+            mut zh,
+            mut energy,
+        },
+        mut log,
+    ) = super::start(obj, z, rho, observe);
     for iteration in 1..=params.max_iterations {
         let g = obj.gradient(&zh, &photo);
         let (step, inner) = newton_step(obj, &photo, &hq, &g, params);

@@ -421,6 +421,24 @@ pub fn fuse(pr: &Problem, params: &FusionParams) -> Result<Fusion, FusionError> 
     })
 }
 
+/// The state at the starting surface, reported to `observe` and logged as iteration 0 (shared
+/// by both solvers).
+fn start(
+    obj: &Objective,
+    z: &Array2<f64>,
+    rho: ArrayView2<f64>,
+    observe: &mut dyn FnMut(&Energy),
+) -> (objective::Iterate, Vec<IterationRecord>) {
+    let it = obj.evaluate(z, rho);
+    observe(&it.energy);
+    let log = vec![IterationRecord {
+        iteration: 0,
+        energy: it.energy,
+        inner: 0,
+    }];
+    (it, log)
+}
+
 fn minimise(
     obj: &Objective,
     z: &mut Array2<f64>,

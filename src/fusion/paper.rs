@@ -22,17 +22,14 @@ pub fn minimise(
 ) -> Vec<IterationRecord> {
     let eps = obj.problem.spacing;
     let mut gamma = params.gamma;
-    let Iterate {
-        mut photo,
-        mut zh,
-        mut energy,
-    } = obj.evaluate(z, rho);
-    observe(&energy);
-    let mut log = vec![IterationRecord {
-        iteration: 0,
-        energy,
-        inner: 0,
-    }];
+    let (
+        Iterate {
+            mut photo,
+            mut zh,
+            mut energy,
+        },
+        mut log,
+    ) = super::start(obj, z, rho, observe);
     let mut iteration = 0;
     while iteration < params.max_iterations {
         let g = obj.gradient(&zh, &photo);
