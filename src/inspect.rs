@@ -123,30 +123,59 @@ pub fn inspect(path: &Path) -> Result<Inspection> {
     }
     if label.find("IMAGE_MAP_PROJECTION").is_some() {
         let d = LolaDem::open(path)?;
-        let (lon0, lat0) = d.lonlat(-0.5, -0.5);
-        let (lon1, lat1) = d.lonlat(d.lines() as f64 - 0.5, d.samples() as f64 - 0.5);
-        let Projection::SimpleCylindrical {
-            resolution,
-            center_lon,
-            ..
-        } = d.projection;
+        let (lines, samples) = (d.lines() as f64, d.samples() as f64);
+        let (projection, lon_range, lat_range) = match d.projection {
+            Projection::SimpleCylindrical {
+                resolution,
+                center_lon,
+                ..
+            } => {
+                let (lon0, lat0) = d.lonlat(-0.5, -0.5);
+                let (lon1, lat1) = d.lonlat(lines - 0.5, samples - 0.5);
+                (
+                    format!(
+                        "simple cylindrical, {resolution} px/deg, centre longitude {center_lon}°"
+                    ),
+                    (lon0.min(lon1), lon0.max(lon1)),
+                    (lat0.min(lat1), lat0.max(lat1)),
+                )
+            }
+            Projection::PolarStereographic { north, scale_m, .. } => {
+                // Latitude runs from the pole to the farthest point of the border (a corner).
+                let corners = [
+                    (-0.5, -0.5),
+                    (-0.5, samples - 0.5),
+                    (lines - 0.5, -0.5),
+                    (lines - 0.5, samples - 0.5),
+                ];
+                let far = corners
+                    .iter()
+                    .map(|&(l, s)| d.lonlat(l, s).1.abs())
+                    .fold(90.0f64, f64::min);
+                let pole = if north { "north" } else { "south" };
+                let lat = if north { (far, 90.0) } else { (-90.0, -far) };
+                (
+                    format!("polar stereographic ({pole} pole), {scale_m} m/pix at the pole"),
+                    (0.0, 360.0),
+                    lat,
+                )
+            }
+        };
         let heights = scan(d.lines(), |f, n| d.read_heights(f, n))?;
         return Ok(Inspection::Lola {
             label: label_s,
             lines: d.lines(),
             samples: d.samples(),
-            projection: format!(
-                "simple cylindrical, {resolution} px/deg, centre longitude {center_lon}°"
-            ),
+            projection,
             map_scale_m: d.map_scale_m,
             radius_m: d.radius_m,
             longitude_deg: Range {
-                min: lon0.min(lon1),
-                max: lon0.max(lon1),
+                min: lon_range.0,
+                max: lon_range.1,
             },
             latitude_deg: Range {
-                min: lat0.min(lat1),
-                max: lat0.max(lat1),
+                min: lat_range.0,
+                max: lat_range.1,
             },
             height_m: heights,
         });

@@ -6,6 +6,15 @@
 //! Simple cylindrical pixel centres, 1-based LINE/SAMPLE (DSMAP.CAT):
 //! lon = CENTER_LONGITUDE + (SAMPLE − SAMPLE_PROJECTION_OFFSET − 1)/MAP_RESOLUTION,
 //! lat = CENTER_LATITUDE − (LINE − LINE_PROJECTION_OFFSET − 1)/MAP_RESOLUTION.
+//! Polar stereographic (DSMAP_POLAR.CAT), sphere R = A_AXIS_RADIUS, 1-based I = SAMPLE,
+//! J = LINE: X = (I − SAMPLE_PROJECTION_OFFSET − 1)·MAP_SCALE, Y = (J − LINE_PROJECTION_OFFSET − 1)·MAP_SCALE
+//! (the catalogue writes the offsets as N/2 − 0.5), r = √(X² + Y²),
+//! lat = ±(90° − 2·atan(r / 2R)). Longitude follows the catalogue's prose, which every revision
+//! keeps: "in the north, longitude 0 extends straight down from the centre and 90° E to the
+//! right; in the south, longitude 0 extends straight up and 90° E to the right". With J growing
+//! downwards that is lon = atan2(X, Y) in the north and atan2(X, −Y) in the south — the
+//! revisions' formulas disagree with each other, the prose does not. It is PROJ's
+//! `+proj=stere +lat_0=±90 +lon_0=0 +k=1` with map x = X, map y = −Y (IAU_2015:30130/30135).
 //! This API is 0-based: line = LINE − 1, sample = SAMPLE − 1.
 
 use crate::error::{Error, Result};
@@ -23,6 +32,16 @@ pub enum Projection {
         center_lon: f64,
         line_offset: f64,
         sample_offset: f64,
+    },
+    /// Polar stereographic on the sphere of radius `radius_m`, true scale at the pole.
+    PolarStereographic {
+        /// True for the north pole (CENTER_LATITUDE = 90), false for the south (−90).
+        north: bool,
+        /// Metres per pixel at the pole (MAP_SCALE, exact).
+        scale_m: f64,
+        line_offset: f64,
+        sample_offset: f64,
+        radius_m: f64,
     },
 }
 
@@ -148,35 +167,79 @@ impl LolaDem {
             .get("MAP_PROJECTION_TYPE")
             .and_then(|v| v.as_str())
             .ok_or_else(|| Error::missing(path, "MAP_PROJECTION_TYPE"))?;
+        let map_scale_m = metres(path, map, "MAP_SCALE", "km/pix")?;
+        let radius_m = metres(path, map, "A_AXIS_RADIUS", "km")?;
         let projection = if kind.eq_ignore_ascii_case("SIMPLE CYLINDRICAL")
             || kind.eq_ignore_ascii_case("EQUIRECTANGULAR")
         {
+            let resolution = number(path, map, "MAP_RESOLUTION")?;
+            if !(resolution.is_finite() && resolution > 0.0) {
+                return Err(Error::invalid(
+                    path,
+                    "MAP_RESOLUTION",
+                    format!("{resolution} must be positive"),
+                ));
+            }
             Projection::SimpleCylindrical {
-                resolution: number(path, map, "MAP_RESOLUTION")?,
+                resolution,
                 center_lat: number(path, map, "CENTER_LATITUDE")?,
                 center_lon: number(path, map, "CENTER_LONGITUDE")?,
                 line_offset: number(path, map, "LINE_PROJECTION_OFFSET")?,
                 sample_offset: number(path, map, "SAMPLE_PROJECTION_OFFSET")?,
             }
+        } else if kind.eq_ignore_ascii_case("POLAR STEREOGRAPHIC") {
+            let center_lat = number(path, map, "CENTER_LATITUDE")?;
+            let north = if center_lat == 90.0 {
+                true
+            } else if center_lat == -90.0 {
+                false
+            } else {
+                return Err(Error::invalid(
+                    path,
+                    "CENTER_LATITUDE",
+                    format!("{center_lat}: a polar stereographic product is centred on ±90"),
+                ));
+            };
+            let center_lon = number(path, map, "CENTER_LONGITUDE")?;
+            if center_lon.rem_euclid(360.0) != 0.0 {
+                return Err(Error::invalid(
+                    path,
+                    "CENTER_LONGITUDE",
+                    format!("{center_lon}: LOLA polar products have longitude 0 on the vertical axis; other orientations are not supported"),
+                ));
+            }
+            if !(map_scale_m.is_finite() && map_scale_m > 0.0) {
+                return Err(Error::invalid(
+                    path,
+                    "MAP_SCALE",
+                    format!("{map_scale_m} m/pix must be positive"),
+                ));
+            }
+            Projection::PolarStereographic {
+                north,
+                scale_m: map_scale_m,
+                line_offset: number(path, map, "LINE_PROJECTION_OFFSET")?,
+                sample_offset: number(path, map, "SAMPLE_PROJECTION_OFFSET")?,
+                radius_m,
+            }
         } else {
             return Err(Error::invalid(
                 path,
                 "MAP_PROJECTION_TYPE",
-                format!("{kind} is not supported yet (simple cylindrical only)"),
+                format!("{kind} is not supported (simple cylindrical and polar stereographic are)"),
             ));
         };
-        let Projection::SimpleCylindrical { resolution, .. } = projection;
-        if !(resolution.is_finite() && resolution > 0.0) {
+        if !(radius_m.is_finite() && radius_m > 0.0) {
             return Err(Error::invalid(
                 path,
-                "MAP_RESOLUTION",
-                format!("{resolution} must be positive"),
+                "A_AXIS_RADIUS",
+                format!("{radius_m} m must be positive"),
             ));
         }
         Ok(LolaDem {
             label_path: path.into(),
-            map_scale_m: metres(path, map, "MAP_SCALE", "km/pix")?,
-            radius_m: metres(path, map, "A_AXIS_RADIUS", "km")?,
+            map_scale_m,
+            radius_m,
             label,
             raster,
             scaling_factor,
@@ -206,36 +269,74 @@ impl LolaDem {
             .collect())
     }
 
-    /// (east longitude, latitude) in degrees of the centre of 0-based pixel (line, sample).
+    /// (east longitude, latitude) in degrees of the centre of 0-based pixel (line, sample);
+    /// fractional positions are points inside the pixel grid.
     pub fn lonlat(&self, line: f64, sample: f64) -> (f64, f64) {
-        let Projection::SimpleCylindrical {
-            resolution,
-            center_lat,
-            center_lon,
-            line_offset,
-            sample_offset,
-        } = self.projection;
-        (
-            center_lon + (sample - sample_offset) / resolution,
-            center_lat - (line - line_offset) / resolution,
-        )
+        match self.projection {
+            Projection::SimpleCylindrical {
+                resolution,
+                center_lat,
+                center_lon,
+                line_offset,
+                sample_offset,
+            } => (
+                center_lon + (sample - sample_offset) / resolution,
+                center_lat - (line - line_offset) / resolution,
+            ),
+            Projection::PolarStereographic {
+                north,
+                scale_m,
+                line_offset,
+                sample_offset,
+                radius_m,
+            } => {
+                let x = (sample - sample_offset) * scale_m;
+                let y = (line - line_offset) * scale_m;
+                let colat = 2.0 * (0.5 * x.hypot(y) / radius_m).atan().to_degrees();
+                if north {
+                    (x.atan2(y).to_degrees().rem_euclid(360.0), 90.0 - colat)
+                } else {
+                    (x.atan2(-y).to_degrees().rem_euclid(360.0), colat - 90.0)
+                }
+            }
+        }
     }
 
     /// Fractional 0-based (line, sample) of a longitude (east, any range) and latitude.
     pub fn pixel(&self, lon: f64, lat: f64) -> (f64, f64) {
-        let Projection::SimpleCylindrical {
-            resolution,
-            center_lat,
-            center_lon,
-            line_offset,
-            sample_offset,
-        } = self.projection;
-        let line = line_offset + (center_lat - lat) * resolution;
-        // Longitude is periodic: the 360° turn in [−0.5, 360·res − 0.5) contains the whole
-        // product (it spans at most one turn).
-        let turn = 360.0 * resolution;
-        let sample = sample_offset + (lon - center_lon) * resolution;
-        let sample = (sample + 0.5).rem_euclid(turn) - 0.5;
-        (line, sample)
+        match self.projection {
+            Projection::SimpleCylindrical {
+                resolution,
+                center_lat,
+                center_lon,
+                line_offset,
+                sample_offset,
+            } => {
+                let line = line_offset + (center_lat - lat) * resolution;
+                // Longitude is periodic: the 360° turn in [−0.5, 360·res − 0.5) contains the
+                // whole product (it spans at most one turn).
+                let turn = 360.0 * resolution;
+                let sample = sample_offset + (lon - center_lon) * resolution;
+                let sample = (sample + 0.5).rem_euclid(turn) - 0.5;
+                (line, sample)
+            }
+            Projection::PolarStereographic {
+                north,
+                scale_m,
+                line_offset,
+                sample_offset,
+                radius_m,
+            } => {
+                let colat = if north { 90.0 - lat } else { lat + 90.0 };
+                let r = 2.0 * radius_m * (0.5 * colat.to_radians()).tan();
+                let (s, c) = lon.to_radians().sin_cos();
+                let (x, y) = if north {
+                    (r * s, r * c)
+                } else {
+                    (r * s, -r * c)
+                };
+                (line_offset + y / scale_m, sample_offset + x / scale_m)
+            }
+        }
     }
 }

@@ -132,3 +132,122 @@ fn truncated_and_mislabelled_products_are_reported() {
     assert!(e.contains("not a plain file name"), "{e}");
     std::fs::remove_dir_all(&dir).unwrap();
 }
+
+/// A polar stereographic LDEM label of N × N int16 pixels (FORMATS.md, DSMAP_POLAR.CAT).
+fn polar_product(dir: &std::path::Path, north: bool, n: usize, scale_m: f64) -> std::path::PathBuf {
+    std::fs::create_dir_all(dir).unwrap();
+    let lat = if north { 90 } else { -90 };
+    let label = format!(
+        "PDS_VERSION_ID = PDS3\r\n^IMAGE = \"POLAR.IMG\"\r\nOBJECT = IMAGE\r\n  LINES = {n}\r\n  LINE_SAMPLES = {n}\r\n  SAMPLE_TYPE = LSB_INTEGER\r\n  SAMPLE_BITS = 16\r\n  UNIT = METER\r\n  SCALING_FACTOR = 0.5\r\n  OFFSET = 1737400.\r\nEND_OBJECT = IMAGE\r\nOBJECT = IMAGE_MAP_PROJECTION\r\n  MAP_PROJECTION_TYPE = \"POLAR STEREOGRAPHIC\"\r\n  A_AXIS_RADIUS = 1737.4 <KM>\r\n  CENTER_LATITUDE = {lat} <DEG>\r\n  CENTER_LONGITUDE = 0 <DEG>\r\n  MAP_SCALE = {scale_m} <METERS/PIXEL>\r\n  LINE_PROJECTION_OFFSET = {o}\r\n  SAMPLE_PROJECTION_OFFSET = {o}\r\nEND_OBJECT = IMAGE_MAP_PROJECTION\r\nEND\r\n",
+        o = n as f64 / 2.0 - 0.5
+    );
+    let path = dir.join("POLAR.LBL");
+    std::fs::write(&path, label).unwrap();
+    let mut img = Vec::new();
+    for i in 0..n * n {
+        img.extend_from_slice(&((i % 30000) as i16).to_le_bytes());
+    }
+    std::fs::write(dir.join("POLAR.IMG"), img).unwrap();
+    path
+}
+
+#[test]
+fn polar_stereographic_follows_the_catalogue_orientation() {
+    let dir = std::env::temp_dir().join(format!("pds-polar-{}", std::process::id()));
+    for north in [true, false] {
+        let dem = LolaDem::open(&polar_product(&dir, north, 100, 1000.0)).unwrap();
+        // DSMAP_POLAR.CAT: "In the north, Longitude 0 extends straight down from the center and
+        // Longitude 90 East extends to the right. In the south, Longitude 0 extends straight up
+        // from the center, and Longitude 90 East extends to the right."
+        let c = 49.5;
+        let lon = |l: f64, s: f64| dem.lonlat(l, s).0;
+        let (down, up, right, left) = (
+            lon(c + 30.0, c),
+            lon(c - 30.0, c),
+            lon(c, c + 30.0),
+            lon(c, c - 30.0),
+        );
+        if north {
+            assert!(
+                down.abs() < 1e-9 && (up - 180.0).abs() < 1e-9,
+                "{down} {up}"
+            );
+        } else {
+            assert!(
+                up.abs() < 1e-9 && (down - 180.0).abs() < 1e-9,
+                "{down} {up}"
+            );
+        }
+        assert!((right - 90.0).abs() < 1e-9 && (left - 270.0).abs() < 1e-9);
+        // Latitude: r = 2R·tan(colat/2); 30 px × 1 km from the pole.
+        let colat = 2.0 * (0.5 * 30_000.0 / 1_737_400.0f64).atan().to_degrees();
+        let lat = dem.lonlat(c, c + 30.0).1;
+        assert!(
+            (lat.abs() - (90.0 - colat)).abs() < 1e-12
+                && lat.signum() == if north { 1.0 } else { -1.0 }
+        );
+        // pixel() inverts lonlat() everywhere in the product.
+        for (l, s) in [(0.0, 0.0), (12.25, 80.5), (99.0, 3.0), (49.5, 60.0)] {
+            let (lo, la) = dem.lonlat(l, s);
+            let (l2, s2) = dem.pixel(lo, la);
+            assert!(
+                (l2 - l).abs() < 1e-8 && (s2 - s).abs() < 1e-8,
+                "{l} {s} → {l2} {s2}"
+            );
+        }
+        assert_eq!(dem.read_heights(1, 1).unwrap()[3], 103.0 * 0.5);
+    }
+    std::fs::remove_dir_all(&dir).unwrap();
+}
+
+#[test]
+fn polar_stereographic_matches_proj() {
+    let Some(proj) = common::external_tool("proj") else {
+        return;
+    };
+    let dir = std::env::temp_dir().join(format!("pds-polar-proj-{}", std::process::id()));
+    for north in [true, false] {
+        let dem = LolaDem::open(&polar_product(&dir, north, 400, 240.0)).unwrap();
+        let pixels = [
+            (0.0, 0.0),
+            (10.5, 390.25),
+            (399.0, 399.0),
+            (200.0, 17.0),
+            (123.0, 321.0),
+        ];
+        let mut input = String::new();
+        for &(l, s) in &pixels {
+            let (lon, lat) = dem.lonlat(l, s);
+            input.push_str(&format!("{lon:.12} {lat:.12}\n"));
+        }
+        let def = format!(
+            "+proj=stere +lat_0={} +lon_0=0 +k=1 +R=1737400",
+            if north { 90 } else { -90 }
+        );
+        let mut child = std::process::Command::new(&proj)
+            .args(def.split(' '))
+            .args(["-f", "%.6f"])
+            .stdin(std::process::Stdio::piped())
+            .stdout(std::process::Stdio::piped())
+            .spawn()
+            .unwrap();
+        use std::io::Write;
+        child
+            .stdin
+            .take()
+            .unwrap()
+            .write_all(input.as_bytes())
+            .unwrap();
+        let out = String::from_utf8(child.wait_with_output().unwrap().stdout).unwrap();
+        for (&(l, s), row) in pixels.iter().zip(out.lines()) {
+            let v: Vec<f64> = row.split_whitespace().map(|t| t.parse().unwrap()).collect();
+            // Map x = X, map y = −Y (lines grow downwards).
+            let (x, y) = ((s - 199.5) * 240.0, -(l - 199.5) * 240.0);
+            assert!(
+                (v[0] - x).abs() < 1e-3 && (v[1] - y).abs() < 1e-3,
+                "north={north} ({l},{s}): proj {row}, want {x} {y}"
+            );
+        }
+    }
+    std::fs::remove_dir_all(&dir).unwrap();
+}

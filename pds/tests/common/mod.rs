@@ -20,3 +20,23 @@ pub fn shared_data() -> Option<PathBuf> {
     );
     None
 }
+
+/// The path of an external tool (PROJ's `proj`, GDAL's `gdalinfo`) the test needs to compare
+/// against: `None` (skip, with a message) where it is not installed, a failure when CI is set,
+/// because `.ci/run` installs it.
+#[allow(dead_code)]
+pub fn external_tool(name: &str) -> Option<PathBuf> {
+    let found = std::env::var_os("PATH").and_then(|paths| {
+        std::env::split_paths(&paths)
+            .map(|d| d.join(name))
+            .find(|p| p.is_file())
+    });
+    if found.is_none() {
+        assert!(
+            std::env::var_os("CI").is_none(),
+            "CI is set but `{name}` is not installed: .ci/run must install it"
+        );
+        eprintln!("skipping: `{name}` not installed");
+    }
+    found
+}
