@@ -2,10 +2,12 @@
 //! products and a quick-look, and measures the result against the known truth.
 
 use crate::error::{Error, Result};
+use crate::export::{write_geotiff, BandInfo};
 use crate::fusion::{fuse, FusionParams};
+use crate::grid::{Crs, Grid};
 use crate::quicklook::{hillshade, write_panels};
-use crate::raster::write_envi;
 use crate::synth::{generate, rmse, Scene, SceneSpec};
+use ndarray::Array2;
 use serde::Serialize;
 use std::path::{Path, PathBuf};
 use std::time::Instant;
@@ -63,6 +65,25 @@ pub fn score(scene: &Scene, f: &crate::fusion::Fusion) -> (f64, f64, f64) {
     )
 }
 
+/// Where the demo's synthetic scene is put on the Moon: a local stereographic grid centred on
+/// the crater Alphonsus (13.4° S, 2.8° W), as in the seed, so the products open in a GIS at a
+/// real place with a real lunar CRS.
+pub fn demo_grid(spec: &SceneSpec) -> Result<Grid> {
+    let half = spec.size as f64 * spec.spacing / 2.0;
+    Grid::new(
+        Crs::Stereographic {
+            lat_0: -13.4,
+            lon_0: 357.2,
+        },
+        spec.size,
+        spec.size,
+        -half,
+        half,
+        spec.spacing,
+    )
+    .map_err(|e| Error::Usage(e.to_string()))
+}
+
 /// Run the demo on `spec`, writing products to `out` when given.
 pub fn run(spec: &SceneSpec, params: &FusionParams, out: Option<&Path>) -> Result<DemoReport> {
     if spec.size < 16 {
@@ -86,54 +107,59 @@ pub fn run(spec: &SceneSpec, params: &FusionParams, out: Option<&Path>) -> Resul
     let mut outputs = Vec::new();
     if let Some(dir) = out {
         let eps = spec.spacing;
-        outputs.push(write_envi(
-            dir,
-            "dem",
-            &fusion.height,
-            "height_m",
-            "sfsfuse fused DEM, metres",
-            eps,
-        )?);
-        outputs.push(write_envi(
-            dir,
-            "albedo",
-            &fusion.albedo,
-            "hapke_w",
-            "sfsfuse albedo, Hapke single-scattering albedo w",
-            eps,
-        )?);
-        outputs.push(write_envi(
-            dir,
-            "residual",
-            &fusion.residual,
-            "abs_residual",
-            "sfsfuse |I - R| at the solution, sr^-1; NaN without photometric information",
-            eps,
-        )?);
-        outputs.push(write_envi(
-            dir,
-            "input_dem",
-            &scene.input_dem,
-            "height_m",
-            "synthetic LOLA-like input DEM, metres",
-            eps,
-        )?);
-        outputs.push(write_envi(
-            dir,
-            "truth_dem",
-            &scene.truth_height,
-            "height_m",
-            "synthetic truth DEM, metres",
-            eps,
-        )?);
-        outputs.push(write_envi(
-            dir,
-            "image",
-            &scene.image,
-            "reflectance",
-            "synthetic image, bidirectional reflectance sr^-1",
-            eps,
-        )?);
+        let grid = demo_grid(spec)?;
+        let meta = [
+            ("SFSFUSE_VERSION", env!("CARGO_PKG_VERSION").to_string()),
+            ("SFSFUSE_SCENE", format!("synthetic, seed {}", spec.seed)),
+        ];
+        let layers: [(&str, &Array2<f64>, &str, &str); 6] = [
+            (
+                "dem",
+                &fusion.height,
+                "fused height above the 1737.4 km sphere",
+                "m",
+            ),
+            (
+                "albedo",
+                &fusion.albedo,
+                "Hapke single-scattering albedo w",
+                "",
+            ),
+            (
+                "residual",
+                &fusion.residual,
+                "|I - R| at the solution, sr^-1; no data without photometric information",
+                "sr-1",
+            ),
+            (
+                "input_dem",
+                &scene.input_dem,
+                "synthetic LOLA-like input height",
+                "m",
+            ),
+            (
+                "truth_dem",
+                &scene.truth_height,
+                "synthetic truth height",
+                "m",
+            ),
+            (
+                "image",
+                &scene.image,
+                "synthetic image, bidirectional reflectance",
+                "sr-1",
+            ),
+        ];
+        for (stem, a, description, unit) in layers {
+            let path = dir.join(format!("{stem}.tif"));
+            let info = BandInfo {
+                description,
+                unit,
+                metadata: &meta,
+            };
+            write_geotiff(&path, &grid, a.view(), &info)?;
+            outputs.push(path);
+        }
         let ql = dir.join("quicklook.png");
         write_panels(
             &ql,

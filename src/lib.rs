@@ -4,7 +4,9 @@
 pub mod bench;
 pub mod demo;
 pub mod error;
+pub mod export;
 pub mod fusion;
+pub mod grid;
 pub mod inspect;
 pub mod photometry;
 pub mod quicklook;

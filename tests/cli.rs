@@ -2,6 +2,10 @@
 
 use std::process::Command;
 
+#[path = "../pds/tests/common/mod.rs"]
+mod common;
+use common::shared_data;
+
 fn sfsfuse() -> Command {
     Command::new(env!("CARGO_BIN_EXE_sfsfuse"))
 }
@@ -59,18 +63,24 @@ fn demo_writes_products_and_a_json_report() {
         }
     }
     for f in [
-        "dem.img",
-        "dem.hdr",
-        "albedo.img",
-        "albedo.hdr",
-        "residual.img",
+        "dem.tif",
+        "albedo.tif",
+        "residual.tif",
+        "input_dem.tif",
+        "truth_dem.tif",
+        "image.tif",
         "quicklook.png",
     ] {
         assert!(out.join(f).is_file(), "{f} missing");
     }
-    let dem = sfsfuse::raster::read_envi(&out.join("dem.img")).unwrap();
-    assert_eq!(dem.dim(), (48, 48));
-    assert!(dem.iter().all(|v| v.is_finite()));
+    let dem = sfsfuse::export::read_tiff(&out.join("dem.tif")).unwrap();
+    assert_eq!(dem.data.dim(), (48, 48));
+    assert!(dem.data.iter().all(|v| v.is_finite()));
+    // The demo grid: 140 m pixels centred on the projection origin.
+    assert_eq!(
+        dem.geotransform,
+        Some([-3360.0, 140.0, 0.0, 3360.0, 0.0, -140.0])
+    );
     let png = std::fs::read(out.join("quicklook.png")).unwrap();
     // IHDR width: three 48-px panels and two 4-px gaps.
     assert_eq!(
@@ -111,20 +121,6 @@ fn bad_arguments_fail_with_a_clear_message() {
     let e = String::from_utf8_lossy(&o.stderr);
     assert!(e.contains("not-a-dir"), "{e}");
     std::fs::remove_dir_all(&base).unwrap();
-}
-
-fn shared_data() -> Option<std::path::PathBuf> {
-    let p = std::path::PathBuf::from(env!("CARGO_MANIFEST_DIR")).join("../shared/data");
-    if p.is_dir() {
-        return Some(p);
-    }
-    assert!(
-        std::env::var_os("CI").is_none(),
-        "CI is set but {} is missing",
-        p.display()
-    );
-    eprintln!("skipping: {} not found", p.display());
-    None
 }
 
 #[test]

@@ -1,11 +1,20 @@
-//! Shared by the real-file tests.
+//! Shared by the real-file tests of both crates (the root crate's tests include this file with
+//! `#[path]`), so there is one rule for finding ../shared and external tools.
 
 use std::path::PathBuf;
 
 /// ../shared/data beside the project root; `None` (skip, with a message) outside that layout,
 /// but a failure when CI is set, so that a missing checkout can never hide a failure there.
+#[allow(dead_code)]
 pub fn shared_data() -> Option<PathBuf> {
-    let p = PathBuf::from(env!("CARGO_MANIFEST_DIR")).join("../../shared/data");
+    // The project root is this crate's manifest directory or its parent (for `pds/`).
+    let manifest = PathBuf::from(env!("CARGO_MANIFEST_DIR"));
+    let root = if manifest.join("pds").is_dir() {
+        manifest
+    } else {
+        manifest.join("..")
+    };
+    let p = root.join("../shared/data");
     if p.is_dir() {
         return Some(p);
     }

@@ -1,0 +1,671 @@
+//! GeoTIFF export laid out as a Cloud Optimized GeoTIFF (COG), in pure Rust.
+//!
+//! One float32 band, 256 × 256 tiles, DEFLATE with the floating-point predictor (TIFF Technical
+//! Note 3, Predictor = 3), NaN as no-data (`GDAL_NODATA = "nan"`), internal overviews (2 × 2
+//! means of the valid pixels) down to one tile, and GeoKeys for the lunar CRS (docs/gis.md).
+//!
+//! Layout (GDAL's COG definition, checked by GDAL's `validate_cloud_optimized_geotiff.py`):
+//! header; GDAL's structural-metadata "ghost" block right after it (`LAYOUT=IFDS_BEFORE_DATA`,
+//! `BLOCK_ORDER=ROW_MAJOR`, `BLOCK_LEADER=SIZE_AS_UINT4`, `BLOCK_TRAILER=LAST_4_BYTES_REPEATED`);
+//! then every IFD (full resolution first, then the overviews, largest to smallest), each followed
+//! by its out-of-line tag values; then the tile data, smallest overview first and full
+//! resolution last, each level row-major, each tile preceded by its size as a u32 and followed
+//! by a repeat of its last 4 bytes. Classic TIFF is written when every offset fits in 32 bits,
+//! BigTIFF otherwise.
+//!
+//! The tiff crate's encoder writes each IFD after its own data, which a COG forbids, so the
+//! container is written here; the tiff crate's decoder reads the files back in the tests, and
+//! GDAL itself checks them in CI (tests/gis.rs).
+
+use crate::error::{Error, Result};
+use crate::grid::{Crs, Grid, MOON_RADIUS_M};
+use flate2::{write::ZlibEncoder, Compression};
+use ndarray::{Array2, ArrayView2};
+use rayon::prelude::*;
+use std::io::Write;
+use std::path::Path;
+
+/// Tile edge in pixels.
+pub const TILE: usize = 256;
+
+/// What a band holds, written into the file's GDAL metadata (band description and unit).
+#[derive(Debug, Clone)]
+pub struct BandInfo<'a> {
+    /// Band description, e.g. "height above the 1737.4 km sphere".
+    pub description: &'a str,
+    /// Unit, e.g. "m"; empty for dimensionless values.
+    pub unit: &'a str,
+    /// Extra dataset-level metadata items (name, value), e.g. the tool version.
+    pub metadata: &'a [(&'a str, String)],
+}
+
+/// Which TIFF container to write.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Default)]
+pub enum Container {
+    /// Classic TIFF when every offset fits in 32 bits, BigTIFF otherwise.
+    #[default]
+    Auto,
+    /// BigTIFF whatever the size.
+    BigTiff,
+}
+
+/// Write `data` on `grid` to `path` as a COG, atomically (temporary sibling, fsync, rename).
+pub fn write_geotiff(
+    path: &Path,
+    grid: &Grid,
+    data: ArrayView2<f64>,
+    info: &BandInfo,
+) -> Result<()> {
+    write_geotiff_as(path, grid, data, info, Container::Auto)
+}
+
+/// [`write_geotiff`] with a choice of container.
+pub fn write_geotiff_as(
+    path: &Path,
+    grid: &Grid,
+    data: ArrayView2<f64>,
+    info: &BandInfo,
+    container: Container,
+) -> Result<()> {
+    if data.dim() != (grid.rows, grid.cols) {
+        return Err(Error::Usage(format!(
+            "{}: data is {:?} pixels but the grid is {} × {}",
+            path.display(),
+            data.dim(),
+            grid.rows,
+            grid.cols
+        )));
+    }
+    let bytes = encode(grid, data, info, container);
+    crate::raster::write_atomic(path, &bytes)
+}
+
+/// The whole file in memory.
+pub fn encode(
+    grid: &Grid,
+    data: ArrayView2<f64>,
+    info: &BandInfo,
+    container: Container,
+) -> Vec<u8> {
+    let mut levels = vec![data.mapv(|v| v as f32)];
+    while levels
+        .last()
+        .is_some_and(|l| l.nrows().max(l.ncols()) > TILE)
+    {
+        let next = halve(levels.last().expect("a level").view());
+        levels.push(next);
+    }
+    // Compressed tiles of every level, row-major.
+    let tiles: Vec<Vec<Vec<u8>>> = levels.iter().map(|l| compress_level(l.view())).collect();
+    let data_bytes: u64 = tiles.iter().flatten().map(|t| t.len() as u64 + 8).sum();
+    let big = container == Container::BigTiff
+        || data_bytes + 1_000_000 + 64 * tiles.iter().map(|t| t.len() as u64).sum::<u64>()
+            > u32::MAX as u64;
+    let w = Width { big };
+    let ghost = ghost_block();
+    let header_len = if big { 16 } else { 8 };
+    let mut pos = (header_len + ghost.len()) as u64;
+    pos += pos % 2;
+    // Lay out the IFDs: their sizes do not depend on the offsets they hold.
+    let ifd_tags: Vec<Vec<Entry>> = levels
+        .iter()
+        .enumerate()
+        .map(|(k, l)| {
+            level_tags(
+                k,
+                l.dim(),
+                &tiles[k],
+                if k == 0 { Some((grid, info)) } else { None },
+                &w,
+                &[],
+            )
+        })
+        .collect();
+    let mut ifd_pos = Vec::new();
+    for tags in &ifd_tags {
+        ifd_pos.push(pos);
+        pos += ifd_size(tags, &w);
+        pos += pos % 2;
+    }
+    // Data: smallest overview first, full resolution last.
+    let mut offsets: Vec<Vec<u64>> = vec![Vec::new(); levels.len()];
+    for k in (0..levels.len()).rev() {
+        for t in &tiles[k] {
+            offsets[k].push(pos + 4);
+            pos += t.len() as u64 + 8;
+        }
+    }
+    let mut out = Vec::with_capacity(pos as usize);
+    if big {
+        out.extend_from_slice(b"II\x2b\x00\x08\x00\x00\x00");
+        out.extend_from_slice(&ifd_pos[0].to_le_bytes());
+    } else {
+        out.extend_from_slice(b"II\x2a\x00");
+        out.extend_from_slice(&(ifd_pos[0] as u32).to_le_bytes());
+    }
+    out.extend_from_slice(&ghost);
+    for (k, l) in levels.iter().enumerate() {
+        pad_to(&mut out, ifd_pos[k]);
+        let tags = level_tags(
+            k,
+            l.dim(),
+            &tiles[k],
+            if k == 0 { Some((grid, info)) } else { None },
+            &w,
+            &offsets[k],
+        );
+        let next = ifd_pos.get(k + 1).copied().unwrap_or(0);
+        write_ifd(&mut out, &tags, ifd_pos[k], next, &w);
+    }
+    pad_to(
+        &mut out,
+        offsets
+            .last()
+            .and_then(|o| o.first())
+            .map_or(pos, |&o| o - 4),
+    );
+    for k in (0..levels.len()).rev() {
+        for t in &tiles[k] {
+            out.extend_from_slice(&(t.len() as u32).to_le_bytes());
+            out.extend_from_slice(t);
+            out.extend_from_slice(&t[t.len() - 4..]);
+        }
+    }
+    debug_assert_eq!(out.len() as u64, pos);
+    out
+}
+
+/// GDAL's structural metadata block (gcore/gdal_priv.h, COG driver): a fixed first line giving
+/// the size of the rest.
+fn ghost_block() -> Vec<u8> {
+    let body = "LAYOUT=IFDS_BEFORE_DATA\nBLOCK_ORDER=ROW_MAJOR\nBLOCK_LEADER=SIZE_AS_UINT4\nBLOCK_TRAILER=LAST_4_BYTES_REPEATED\nKNOWN_INCOMPATIBLE_EDITION=NO\n ";
+    format!(
+        "GDAL_STRUCTURAL_METADATA_SIZE={:06} bytes\n{body}",
+        body.len()
+    )
+    .into_bytes()
+}
+
+fn pad_to(out: &mut Vec<u8>, pos: u64) {
+    debug_assert!(out.len() as u64 <= pos);
+    out.resize(pos as usize, 0);
+}
+
+/// The next overview: each pixel the mean of the valid (non-NaN) pixels of its 2 × 2 block.
+fn halve(a: ArrayView2<f32>) -> Array2<f32> {
+    let (h, w) = a.dim();
+    Array2::from_shape_fn((h.div_ceil(2), w.div_ceil(2)), |(r, c)| {
+        let (mut s, mut n) = (0.0f64, 0u32);
+        for i in 2 * r..(2 * r + 2).min(h) {
+            for j in 2 * c..(2 * c + 2).min(w) {
+                let v = a[(i, j)];
+                if v.is_finite() {
+                    s += v as f64;
+                    n += 1;
+                }
+            }
+        }
+        if n == 0 {
+            f32::NAN
+        } else {
+            (s / n as f64) as f32
+        }
+    })
+}
+
+/// Every tile of one level, DEFLATE-compressed after the floating-point predictor; tiles at the
+/// right and bottom edges are padded with no-data.
+fn compress_level(a: ArrayView2<f32>) -> Vec<Vec<u8>> {
+    let (h, w) = a.dim();
+    let (ty, tx) = (h.div_ceil(TILE), w.div_ceil(TILE));
+    (0..ty * tx)
+        .into_par_iter()
+        .map(|t| {
+            let (r0, c0) = ((t / tx) * TILE, (t % tx) * TILE);
+            let mut raw = Vec::with_capacity(TILE * TILE * 4);
+            let mut row = vec![f32::NAN; TILE];
+            for r in r0..r0 + TILE {
+                row.fill(f32::NAN);
+                if r < h {
+                    for (c, v) in row
+                        .iter_mut()
+                        .enumerate()
+                        .take(w.saturating_sub(c0).min(TILE))
+                    {
+                        *v = a[(r, c0 + c)];
+                    }
+                }
+                raw.extend_from_slice(&float_predictor(&row));
+            }
+            let mut z = ZlibEncoder::new(Vec::new(), Compression::new(6));
+            z.write_all(&raw).expect("writing to memory");
+            z.finish().expect("writing to memory")
+        })
+        .collect()
+}
+
+/// TIFF Technical Note 3's floating-point predictor on one row: the bytes of the (big-endian)
+/// values are regrouped by significance (all most significant bytes first), then each byte is
+/// replaced by its difference from the previous one (libtiff `fpDiff`).
+fn float_predictor(row: &[f32]) -> Vec<u8> {
+    let n = row.len();
+    let mut b = vec![0u8; 4 * n];
+    for (i, v) in row.iter().enumerate() {
+        for (k, byte) in v.to_be_bytes().into_iter().enumerate() {
+            b[k * n + i] = byte;
+        }
+    }
+    for j in (1..b.len()).rev() {
+        b[j] = b[j].wrapping_sub(b[j - 1]);
+    }
+    b
+}
+
+/// Offsets are 4 bytes (classic TIFF) or 8 (BigTIFF).
+struct Width {
+    big: bool,
+}
+
+/// One IFD entry: tag, field type, count, and the value bytes (little-endian).
+struct Entry {
+    tag: u16,
+    kind: u16,
+    count: u64,
+    bytes: Vec<u8>,
+}
+
+const SHORT: u16 = 3;
+const LONG: u16 = 4;
+const ASCII: u16 = 2;
+const DOUBLE: u16 = 12;
+const LONG8: u16 = 16;
+
+fn shorts(tag: u16, v: &[u16]) -> Entry {
+    Entry {
+        tag,
+        kind: SHORT,
+        count: v.len() as u64,
+        bytes: v.iter().flat_map(|x| x.to_le_bytes()).collect(),
+    }
+}
+fn longs(tag: u16, v: &[u32]) -> Entry {
+    Entry {
+        tag,
+        kind: LONG,
+        count: v.len() as u64,
+        bytes: v.iter().flat_map(|x| x.to_le_bytes()).collect(),
+    }
+}
+fn doubles(tag: u16, v: &[f64]) -> Entry {
+    Entry {
+        tag,
+        kind: DOUBLE,
+        count: v.len() as u64,
+        bytes: v.iter().flat_map(|x| x.to_le_bytes()).collect(),
+    }
+}
+fn ascii(tag: u16, s: &str) -> Entry {
+    let mut bytes = s.as_bytes().to_vec();
+    bytes.push(0);
+    Entry {
+        tag,
+        kind: ASCII,
+        count: bytes.len() as u64,
+        bytes,
+    }
+}
+
+/// The tags of one level; `offsets` may be empty while laying out (the sizes are the same).
+fn level_tags(
+    level: usize,
+    (h, w): (usize, usize),
+    tiles: &[Vec<u8>],
+    geo: Option<(&Grid, &BandInfo)>,
+    width: &Width,
+    offsets: &[u64],
+) -> Vec<Entry> {
+    let n = tiles.len();
+    let offsets: Vec<u64> = if offsets.is_empty() {
+        vec![0; n]
+    } else {
+        offsets.to_vec()
+    };
+    let mut e = vec![
+        longs(254, &[u32::from(level > 0)]),
+        longs(256, &[w as u32]),
+        longs(257, &[h as u32]),
+        shorts(258, &[32]),
+        shorts(259, &[8]),
+        shorts(262, &[1]),
+        shorts(277, &[1]),
+        shorts(284, &[1]),
+        shorts(317, &[3]),
+        shorts(322, &[TILE as u16]),
+        shorts(323, &[TILE as u16]),
+        if width.big {
+            Entry {
+                tag: 324,
+                kind: LONG8,
+                count: n as u64,
+                bytes: offsets.iter().flat_map(|x| x.to_le_bytes()).collect(),
+            }
+        } else {
+            longs(324, &offsets.iter().map(|&x| x as u32).collect::<Vec<_>>())
+        },
+        longs(
+            325,
+            &tiles.iter().map(|t| t.len() as u32).collect::<Vec<_>>(),
+        ),
+        shorts(339, &[3]),
+        ascii(42113, "nan"),
+    ];
+    if let Some((grid, info)) = geo {
+        let s = grid.spacing;
+        e.push(doubles(33550, &[s, s, 0.0]));
+        e.push(doubles(33922, &[0.0, 0.0, 0.0, grid.x0, grid.y0, 0.0]));
+        let keys = geokeys(&grid.crs);
+        e.push(shorts(34735, &keys.directory));
+        e.push(doubles(34736, &keys.doubles));
+        e.push(ascii(34737, &keys.ascii));
+        e.push(ascii(42112, &gdal_metadata(info)));
+    }
+    e.sort_by_key(|x| x.tag);
+    e
+}
+
+/// GDAL's XML metadata (tag 42112): band description and unit, and dataset items.
+fn gdal_metadata(info: &BandInfo) -> String {
+    let esc = |s: &str| {
+        s.replace('&', "&amp;")
+            .replace('<', "&lt;")
+            .replace('>', "&gt;")
+    };
+    let mut s = String::from("<GDALMetadata>\n");
+    for (k, v) in info.metadata {
+        s.push_str(&format!("  <Item name=\"{}\">{}</Item>\n", esc(k), esc(v)));
+    }
+    s.push_str(&format!(
+        "  <Item name=\"DESCRIPTION\" sample=\"0\" role=\"description\">{}</Item>\n",
+        esc(info.description)
+    ));
+    if !info.unit.is_empty() {
+        s.push_str(&format!(
+            "  <Item name=\"UNITTYPE\" sample=\"0\" role=\"unittype\">{}</Item>\n",
+            esc(info.unit)
+        ));
+    }
+    s.push_str("</GDALMetadata>");
+    s
+}
+
+fn ifd_size(tags: &[Entry], w: &Width) -> u64 {
+    let (head, entry, next, inline) = if w.big { (8, 20, 8, 8) } else { (2, 12, 4, 4) };
+    let extra: u64 = tags
+        .iter()
+        .filter(|t| t.bytes.len() > inline)
+        .map(|t| t.bytes.len() as u64 + (t.bytes.len() as u64 % 2))
+        .sum();
+    head + entry * tags.len() as u64 + next + extra
+}
+
+/// Serialise one IFD at file position `at` (== `out.len()`), with out-of-line values after it.
+fn write_ifd(out: &mut Vec<u8>, tags: &[Entry], at: u64, next: u64, w: &Width) {
+    debug_assert_eq!(out.len() as u64, at);
+    let (head, entry, nextb, inline) = if w.big {
+        (8u64, 20u64, 8u64, 8usize)
+    } else {
+        (2, 12, 4, 4)
+    };
+    let mut extra_pos = at + head + entry * tags.len() as u64 + nextb;
+    let mut extra = Vec::new();
+    if w.big {
+        out.extend_from_slice(&(tags.len() as u64).to_le_bytes());
+    } else {
+        out.extend_from_slice(&(tags.len() as u16).to_le_bytes());
+    }
+    for t in tags {
+        out.extend_from_slice(&t.tag.to_le_bytes());
+        out.extend_from_slice(&t.kind.to_le_bytes());
+        if w.big {
+            out.extend_from_slice(&t.count.to_le_bytes());
+        } else {
+            out.extend_from_slice(&(t.count as u32).to_le_bytes());
+        }
+        if t.bytes.len() <= inline {
+            let mut v = t.bytes.clone();
+            v.resize(inline, 0);
+            out.extend_from_slice(&v);
+        } else {
+            if w.big {
+                out.extend_from_slice(&extra_pos.to_le_bytes());
+            } else {
+                out.extend_from_slice(&(extra_pos as u32).to_le_bytes());
+            }
+            extra.extend_from_slice(&t.bytes);
+            extra_pos += t.bytes.len() as u64;
+            if t.bytes.len() % 2 == 1 {
+                extra.push(0);
+                extra_pos += 1;
+            }
+        }
+    }
+    if w.big {
+        out.extend_from_slice(&next.to_le_bytes());
+    } else {
+        out.extend_from_slice(&(next as u32).to_le_bytes());
+    }
+    out.extend_from_slice(&extra);
+}
+
+/// The three GeoTIFF key tags.
+struct GeoKeys {
+    directory: Vec<u16>,
+    doubles: Vec<f64>,
+    ascii: String,
+}
+
+/// GeoKeys (OGC GeoTIFF 1.1) for a user-defined projected CRS on the Moon sphere:
+/// a user-defined geographic CRS (2048 = 32767) whose citation names datum, ellipsoid and
+/// prime meridian in the form GDAL reads ("GCS Name = …|Datum = …|Ellipsoid = …|Primem = …|"),
+/// semi-axes 1 737 400 m, and the coordinate transformation with its parameters.
+fn geokeys(crs: &Crs) -> GeoKeys {
+    let mut keys: Vec<(u16, u16, u16, u16)> = Vec::new(); // (id, location, count, value)
+    let mut dbl = Vec::new();
+    let mut asc = String::new();
+    let mut push_ascii = |keys: &mut Vec<(u16, u16, u16, u16)>, id: u16, s: &str| {
+        let start = asc.len() as u16;
+        asc.push_str(s);
+        asc.push('|');
+        keys.push((id, 34737, (s.len() + 1) as u16, start));
+    };
+    let mut push_dbl = |keys: &mut Vec<(u16, u16, u16, u16)>, id: u16, v: f64| {
+        keys.push((id, 34736, 1, dbl.len() as u16));
+        dbl.push(v);
+    };
+    keys.push((1024, 0, 1, 1)); // GTModelType: projected
+    keys.push((1025, 0, 1, 1)); // GTRasterType: PixelIsArea
+    push_ascii(&mut keys, 1026, &crs.name());
+    keys.push((2048, 0, 1, 32767)); // GeodeticCRS: user-defined
+    push_ascii(
+        &mut keys,
+        2049,
+        "GCS Name = Moon (2015) - Sphere / Ocentric|Datum = Moon (2015) - Sphere|Ellipsoid = Moon (2015) - Sphere|Primem = Reference Meridian",
+    );
+    keys.push((2050, 0, 1, 32767)); // GeodeticDatum: user-defined
+    keys.push((2054, 0, 1, 9102)); // GeogAngularUnits: degree
+    keys.push((2056, 0, 1, 32767)); // Ellipsoid: user-defined
+    push_dbl(&mut keys, 2057, MOON_RADIUS_M);
+    push_dbl(&mut keys, 2058, MOON_RADIUS_M);
+    keys.push((3072, 0, 1, 32767)); // ProjectedCRS: user-defined
+    keys.push((3074, 0, 1, 32767)); // Projection: user-defined
+    let (ct, params): (u16, Vec<(u16, f64)>) = match *crs {
+        // CT_Equirectangular: ProjCenterLat, ProjCenterLong, ProjStdParallel1.
+        Crs::Equirectangular { lon_0 } => (17, vec![(3078, 0.0), (3088, lon_0), (3089, 0.0)]),
+        // CT_PolarStereographic: ProjNatOriginLat, ProjScaleAtNatOrigin, ProjStraightVertPoleLong.
+        Crs::PolarStereographic { north } => (
+            15,
+            vec![
+                (3081, if north { 90.0 } else { -90.0 }),
+                (3092, 1.0),
+                (3095, 0.0),
+            ],
+        ),
+        // CT_Stereographic: ProjCenterLong, ProjCenterLat, ProjScaleAtNatOrigin.
+        Crs::Stereographic { lat_0, lon_0 } => {
+            (14, vec![(3088, lon_0), (3089, lat_0), (3092, 1.0)])
+        }
+        // CT_Orthographic: ProjCenterLong, ProjCenterLat.
+        Crs::Orthographic { lat_0, lon_0 } => (21, vec![(3088, lon_0), (3089, lat_0)]),
+    };
+    keys.push((3075, 0, 1, ct));
+    keys.push((3076, 0, 1, 9001)); // ProjLinearUnits: metre
+    for (id, v) in params.into_iter().chain([(3082, 0.0), (3083, 0.0)]) {
+        push_dbl(&mut keys, id, v);
+    }
+    keys.sort_by_key(|k| k.0);
+    let mut directory = vec![1, 1, 0, keys.len() as u16];
+    for (id, loc, count, value) in keys {
+        directory.extend_from_slice(&[id, loc, count, value]);
+    }
+    GeoKeys {
+        directory,
+        doubles: dbl,
+        ascii: asc,
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn float_predictor_matches_its_definition() {
+        // Two values: bytes regrouped by significance, then differenced.
+        let b = float_predictor(&[1.0, 2.0]);
+        // 1.0 = 3F 80 00 00, 2.0 = 40 00 00 00 → planes 3F 40 | 80 00 | 00 00 | 00 00.
+        let planes = [0x3Fu8, 0x40, 0x80, 0x00, 0, 0, 0, 0];
+        let mut want = planes;
+        for j in (1..8).rev() {
+            want[j] = planes[j].wrapping_sub(planes[j - 1]);
+        }
+        assert_eq!(b, want);
+    }
+
+    #[test]
+    fn overviews_average_valid_pixels_only() {
+        let a = Array2::from_shape_vec(
+            (3, 3),
+            vec![1.0, 3.0, 5.0, f32::NAN, 2.0, 7.0, 4.0, 4.0, f32::NAN],
+        )
+        .unwrap();
+        let h = halve(a.view());
+        assert_eq!(h.dim(), (2, 2));
+        assert_eq!(h[(0, 0)], 2.0);
+        assert_eq!(h[(0, 1)], 6.0);
+        assert_eq!(h[(1, 0)], 4.0);
+        assert!(h[(1, 1)].is_nan());
+    }
+
+    #[test]
+    fn ghost_block_declares_its_own_size() {
+        let g = String::from_utf8(ghost_block()).unwrap();
+        let (first, rest) = g.split_once('\n').unwrap();
+        let n: usize = first
+            .trim_start_matches("GDAL_STRUCTURAL_METADATA_SIZE=")
+            .trim_end_matches(" bytes")
+            .parse()
+            .unwrap();
+        assert_eq!(n, rest.len());
+    }
+}
+
+/// A single-band raster read from a (Geo)TIFF, with its georeferencing where it has one.
+#[derive(Debug, Clone)]
+pub struct TiffRaster {
+    pub data: Array2<f64>,
+    /// GDAL geotransform from ModelPixelScale + ModelTiepoint (north-up files), if present.
+    pub geotransform: Option<[f64; 6]>,
+    /// GDAL_NODATA, if present.
+    pub nodata: Option<f64>,
+    /// How many images (full resolution + overviews) the file holds.
+    pub images: usize,
+}
+
+/// Read the first image of a TIFF (any sample type the tiff crate decodes: 8/16/32-bit integers,
+/// float32/64; the first channel of multi-channel images), with the tiff crate.
+pub fn read_tiff(path: &Path) -> Result<TiffRaster> {
+    use tiff::decoder::{Decoder, DecodingResult};
+    use tiff::tags::Tag;
+    let bad =
+        |e: tiff::TiffError| Error::Usage(format!("{}: not a readable TIFF: {e}", path.display()));
+    let f = std::fs::File::open(path).map_err(|e| Error::io(path, e))?;
+    let mut d = Decoder::new(std::io::BufReader::new(f)).map_err(bad)?;
+    let (w, h) = d.dimensions().map_err(bad)?;
+    let channels = match d.colortype().map_err(bad)? {
+        tiff::ColorType::Gray(_) => 1,
+        tiff::ColorType::GrayA(_) => 2,
+        tiff::ColorType::RGB(_) => 3,
+        tiff::ColorType::RGBA(_) => 4,
+        other => {
+            return Err(Error::Usage(format!(
+                "{}: colour type {other:?} is not supported; give a single-band raster",
+                path.display()
+            )))
+        }
+    };
+    let scale = d.find_tag(Tag::ModelPixelScaleTag).map_err(bad)?;
+    let tie = d.find_tag(Tag::ModelTiepointTag).map_err(bad)?;
+    let geotransform = match (scale, tie) {
+        (Some(s), Some(t)) => {
+            let s = s.into_f64_vec().map_err(bad)?;
+            let t = t.into_f64_vec().map_err(bad)?;
+            (s.len() >= 2 && t.len() >= 6).then(|| {
+                [
+                    t[3] - t[0] * s[0],
+                    s[0],
+                    0.0,
+                    t[4] + t[1] * s[1],
+                    0.0,
+                    -s[1],
+                ]
+            })
+        }
+        _ => None,
+    };
+    let nodata = d
+        .find_tag(Tag::GdalNodata)
+        .map_err(bad)?
+        .and_then(|v| v.into_string().ok())
+        .and_then(|s| s.trim_matches(char::from(0)).trim().parse::<f64>().ok());
+    let img = d.read_image().map_err(bad)?;
+    let v: Vec<f64> = match img {
+        DecodingResult::U8(v) => v.into_iter().map(f64::from).collect(),
+        DecodingResult::U16(v) => v.into_iter().map(f64::from).collect(),
+        DecodingResult::U32(v) => v.into_iter().map(f64::from).collect(),
+        DecodingResult::I8(v) => v.into_iter().map(f64::from).collect(),
+        DecodingResult::I16(v) => v.into_iter().map(f64::from).collect(),
+        DecodingResult::I32(v) => v.into_iter().map(f64::from).collect(),
+        DecodingResult::F32(v) => v.into_iter().map(f64::from).collect(),
+        DecodingResult::F64(v) => v,
+        _ => {
+            return Err(Error::Usage(format!(
+                "{}: sample type not supported (use 8/16/32-bit integers or float32/64)",
+                path.display()
+            )))
+        }
+    };
+    let v: Vec<f64> = v.into_iter().step_by(channels).collect();
+    let data = Array2::from_shape_vec((h as usize, w as usize), v)
+        .map_err(|e| Error::Usage(format!("{}: {e}", path.display())))?;
+    let mut images = 1;
+    while d.more_images() {
+        d.next_image().map_err(bad)?;
+        images += 1;
+    }
+    Ok(TiffRaster {
+        data,
+        geotransform,
+        nodata,
+        images,
+    })
+}

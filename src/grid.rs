@@ -1,0 +1,739 @@
+//! One georeferenced, locally metric raster grid on the Moon sphere (R = 1 737 400 m), and the
+//! pure geometry that puts data on it: map projections (through `proj4rs`, which matches
+//! PROJ 9.1.1 to < 1e-6 m on these projections), the rotation of east-north-up vectors into the
+//! grid frame, interpolation kernels, and the triangulation that maps a scattered swath
+//! (M3 LOC longitude/latitude per pixel) onto the grid. No I/O here: `ingest` reads files.
+//!
+//! Conventions (docs/architecture.md): arrays are `[row, col]`, row 0 at the grid's north
+//! (map +y) edge; the grid frame is map +x (≈ east), map +y (≈ north), up. A grid is
+//! `rows × cols` square pixels of `spacing` metres whose outer corner is at map (x0, y0):
+//! pixel (r, c) has its centre at (x0 + (c + ½)·ε, y0 − (r + ½)·ε), GDAL's geotransform
+//! (x0, ε, 0, y0, 0, −ε).
+
+use ndarray::{Array2, ArrayView2, Zip};
+use proj4rs::proj::Proj;
+use serde::{Deserialize, Serialize};
+
+/// The IAU 2015 Moon sphere radius (IAU_2015:30100), metres.
+pub const MOON_RADIUS_M: f64 = 1_737_400.0;
+
+/// A projected coordinate reference system on the Moon sphere.
+#[derive(Debug, Clone, Copy, PartialEq, Serialize, Deserialize)]
+#[serde(tag = "kind", rename_all = "snake_case", deny_unknown_fields)]
+pub enum Crs {
+    /// Equirectangular (plate carrée), true scale on the equator; `lon_0` = 0 is
+    /// IAU_2015:30110, 180 is 30115 (the LDEM IMG files). Not locally metric away from the
+    /// equator: not for shape from shading.
+    Equirectangular { lon_0: f64 },
+    /// Polar stereographic, true scale at the pole, longitude 0 towards map −y in the north and
+    /// +y in the south (IAU_2015:30130 / 30135; LOLA's polar products).
+    PolarStereographic { north: bool },
+    /// Oblique stereographic centred on (lat_0, lon_0), scale 1 at the centre: conformal, so
+    /// x and y spacing stay equal; the default for shape from shading.
+    Stereographic { lat_0: f64, lon_0: f64 },
+    /// Orthographic centred on (lat_0, lon_0): the view from far above the centre.
+    Orthographic { lat_0: f64, lon_0: f64 },
+}
+
+/// What went wrong with a grid or a projection.
+#[derive(Debug, thiserror::Error)]
+pub enum GridError {
+    #[error("projection `{def}`: {why}")]
+    Projection { def: String, why: String },
+    #[error("grid: {0}")]
+    Invalid(String),
+}
+
+impl Crs {
+    /// The PROJ string, written as PROJ itself writes the IAU_2015 definitions.
+    pub fn proj_string(&self) -> String {
+        let tail = "+x_0=0 +y_0=0 +R=1737400 +units=m +no_defs";
+        match *self {
+            Crs::Equirectangular { lon_0 } => {
+                format!("+proj=eqc +lat_ts=0 +lat_0=0 +lon_0={lon_0} {tail}")
+            }
+            Crs::PolarStereographic { north } => {
+                let lat = if north { 90 } else { -90 };
+                format!("+proj=stere +lat_0={lat} +lon_0=0 +k=1 {tail}")
+            }
+            Crs::Stereographic { lat_0, lon_0 } => {
+                format!("+proj=stere +lat_0={lat_0} +lon_0={lon_0} +k=1 {tail}")
+            }
+            Crs::Orthographic { lat_0, lon_0 } => {
+                format!("+proj=ortho +lat_0={lat_0} +lon_0={lon_0} {tail}")
+            }
+        }
+    }
+
+    /// The IAU_2015 code this CRS is, where it is one.
+    pub fn iau_2015(&self) -> Option<&'static str> {
+        match *self {
+            Crs::Equirectangular { lon_0: 0.0 } => Some("IAU_2015:30110"),
+            Crs::Equirectangular { lon_0: 180.0 } => Some("IAU_2015:30115"),
+            Crs::PolarStereographic { north: true } => Some("IAU_2015:30130"),
+            Crs::PolarStereographic { north: false } => Some("IAU_2015:30135"),
+            _ => None,
+        }
+    }
+
+    /// A short human name ("Moon stereographic centred 9.5°N 37.9°E").
+    pub fn name(&self) -> String {
+        match *self {
+            Crs::Equirectangular { lon_0 } => format!("Moon (2015) equirectangular, lon_0 {lon_0}"),
+            Crs::PolarStereographic { north } => format!(
+                "Moon (2015) {} polar stereographic",
+                if north { "north" } else { "south" }
+            ),
+            Crs::Stereographic { lat_0, lon_0 } => {
+                format!("Moon (2015) stereographic centred at lat {lat_0}, lon {lon_0}")
+            }
+            Crs::Orthographic { lat_0, lon_0 } => {
+                format!("Moon (2015) orthographic centred at lat {lat_0}, lon {lon_0}")
+            }
+        }
+    }
+
+    fn validate(&self) -> Result<(), GridError> {
+        let bad = |what: &str, v: f64, lim: f64| {
+            (!(v.is_finite() && v.abs() <= lim))
+                .then(|| GridError::Invalid(format!("{what} = {v} must lie in [−{lim}, {lim}]")))
+        };
+        let e = match *self {
+            Crs::Equirectangular { lon_0 } => bad("lon_0", lon_0, 360.0),
+            Crs::PolarStereographic { .. } => None,
+            Crs::Stereographic { lat_0, lon_0 } | Crs::Orthographic { lat_0, lon_0 } => {
+                bad("lat_0", lat_0, 90.0).or(bad("lon_0", lon_0, 360.0))
+            }
+        };
+        e.map_or(Ok(()), Err)
+    }
+
+    /// The forward and inverse projection between (lon, lat) in degrees and map metres.
+    pub fn projector(&self) -> Result<Projector, GridError> {
+        self.validate()?;
+        let def = self.proj_string();
+        let make = |d: &str| {
+            Proj::from_proj_string(d).map_err(|e| GridError::Projection {
+                def: d.to_string(),
+                why: e.to_string(),
+            })
+        };
+        Ok(Projector {
+            geo: make("+proj=longlat +R=1737400 +no_defs")?,
+            map: make(&def)?,
+            crs: *self,
+        })
+    }
+}
+
+/// Projects between geographic (east longitude, planetocentric latitude, degrees) and map
+/// coordinates (metres) of one [`Crs`].
+#[derive(Clone)]
+pub struct Projector {
+    geo: Proj,
+    map: Proj,
+    pub crs: Crs,
+}
+
+impl std::fmt::Debug for Projector {
+    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+        write!(f, "Projector({})", self.crs.proj_string())
+    }
+}
+
+impl Projector {
+    /// Map (x, y) of (lon, lat) in degrees; `None` where the projection is undefined (the far
+    /// side of an orthographic view, the antipode of a stereographic centre).
+    pub fn forward(&self, lon: f64, lat: f64) -> Option<(f64, f64)> {
+        if !(lon.is_finite() && lat.is_finite() && lat.abs() <= 90.0) {
+            return None;
+        }
+        let mut p = (lon.to_radians(), lat.to_radians(), 0.0);
+        proj4rs::transform::transform(&self.geo, &self.map, &mut p).ok()?;
+        (p.0.is_finite() && p.1.is_finite()).then_some((p.0, p.1))
+    }
+
+    /// (lon, lat) in degrees of map (x, y); longitude in (−180, 180].
+    pub fn inverse(&self, x: f64, y: f64) -> Option<(f64, f64)> {
+        if !(x.is_finite() && y.is_finite()) {
+            return None;
+        }
+        let mut p = (x, y, 0.0);
+        proj4rs::transform::transform(&self.map, &self.geo, &mut p).ok()?;
+        let (lon, lat) = (p.0.to_degrees(), p.1.to_degrees());
+        (lon.is_finite() && lat.is_finite()).then_some((lon, lat))
+    }
+
+    /// The grid bearing of true north at (lon, lat): the angle θ, clockwise from map +y, of
+    /// the direction in which latitude increases (central differences over ±0.001°, one-sided
+    /// next to a pole). 0 on the central meridian of every projection here.
+    pub fn north_bearing(&self, lon: f64, lat: f64) -> Option<f64> {
+        let d = 1e-3;
+        let (a, b) = ((lat - d).max(-90.0), (lat + d).min(90.0));
+        let (x0, y0) = self.forward(lon, a)?;
+        let (x1, y1) = self.forward(lon, b)?;
+        let (dx, dy) = (x1 - x0, y1 - y0);
+        (dx != 0.0 || dy != 0.0).then(|| dx.atan2(dy))
+    }
+}
+
+/// Rotate a vector from local east-north-up into the grid frame (map +x, map +y, up), given
+/// the grid bearing θ of true north there ([`Projector::north_bearing`]):
+/// x = e·cos θ + n·sin θ, y = −e·sin θ + n·cos θ, up unchanged. Exact for the conformal
+/// projections (stereographic, polar stereographic), where east is 90° clockwise from north
+/// on the map too.
+pub fn enu_to_grid(v: [f64; 3], bearing: f64) -> [f64; 3] {
+    let (s, c) = bearing.sin_cos();
+    [v[0] * c + v[1] * s, -v[0] * s + v[1] * c, v[2]]
+}
+
+/// A rectangle in longitude and latitude, degrees (east longitudes; `lon_min > lon_max` is not
+/// allowed: give lon_max > 180 to cross the 180° meridian, e.g. 170 to 190).
+#[derive(Debug, Clone, Copy, PartialEq, Serialize, Deserialize)]
+#[serde(deny_unknown_fields)]
+pub struct LonLatBox {
+    pub lon_min: f64,
+    pub lon_max: f64,
+    pub lat_min: f64,
+    pub lat_max: f64,
+}
+
+impl LonLatBox {
+    pub fn validate(&self) -> Result<(), GridError> {
+        let ok = self.lat_min.is_finite()
+            && self.lat_max.is_finite()
+            && self.lon_min.is_finite()
+            && self.lon_max.is_finite()
+            && -90.0 <= self.lat_min
+            && self.lat_min < self.lat_max
+            && self.lat_max <= 90.0
+            && self.lon_min < self.lon_max
+            && self.lon_max - self.lon_min <= 360.0;
+        if ok {
+            Ok(())
+        } else {
+            Err(GridError::Invalid(format!(
+                "region lon {}..{}, lat {}..{} is not a rectangle on the Moon (need lat_min < lat_max within ±90, lon_min < lon_max, at most 360° wide)",
+                self.lon_min, self.lon_max, self.lat_min, self.lat_max
+            )))
+        }
+    }
+
+    /// The centre, for a local projection.
+    pub fn centre(&self) -> (f64, f64) {
+        (
+            0.5 * (self.lon_min + self.lon_max),
+            0.5 * (self.lat_min + self.lat_max),
+        )
+    }
+
+    /// Points along the border, `n` per edge.
+    fn border(&self, n: usize) -> impl Iterator<Item = (f64, f64)> + '_ {
+        (0..=n).flat_map(move |k| {
+            let t = k as f64 / n as f64;
+            let lon = self.lon_min + t * (self.lon_max - self.lon_min);
+            let lat = self.lat_min + t * (self.lat_max - self.lat_min);
+            [
+                (lon, self.lat_min),
+                (lon, self.lat_max),
+                (self.lon_min, lat),
+                (self.lon_max, lat),
+            ]
+        })
+    }
+}
+
+/// A raster grid: `rows × cols` square pixels of `spacing` metres, outer corner at map
+/// (x0, y0) (north-west), in `crs`.
+#[derive(Debug, Clone, Copy, PartialEq, Serialize, Deserialize)]
+#[serde(deny_unknown_fields)]
+pub struct Grid {
+    pub crs: Crs,
+    pub rows: usize,
+    pub cols: usize,
+    pub x0: f64,
+    pub y0: f64,
+    pub spacing: f64,
+}
+
+/// The most pixels one grid may have (2³¹: a 46 000² region); larger regions are split into
+/// several runs.
+pub const MAX_PIXELS: usize = 1 << 31;
+
+impl Grid {
+    /// A validated grid.
+    pub fn new(
+        crs: Crs,
+        rows: usize,
+        cols: usize,
+        x0: f64,
+        y0: f64,
+        spacing: f64,
+    ) -> Result<Self, GridError> {
+        crs.validate()?;
+        if !(spacing.is_finite() && spacing > 0.0) {
+            return Err(GridError::Invalid(format!(
+                "spacing {spacing} m must be a positive number"
+            )));
+        }
+        if rows == 0 || cols == 0 || rows.checked_mul(cols).is_none_or(|n| n > MAX_PIXELS) {
+            return Err(GridError::Invalid(format!(
+                "{rows} × {cols} pixels: need at least 1 × 1 and at most {MAX_PIXELS} pixels"
+            )));
+        }
+        if !(x0.is_finite() && y0.is_finite()) {
+            return Err(GridError::Invalid(format!(
+                "origin ({x0}, {y0}) is not finite"
+            )));
+        }
+        Ok(Grid {
+            crs,
+            rows,
+            cols,
+            x0,
+            y0,
+            spacing,
+        })
+    }
+
+    /// The smallest grid in `crs` with pixels of `spacing` metres aligned to multiples of the
+    /// spacing (so grids of one CRS and spacing share pixel edges) that covers `region`.
+    pub fn covering(crs: Crs, region: &LonLatBox, spacing: f64) -> Result<Self, GridError> {
+        region.validate()?;
+        let pr = crs.projector()?;
+        let (mut xmin, mut xmax, mut ymin, mut ymax) = (f64::MAX, f64::MIN, f64::MAX, f64::MIN);
+        let (clon, clat) = region.centre();
+        for (lon, lat) in region.border(256).chain([(clon, clat)]) {
+            let (x, y) = pr.forward(lon, lat).ok_or_else(|| {
+                GridError::Invalid(format!(
+                    "region point lon {lon}, lat {lat} cannot be projected in {}: choose a projection centred on the region",
+                    crs.name()
+                ))
+            })?;
+            xmin = xmin.min(x);
+            xmax = xmax.max(x);
+            ymin = ymin.min(y);
+            ymax = ymax.max(y);
+        }
+        if !(spacing.is_finite() && spacing > 0.0) {
+            return Err(GridError::Invalid(format!(
+                "spacing {spacing} m must be a positive number"
+            )));
+        }
+        let (c0, c1) = ((xmin / spacing).floor(), (xmax / spacing).ceil());
+        let (r0, r1) = ((ymin / spacing).floor(), (ymax / spacing).ceil());
+        let cols = (c1 - c0).max(1.0);
+        let rows = (r1 - r0).max(1.0);
+        if cols * rows > MAX_PIXELS as f64 {
+            return Err(GridError::Invalid(format!(
+                "the region needs {rows} × {cols} pixels at {spacing} m: more than {MAX_PIXELS}; use a coarser spacing or a smaller region"
+            )));
+        }
+        Grid::new(
+            crs,
+            rows as usize,
+            cols as usize,
+            c0 * spacing,
+            r1 * spacing,
+            spacing,
+        )
+    }
+
+    /// Map coordinates of the centre of pixel (row, col); fractional indices are allowed.
+    pub fn xy(&self, row: f64, col: f64) -> (f64, f64) {
+        (
+            self.x0 + (col + 0.5) * self.spacing,
+            self.y0 - (row + 0.5) * self.spacing,
+        )
+    }
+
+    /// Fractional (row, col) of map (x, y), pixel centres at whole numbers.
+    pub fn pixel(&self, x: f64, y: f64) -> (f64, f64) {
+        (
+            (self.y0 - y) / self.spacing - 0.5,
+            (x - self.x0) / self.spacing - 0.5,
+        )
+    }
+
+    /// GDAL's geotransform (x0, ε, 0, y0, 0, −ε): corner convention, north up.
+    pub fn geotransform(&self) -> [f64; 6] {
+        [self.x0, self.spacing, 0.0, self.y0, 0.0, -self.spacing]
+    }
+
+    /// The sub-grid of rows `r0..r0 + rows`, cols `c0..c0 + cols` (may extend past this grid:
+    /// tiles with halos do).
+    pub fn window(&self, r0: isize, c0: isize, rows: usize, cols: usize) -> Grid {
+        Grid {
+            rows,
+            cols,
+            x0: self.x0 + c0 as f64 * self.spacing,
+            y0: self.y0 - r0 as f64 * self.spacing,
+            ..*self
+        }
+    }
+
+    /// (lon, lat) of every pixel centre and the grid bearing of north there; NaN where the
+    /// projection is undefined.
+    pub fn geographic(&self, pr: &Projector) -> (Array2<f64>, Array2<f64>, Array2<f64>) {
+        let mut lon = Array2::from_elem((self.rows, self.cols), f64::NAN);
+        let mut lat = lon.clone();
+        let mut bearing = lon.clone();
+        Zip::indexed(&mut lon)
+            .and(&mut lat)
+            .and(&mut bearing)
+            .par_for_each(|(r, c), lo, la, b| {
+                let (x, y) = self.xy(r as f64, c as f64);
+                if let Some((o, a)) = pr.inverse(x, y) {
+                    *lo = o;
+                    *la = a;
+                    *b = pr.north_bearing(o, a).unwrap_or(f64::NAN);
+                }
+            });
+        (lon, lat, bearing)
+    }
+}
+
+/// Interpolation kernel for resampling a regular raster.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Serialize, Deserialize, Default)]
+#[serde(rename_all = "lowercase")]
+pub enum Interpolation {
+    /// Bilinear: 2 × 2 support.
+    Bilinear,
+    /// Keys' cubic convolution with a = −½ (Catmull–Rom; reproduces quadratics): 4 × 4 support.
+    #[default]
+    Bicubic,
+}
+
+/// Keys (1981) cubic convolution weight with a = −½ at offset t.
+fn keys(t: f64) -> f64 {
+    let t = t.abs();
+    if t <= 1.0 {
+        (1.5 * t - 2.5) * t * t + 1.0
+    } else if t < 2.0 {
+        ((-0.5 * t + 2.5) * t - 4.0) * t + 2.0
+    } else {
+        0.0
+    }
+}
+
+/// Interpolate `src` at fractional (row, col) (centres at whole numbers). Columns wrap modulo
+/// `src.ncols()` when `wrap_cols` (a product spanning 360° of longitude); otherwise a support
+/// that leaves the raster, or touches a NaN, gives NaN (no data propagates, never invents).
+pub fn interpolate(
+    src: ArrayView2<f64>,
+    row: f64,
+    col: f64,
+    method: Interpolation,
+    wrap_cols: bool,
+) -> f64 {
+    if !(row.is_finite() && col.is_finite()) {
+        return f64::NAN;
+    }
+    let (nr, nc) = (src.nrows() as isize, src.ncols() as isize);
+    let (r0, c0) = (row.floor(), col.floor());
+    let (tr, tc) = (row - r0, col - c0);
+    let (r0, c0) = (r0 as isize, c0 as isize);
+    let (lo, n) = match method {
+        Interpolation::Bilinear => (0, 2),
+        Interpolation::Bicubic => (-1, 4),
+    };
+    let weight = |t: f64, k: isize| match method {
+        Interpolation::Bilinear => {
+            if k == 0 {
+                1.0 - t
+            } else {
+                t
+            }
+        }
+        Interpolation::Bicubic => keys(t - k as f64),
+    };
+    let mut acc = 0.0;
+    for i in lo..lo + n {
+        let r = r0 + i;
+        let wr = weight(tr, i);
+        if wr == 0.0 {
+            continue;
+        }
+        if r < 0 || r >= nr {
+            return f64::NAN;
+        }
+        for j in lo..lo + n {
+            let wc = weight(tc, j);
+            if wc == 0.0 {
+                continue;
+            }
+            let mut c = c0 + j;
+            if wrap_cols {
+                c = c.rem_euclid(nc);
+            } else if c < 0 || c >= nc {
+                return f64::NAN;
+            }
+            let v = src[(r as usize, c as usize)];
+            if !v.is_finite() {
+                return f64::NAN;
+            }
+            acc += wr * wc * v;
+        }
+    }
+    acc
+}
+
+/// Where each grid pixel centre falls in a swath whose pixel (line, sample) centres are at map
+/// positions given by `lon`/`lat` (degrees, NaN = unknown): fractional (line, sample) per grid
+/// pixel, NaN outside the swath.
+///
+/// The swath is treated as a mesh: each cell between four neighbouring pixel centres is split
+/// into two triangles, projected into the grid, and every grid centre inside a triangle gets
+/// the barycentric blend of the triangle's (line, sample). Neighbouring triangles share edges,
+/// so the covered area has no holes; outside the outermost centres stays no-data. Where a
+/// swath folds over itself (it does not in orbital push-broom data), the later line wins —
+/// deterministic, the same for any thread count.
+pub fn swath_positions(
+    grid: &Grid,
+    pr: &Projector,
+    lon: ArrayView2<f64>,
+    lat: ArrayView2<f64>,
+) -> (Array2<f64>, Array2<f64>) {
+    let (nl, ns) = lon.dim();
+    // Grid (row, col) of every swath pixel centre.
+    let mut gr = Array2::from_elem((nl, ns), f64::NAN);
+    let mut gc = gr.clone();
+    Zip::from(&mut gr)
+        .and(&mut gc)
+        .and(lon)
+        .and(lat)
+        .par_for_each(|r, c, &lo, &la| {
+            if let Some((x, y)) = pr.forward(lo, la) {
+                (*r, *c) = grid.pixel(x, y);
+            }
+        });
+    let mut line = Array2::from_elem((grid.rows, grid.cols), f64::NAN);
+    let mut sample = line.clone();
+    let mut fill = |v: [(f64, f64, f64, f64); 3]| {
+        // v[k] = (grid row, grid col, swath line, swath sample).
+        if v.iter().any(|p| !(p.0.is_finite() && p.1.is_finite())) {
+            return;
+        }
+        let rmin = v
+            .iter()
+            .map(|p| p.0)
+            .fold(f64::MAX, f64::min)
+            .ceil()
+            .max(0.0);
+        let rmax = v
+            .iter()
+            .map(|p| p.0)
+            .fold(f64::MIN, f64::max)
+            .floor()
+            .min(grid.rows as f64 - 1.0);
+        let cmin = v
+            .iter()
+            .map(|p| p.1)
+            .fold(f64::MAX, f64::min)
+            .ceil()
+            .max(0.0);
+        let cmax = v
+            .iter()
+            .map(|p| p.1)
+            .fold(f64::MIN, f64::max)
+            .floor()
+            .min(grid.cols as f64 - 1.0);
+        if rmin > rmax || cmin > cmax {
+            return;
+        }
+        let det = (v[1].1 - v[0].1) * (v[2].0 - v[0].0) - (v[2].1 - v[0].1) * (v[1].0 - v[0].0);
+        if det.abs() < 1e-12 {
+            return;
+        }
+        // Barycentric tolerance: points on a shared edge belong to both triangles.
+        let tol = -1e-9;
+        for r in rmin as usize..=rmax as usize {
+            for c in cmin as usize..=cmax as usize {
+                let (y, x) = (r as f64, c as f64);
+                let b1 =
+                    ((x - v[0].1) * (v[2].0 - v[0].0) - (v[2].1 - v[0].1) * (y - v[0].0)) / det;
+                let b2 =
+                    ((v[1].1 - v[0].1) * (y - v[0].0) - (x - v[0].1) * (v[1].0 - v[0].0)) / det;
+                let b0 = 1.0 - b1 - b2;
+                if b0 >= tol && b1 >= tol && b2 >= tol {
+                    line[(r, c)] = b0 * v[0].2 + b1 * v[1].2 + b2 * v[2].2;
+                    sample[(r, c)] = b0 * v[0].3 + b1 * v[1].3 + b2 * v[2].3;
+                }
+            }
+        }
+    };
+    for i in 0..nl.saturating_sub(1) {
+        for j in 0..ns.saturating_sub(1) {
+            let p = |a: usize, b: usize| (gr[(a, b)], gc[(a, b)], a as f64, b as f64);
+            let (a, b, c, d) = (p(i, j), p(i, j + 1), p(i + 1, j), p(i + 1, j + 1));
+            fill([a, b, d]);
+            fill([a, d, c]);
+        }
+    }
+    (line, sample)
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn keys_kernel_reproduces_quadratics_and_bilinear_planes() {
+        let src = Array2::from_shape_fn((8, 8), |(r, c)| {
+            let (y, x) = (r as f64, c as f64);
+            0.5 * y * y - 0.25 * x * y + 3.0 * x + 1.0
+        });
+        let f = |y: f64, x: f64| 0.5 * y * y - 0.25 * x * y + 3.0 * x + 1.0;
+        for (r, c) in [(3.3, 4.7), (2.0, 2.5), (4.99, 3.01)] {
+            let v = interpolate(src.view(), r, c, Interpolation::Bicubic, false);
+            assert!((v - f(r, c)).abs() < 1e-9, "{v} vs {}", f(r, c));
+        }
+        let plane = Array2::from_shape_fn((4, 4), |(r, c)| 2.0 * r as f64 - c as f64);
+        let v = interpolate(plane.view(), 1.25, 2.5, Interpolation::Bilinear, false);
+        assert!((v - (2.5 - 2.5)).abs() < 1e-12);
+        // Off the raster, or touching NaN: no data.
+        assert!(interpolate(plane.view(), 0.5, 3.5, Interpolation::Bilinear, false).is_nan());
+        assert!(interpolate(src.view(), 0.5, 3.0, Interpolation::Bicubic, false).is_nan());
+        // Wrapping columns (a 360° product).
+        let w = interpolate(plane.view(), 1.0, 3.5, Interpolation::Bilinear, true);
+        assert!((w - 0.5 * ((2.0 - 3.0) + 2.0)).abs() < 1e-12);
+        let mut holed = plane.clone();
+        holed[(2, 2)] = f64::NAN;
+        assert!(interpolate(holed.view(), 1.5, 1.5, Interpolation::Bilinear, false).is_nan());
+    }
+
+    #[test]
+    fn projections_round_trip_and_north_points_north() {
+        for crs in [
+            Crs::Stereographic {
+                lat_0: -13.4,
+                lon_0: 357.2,
+            },
+            Crs::Orthographic {
+                lat_0: 9.5,
+                lon_0: 38.0,
+            },
+            Crs::PolarStereographic { north: false },
+            Crs::Equirectangular { lon_0: 180.0 },
+        ] {
+            let pr = crs.projector().unwrap();
+            let (lon, lat) = match crs {
+                Crs::PolarStereographic { .. } => (129.2, -85.0),
+                Crs::Stereographic { .. } => (-1.5, -12.0),
+                _ => (39.0, 10.2),
+            };
+            let (x, y) = pr.forward(lon, lat).unwrap();
+            let (lo, la) = pr.inverse(x, y).unwrap();
+            assert!(
+                ((lo - lon + 540.0).rem_euclid(360.0) - 180.0).abs() < 1e-9
+                    && (la - lat).abs() < 1e-9
+            );
+            // A step north moves the point along the bearing.
+            let b = pr.north_bearing(lon, lat).unwrap();
+            let (x1, y1) = pr.forward(lon, lat + 0.01).unwrap();
+            let d = (x1 - x).atan2(y1 - y);
+            assert!((d - b).abs() < 1e-4, "{crs:?}: {d} vs {b}");
+        }
+        // South polar: 90° E lies on map +x, and north (increasing latitude) points away
+        // from the pole, so along map +x as well.
+        let pr = Crs::PolarStereographic { north: false }
+            .projector()
+            .unwrap();
+        let b = pr.north_bearing(90.0, -80.0).unwrap();
+        assert!((b - std::f64::consts::FRAC_PI_2).abs() < 1e-6, "{b}");
+        let v = enu_to_grid([0.0, 1.0, 0.0], b);
+        assert!((v[0] - 1.0).abs() < 1e-6 && v[1].abs() < 1e-6);
+        // …and east there points along map −y (towards the bottom of the map).
+        let e = enu_to_grid([1.0, 0.0, 0.0], b);
+        assert!(e[0].abs() < 1e-6 && (e[1] + 1.0).abs() < 1e-6);
+    }
+
+    #[test]
+    fn covering_grid_contains_the_region_and_is_aligned() {
+        let region = LonLatBox {
+            lon_min: 355.0,
+            lon_max: 359.0,
+            lat_min: -15.0,
+            lat_max: -11.0,
+        };
+        let (clon, clat) = region.centre();
+        let crs = Crs::Stereographic {
+            lat_0: clat,
+            lon_0: clon,
+        };
+        let g = Grid::covering(crs, &region, 100.0).unwrap();
+        assert_eq!(g.x0 % 100.0, 0.0);
+        assert_eq!(g.y0 % 100.0, 0.0);
+        // 4° of latitude ≈ 121 km ≈ 1213 px.
+        assert!((1200..1240).contains(&g.rows), "{}", g.rows);
+        let pr = crs.projector().unwrap();
+        for (lon, lat) in region.border(16) {
+            let (x, y) = pr.forward(lon, lat).unwrap();
+            let (r, c) = g.pixel(x, y);
+            assert!(r >= -0.5 && c >= -0.5 && r <= g.rows as f64 - 0.5 && c <= g.cols as f64 - 0.5);
+        }
+        assert!(Grid::covering(
+            crs,
+            &LonLatBox {
+                lat_min: 5.0,
+                ..region
+            },
+            100.0
+        )
+        .is_err());
+        assert!(Grid::covering(crs, &region, -1.0).is_err());
+    }
+
+    #[test]
+    fn swath_mesh_fills_without_holes_and_inverts_the_mapping() {
+        // A synthetic swath: 40 lines × 30 samples, rotated 20° against the grid and skewed,
+        // in a stereographic grid at the centre.
+        let crs = Crs::Stereographic {
+            lat_0: 0.0,
+            lon_0: 0.0,
+        };
+        let pr = crs.projector().unwrap();
+        let g = Grid::new(crs, 50, 50, -2500.0, 2500.0, 100.0).unwrap();
+        let (a, s) = (20f64.to_radians().cos(), 20f64.to_radians().sin());
+        let place = |l: f64, m: f64| {
+            let (u, v) = (m * 130.0 - 1900.0, 2400.0 - l * 120.0 + m * 5.0);
+            let (x, y) = (u * a - v * s, u * s + v * a);
+            pr.inverse(x, y).unwrap()
+        };
+        let mut lon = Array2::zeros((40, 30));
+        let mut lat = Array2::zeros((40, 30));
+        for ((l, m), v) in lon.indexed_iter_mut() {
+            *v = place(l as f64, m as f64).0;
+            lat[(l, m)] = place(l as f64, m as f64).1;
+        }
+        let (line, sample) = swath_positions(&g, &pr, lon.view(), lat.view());
+        // The placement is affine in map coordinates, so each grid centre has an exact
+        // (line, sample), which barycentric interpolation reproduces: inside the swath's
+        // outermost centres every pixel is filled with it (no holes), outside none is.
+        let mut inside = 0;
+        for ((r, c), &l) in line.indexed_iter() {
+            let (x, y) = g.xy(r as f64, c as f64);
+            let (u, v) = (x * a + y * s, -x * s + y * a);
+            let m = (u + 1900.0) / 130.0;
+            let l_exp = (2400.0 - v + 5.0 * m) / 120.0;
+            let strictly_in =
+                (1e-6..39.0 - 1e-6).contains(&l_exp) && (1e-6..29.0 - 1e-6).contains(&m);
+            let strictly_out =
+                !(-1e-6..=39.0 + 1e-6).contains(&l_exp) || !(-1e-6..=29.0 + 1e-6).contains(&m);
+            if strictly_in {
+                inside += 1;
+                assert!(
+                    (l - l_exp).abs() < 1e-6 && (sample[(r, c)] - m).abs() < 1e-6,
+                    "({r},{c}): {l} {} vs {l_exp} {m}",
+                    sample[(r, c)]
+                );
+            } else if strictly_out {
+                assert!(
+                    l.is_nan() && sample[(r, c)].is_nan(),
+                    "({r},{c}) outside the swath got {l}"
+                );
+            }
+        }
+        assert!(inside > 1000, "{inside}");
+    }
+}
