@@ -374,7 +374,7 @@ impl Grid {
 
     /// (lon, lat) of every pixel centre and the grid bearing of north there; NaN where the
     /// projection is undefined.
-    pub fn geographic(&self, pr: &Projector) -> (Array2<f64>, Array2<f64>, Array2<f64>) {
+    pub fn geographic(&self, pr: &Projector) -> Geographic {
         let mut lon = Array2::from_elem((self.rows, self.cols), f64::NAN);
         let mut lat = lon.clone();
         let mut bearing = lon.clone();
@@ -389,8 +389,17 @@ impl Grid {
                     *b = pr.north_bearing(o, a).unwrap_or(f64::NAN);
                 }
             });
-        (lon, lat, bearing)
+        Geographic { lon, lat, bearing }
     }
+}
+
+/// Per-pixel geography of a grid: east longitude and latitude of each centre (degrees), and the
+/// grid bearing of true north there (radians, clockwise from map +y); NaN where undefined.
+#[derive(Debug, Clone)]
+pub struct Geographic {
+    pub lon: Array2<f64>,
+    pub lat: Array2<f64>,
+    pub bearing: Array2<f64>,
 }
 
 /// Interpolation kernel for resampling a regular raster.

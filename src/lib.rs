@@ -7,6 +7,7 @@ pub mod error;
 pub mod export;
 pub mod fusion;
 pub mod grid;
+pub mod ingest;
 pub mod inspect;
 pub mod photometry;
 pub mod quicklook;

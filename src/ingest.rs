@@ -1,0 +1,220 @@
+//! Ingest: mission products onto one grid. The I/O edge between `pds` (formats) and the pure
+//! `grid` geometry.
+//!
+//! * [`m3_on_grid`]: an M3 L1B observation → bidirectional reflectance r = L·d²/E₁AU(λ) at one
+//!   wavelength (FORMATS.md; d = SOLAR_DISTANCE + OBS band 6), and per-pixel unit vectors to
+//!   the Sun and to M3 (OBS bands 1–4, east-north-up, rotated into the grid frame), resampled
+//!   from the swath by [`grid::swath_positions`] and bilinear interpolation.
+//! * [`lola_on_grid`]: a LOLA GDR → heights (m above the 1737.4 km sphere) at every grid
+//!   centre, bilinear or bicubic in the product's own projection.
+//!
+//! Both read only the lines of the product that the grid needs.
+
+use crate::error::{Error, Result};
+use crate::grid::{self, enu_to_grid, Geographic, Grid, Interpolation, Projector};
+use crate::photometry::Vec3;
+use crate::synth::direction;
+use ndarray::{Array2, Zip};
+use pds::lola::{LolaDem, Projection};
+use pds::m3::Observation;
+use pds::solar::{reflectance, SolarSpectrum};
+
+/// Lines of LOC scanned at a time when looking for the part of a swath over the grid.
+const SCAN_LINES: usize = 1024;
+
+/// An image with its illumination geometry on a grid.
+#[derive(Debug, Clone)]
+pub struct ImageOnGrid {
+    /// Bidirectional reflectance, sr⁻¹; NaN outside the swath or where the radiance is not
+    /// physical (≤ 0 or not finite).
+    pub reflectance: Array2<f64>,
+    /// Unit vectors to the Sun and to the camera in the grid frame; NaN outside the swath.
+    pub sun: Array2<Vec3>,
+    pub view: Array2<Vec3>,
+    /// The swath lines used, `first..end`.
+    pub lines: (usize, usize),
+    /// The wavelength used and the two bands blended to reach it (same band twice when exact).
+    pub wavelength_nm: f64,
+    pub bands: (usize, usize),
+    /// Solar irradiance at 1 AU used, W/(m² µm).
+    pub irradiance: f64,
+}
+
+fn read2(r: &pds::raw::Raster, band: usize, first: usize, count: usize) -> Result<Array2<f64>> {
+    let v = r.read_band(band, first, count)?;
+    Array2::from_shape_vec((count, r.samples), v).map_err(|e| Error::Usage(e.to_string()))
+}
+
+/// Resample observation `obs` at `nm` onto `grid` (`geo` = `grid.geographic(pr)`).
+pub fn m3_on_grid(
+    obs: &Observation,
+    solar: &SolarSpectrum,
+    nm: f64,
+    grid: &Grid,
+    pr: &Projector,
+    geo: &Geographic,
+) -> Result<ImageOnGrid> {
+    let label = &obs.label_path;
+    let loc = obs.part("LOC")?;
+    let obsr = obs.part("OBS")?;
+    for (name, r, bands) in [("LOC", &loc, 3), ("OBS", &obsr, 10)] {
+        if (r.lines, r.samples) != (obs.rdn.lines, obs.rdn.samples) || r.bands < bands {
+            return Err(Error::Usage(format!(
+                "{}: {name} is {} lines × {} samples × {} bands, RDN {} × {}: the parts must match ({bands} bands needed)",
+                label.display(), r.lines, r.samples, r.bands, obs.rdn.lines, obs.rdn.samples
+            )));
+        }
+    }
+    // Which lines fall on the grid (with a margin of 2 grid pixels)?
+    let (mut first, mut last) = (usize::MAX, 0usize);
+    let inside = |lo: f64, la: f64| {
+        pr.forward(lo, la).is_some_and(|(x, y)| {
+            let (r, c) = grid.pixel(x, y);
+            r > -2.5 && c > -2.5 && r < grid.rows as f64 + 1.5 && c < grid.cols as f64 + 1.5
+        })
+    };
+    for start in (0..loc.lines).step_by(SCAN_LINES) {
+        let n = SCAN_LINES.min(loc.lines - start);
+        let lon = loc.read_band(0, start, n)?;
+        let lat = loc.read_band(1, start, n)?;
+        for l in 0..n {
+            let row = l * loc.samples..(l + 1) * loc.samples;
+            if lon[row.clone()]
+                .iter()
+                .zip(&lat[row])
+                .any(|(&a, &b)| inside(a, b))
+            {
+                first = first.min(start + l);
+                last = last.max(start + l);
+            }
+        }
+    }
+    if first == usize::MAX {
+        return Err(Error::Usage(format!(
+            "{}: no pixel of this observation falls on the grid (its LOC longitudes/latitudes are outside the region)",
+            label.display()
+        )));
+    }
+    // One swath line of margin each side, so every grid pixel inside has its whole support.
+    let first = first.saturating_sub(1);
+    let end = (last + 2).min(loc.lines);
+    let n = end - first;
+    let lon = read2(&loc, 0, first, n)?;
+    let lat = read2(&loc, 1, first, n)?;
+    let bracket = obs.bracket(nm)?;
+    let (lo, up, w) = if bracket.weight_upper >= 1.0 {
+        (bracket.upper, bracket.upper, 0.0)
+    } else {
+        (bracket.lower, bracket.upper, bracket.weight_upper)
+    };
+    let l_lo = read2(&obs.rdn, lo, first, n)?;
+    let l_up = if up == lo {
+        l_lo.clone()
+    } else {
+        read2(&obs.rdn, up, first, n)?
+    };
+    let e = solar.at(nm).ok_or_else(|| {
+        Error::Usage(format!(
+            "{}: the solar spectrum does not cover {nm} nm",
+            solar.path.display()
+        ))
+    })?;
+    let d_off = read2(&obsr, 5, first, n)?;
+    let d0 = obs.solar_distance_au;
+    let refl = Zip::from(&l_lo)
+        .and(&l_up)
+        .and(&d_off)
+        .map_collect(|&a, &b, &dd| {
+            let l = (1.0 - w) * a + w * b;
+            if l.is_finite() && l > 0.0 && dd.is_finite() {
+                reflectance(l, d0 + dd, e)
+            } else {
+                f64::NAN
+            }
+        });
+    // East, north and up components, each interpolated on its own.
+    let enu = |az: &Array2<f64>, zen: &Array2<f64>| -> [Array2<f64>; 3] {
+        let v = Zip::from(az).and(zen).map_collect(|&a, &z| direction(z, a));
+        [v.map(|u| u[0]), v.map(|u| u[1]), v.map(|u| u[2])]
+    };
+    let sun_enu = enu(&read2(&obsr, 0, first, n)?, &read2(&obsr, 1, first, n)?);
+    let view_enu = enu(&read2(&obsr, 2, first, n)?, &read2(&obsr, 3, first, n)?);
+    let (line, sample) = grid::swath_positions(grid, pr, lon.view(), lat.view());
+    let dim = (grid.rows, grid.cols);
+    let nan3 = [f64::NAN; 3];
+    let mut out_r = Array2::from_elem(dim, f64::NAN);
+    let mut out_s = Array2::from_elem(dim, nan3);
+    let mut out_v = Array2::from_elem(dim, nan3);
+    Zip::indexed(&mut out_r)
+        .and(&mut out_s)
+        .and(&mut out_v)
+        .par_for_each(|(i, j), r, s, v| {
+            let (l, m) = (line[(i, j)], sample[(i, j)]);
+            if l.is_nan() {
+                return;
+            }
+            *r = grid::interpolate(refl.view(), l, m, Interpolation::Bilinear, false);
+            let b = geo.bearing[(i, j)];
+            *s = unit_at(&sun_enu, l, m).map_or(nan3, |u| enu_to_grid(u, b));
+            *v = unit_at(&view_enu, l, m).map_or(nan3, |u| enu_to_grid(u, b));
+        });
+    Ok(ImageOnGrid {
+        reflectance: out_r,
+        sun: out_s,
+        view: out_v,
+        lines: (first, end),
+        wavelength_nm: nm,
+        bands: (lo, up),
+        irradiance: e,
+    })
+}
+
+/// Bilinear blend of unit vectors at (line, sample), renormalised.
+fn unit_at(a: &[Array2<f64>; 3], l: f64, m: f64) -> Option<Vec3> {
+    let u = [0, 1, 2].map(|k| grid::interpolate(a[k].view(), l, m, Interpolation::Bilinear, false));
+    let n = (u[0] * u[0] + u[1] * u[1] + u[2] * u[2]).sqrt();
+    (n.is_finite() && n > 0.0).then(|| [u[0] / n, u[1] / n, u[2] / n])
+}
+
+/// Heights of `dem` at every centre of the grid whose geography is `geo`, metres above the
+/// 1737.4 km sphere; NaN outside the product or where its support touches no data.
+pub fn lola_on_grid(dem: &LolaDem, geo: &Geographic, method: Interpolation) -> Result<Array2<f64>> {
+    let dim = geo.lon.dim();
+    let mut pos_l = Array2::from_elem(dim, f64::NAN);
+    let mut pos_s = pos_l.clone();
+    Zip::from(&mut pos_l)
+        .and(&mut pos_s)
+        .and(&geo.lon)
+        .and(&geo.lat)
+        .par_for_each(|l, s, &lo, &la| {
+            if lo.is_finite() && la.is_finite() {
+                (*l, *s) = dem.pixel(lo, la);
+            }
+        });
+    let (mut lmin, mut lmax) = (f64::MAX, f64::MIN);
+    for &l in pos_l.iter().filter(|l| l.is_finite()) {
+        lmin = lmin.min(l);
+        lmax = lmax.max(l);
+    }
+    let lines = dem.lines() as f64;
+    if lmin > lmax || lmax < -0.5 || lmin > lines - 0.5 {
+        return Err(Error::Usage(format!(
+            "{}: the grid lies outside this DEM (no grid pixel falls on it)",
+            dem.label_path.display()
+        )));
+    }
+    let first = (lmin.floor() - 2.0).clamp(0.0, lines - 1.0) as usize;
+    let end = ((lmax.ceil() + 3.0).clamp(1.0, lines)) as usize;
+    let window = dem.read_heights(first, end - first)?;
+    let window = Array2::from_shape_vec((end - first, dem.samples()), window)
+        .map_err(|e| Error::Usage(e.to_string()))?;
+    let wrap = match dem.projection {
+        Projection::SimpleCylindrical { resolution, .. } => {
+            (dem.samples() as f64 - 360.0 * resolution).abs() < 1e-6
+        }
+        Projection::PolarStereographic { .. } => false,
+    };
+    Ok(Zip::from(&pos_l).and(&pos_s).par_map_collect(|&l, &s| {
+        grid::interpolate(window.view(), l - first as f64, s, method, wrap)
+    }))
+}

@@ -1,0 +1,242 @@
+//! Real products onto grids: LOLA LDEM_4 and an M3 L1B crop from ../shared/data.
+
+use pds::lola::LolaDem;
+use pds::m3::Observation;
+use pds::solar::SolarSpectrum;
+use sfsfuse::grid::{Crs, Grid, Interpolation, LonLatBox};
+use sfsfuse::ingest::{lola_on_grid, m3_on_grid};
+
+#[path = "../pds/tests/common/mod.rs"]
+mod common;
+use common::shared_data;
+
+#[test]
+fn ldem4_on_its_own_grid_gives_its_own_heights() {
+    let Some(data) = shared_data() else { return };
+    let dem = LolaDem::open(&data.join("lola_ldem4/LDEM_4.LBL")).unwrap();
+    // FORMATS.md: GDAL georeferences LDEM_4 as equirectangular lon_0 = 180 on the 1737.4 km
+    // sphere, upper-left corner (−5 458 203.08, 2 729 101.54), exact scale 2π·1737400/360/4.
+    let s = 2.0 * std::f64::consts::PI * 1_737_400.0 / 360.0 / 4.0;
+    let (x0, y0) = (-720.0 * s, 360.0 * s);
+    assert!((x0 + 5_458_203.08).abs() < 0.01 && (y0 - 2_729_101.54).abs() < 0.01);
+    let crs = Crs::Equirectangular { lon_0: 180.0 };
+    let pr = crs.projector().unwrap();
+    let dn = dem.read_dn(0, 720).unwrap();
+    // Windows across the 0°/360° seam, at high southern latitude and at the equator.
+    for (r0, c0) in [(600usize, 1420usize), (350, 700), (0, 0)] {
+        let g = Grid::new(crs, 20, 40, x0, y0, s)
+            .unwrap()
+            .window(r0 as isize, c0 as isize, 20, 40);
+        let geo = g.geographic(&pr);
+        for method in [Interpolation::Bilinear, Interpolation::Bicubic] {
+            let h = lola_on_grid(&dem, &geo, method).unwrap();
+            for ((r, c), v) in h.indexed_iter() {
+                let want = dn[(r0 + r) * 1440 + (c0 + c) % 1440] * 0.5;
+                if r0 == 0 && r < 2 {
+                    // Bicubic support leaves the product at its northern edge: no data.
+                    assert!(
+                        v.is_nan() || method == Interpolation::Bilinear || (v - want).abs() < 1e-6
+                    );
+                    continue;
+                }
+                assert!(
+                    (v - want).abs() < 1e-6,
+                    "{method:?} ({r0}+{r},{c0}+{c}): {v} vs {want}"
+                );
+            }
+        }
+    }
+}
+
+#[test]
+fn antoniadi_is_the_deepest_point_of_a_local_grid() {
+    let Some(data) = shared_data() else { return };
+    let dem = LolaDem::open(&data.join("lola_ldem4/LDEM_4.LBL")).unwrap();
+    let region = LonLatBox {
+        lon_min: 180.0,
+        lon_max: 195.0,
+        lat_min: -75.0,
+        lat_max: -66.0,
+    };
+    let (lon_0, lat_0) = region.centre();
+    let crs = Crs::Stereographic { lat_0, lon_0 };
+    let g = Grid::covering(crs, &region, 2000.0).unwrap();
+    let pr = crs.projector().unwrap();
+    let geo = g.geographic(&pr);
+    let h = lola_on_grid(&dem, &geo, Interpolation::Bicubic).unwrap();
+    assert!(h.iter().all(|v| v.is_finite()));
+    let ((r, c), min) = h.indexed_iter().fold(
+        ((0, 0), f64::MAX),
+        |a, (i, &v)| if v < a.1 { (i, v) } else { a },
+    );
+    // MANIFEST: min DN −17757 (−8878.5 m) at 70.375°S 187.625°E; one LDEM_4 pixel is 7.6 km.
+    let (x, y) = pr.forward(187.625, -70.375).unwrap();
+    let (x1, y1) = g.xy(r as f64, c as f64);
+    assert!(
+        (x - x1).hypot(y - y1) < 7600.0,
+        "deepest grid point {} m away",
+        (x - x1).hypot(y - y1)
+    );
+    assert!((min + 8878.5).abs() < 150.0, "{min}");
+}
+
+#[test]
+fn m3_global_crop_on_a_local_grid() {
+    let Some(data) = shared_data() else { return };
+    let label = data.join("m3_l1b_crops/reverseDescending/M3G20090106T113423_V03_L1B_cropped.LBL");
+    let label = if label.is_file() {
+        label
+    } else {
+        std::fs::read_dir(data.join("m3_l1b_crops/reverseDescending"))
+            .unwrap()
+            .map(|e| e.unwrap().path())
+            .find(|p| p.extension().is_some_and(|e| e.eq_ignore_ascii_case("lbl")))
+            .unwrap()
+    };
+    let obs = Observation::open(&label).unwrap();
+    let solar =
+        SolarSpectrum::read(&data.join("m3_calibration/m3t20110224_rfl_solar_spec.tab")).unwrap();
+    let loc = obs.part("LOC").unwrap();
+    let n = loc.lines;
+    let lon = loc.read_band(0, 0, n).unwrap();
+    let lat = loc.read_band(1, 0, n).unwrap();
+    let (lo_min, lo_max) = lon
+        .iter()
+        .fold((f64::MAX, f64::MIN), |a, &v| (a.0.min(v), a.1.max(v)));
+    let (la_min, la_max) = lat
+        .iter()
+        .fold((f64::MAX, f64::MIN), |a, &v| (a.0.min(v), a.1.max(v)));
+    let region = LonLatBox {
+        lon_min: lo_min,
+        lon_max: lo_max,
+        lat_min: la_min,
+        lat_max: la_max,
+    };
+    // Centred on the middle pixel of the strip (5 lines: its lon/lat box centre may miss it).
+    let mid = (n / 2) * loc.samples + loc.samples / 2;
+    let crs = Crs::Stereographic {
+        lat_0: lat[mid],
+        lon_0: lon[mid],
+    };
+    let g = Grid::covering(crs, &region, 140.0).unwrap();
+    let pr = crs.projector().unwrap();
+    let geo = g.geographic(&pr);
+    // 500.92 nm is global band 1, held by the crop (which keeps only the first 3 bands).
+    let img = m3_on_grid(&obs, &solar, 500.92, &g, &pr, &geo).unwrap();
+    assert_eq!(img.bands, (1, 1));
+    assert_eq!(img.lines, (0, n));
+    let filled: Vec<_> = img
+        .reflectance
+        .indexed_iter()
+        .filter(|(_, v)| v.is_finite())
+        .map(|(i, _)| i)
+        .collect();
+    // The crop is 5 lines × 304 samples of ~140 m: about 4 × 303 grid pixels inside.
+    assert!(filled.len() > 800, "{}", filled.len());
+    // Reflectance lies within the range r = L·d²/E of the swath's own pixels.
+    let obsr = obs.part("OBS").unwrap();
+    let rad = obs.rdn.read_band(1, 0, n).unwrap();
+    let doff = obsr.read_band(5, 0, n).unwrap();
+    let e = solar.at(500.92).unwrap();
+    let r_swath: Vec<f64> = rad
+        .iter()
+        .zip(&doff)
+        .map(|(l, d)| l * (obs.solar_distance_au + d).powi(2) / e)
+        .collect();
+    let (rmin, rmax) = r_swath
+        .iter()
+        .fold((f64::MAX, f64::MIN), |a, &v| (a.0.min(v), a.1.max(v)));
+    assert!(rmin > 0.0);
+    for &i in &filled {
+        let v = img.reflectance[i];
+        assert!(
+            v >= rmin - 1e-12 && v <= rmax + 1e-12,
+            "{v} outside [{rmin}, {rmax}]"
+        );
+    }
+    // The rotation into the grid frame keeps zenith and phase: they stay within the swath's
+    // OBS ranges (bands 2, 4 and 5).
+    let range = |b: usize| {
+        let v = obsr.read_band(b, 0, n).unwrap();
+        v.iter()
+            .fold((f64::MAX, f64::MIN), |a, &x| (a.0.min(x), a.1.max(x)))
+    };
+    let (sz, vz, ph) = (range(1), range(3), range(4));
+    let deg = |x: f64| x.clamp(-1.0, 1.0).acos().to_degrees();
+    for &i in &filled {
+        let (s, v) = (img.sun[i], img.view[i]);
+        let tol = 1e-3;
+        assert!(deg(s[2]) >= sz.0 - tol && deg(s[2]) <= sz.1 + tol);
+        assert!(deg(v[2]) >= vz.0 - tol && deg(v[2]) <= vz.1 + tol);
+        let g = deg(s[0] * v[0] + s[1] * v[1] + s[2] * v[2]);
+        assert!(
+            g >= ph.0 - 0.01 && g <= ph.1 + 0.01,
+            "phase {g} outside {ph:?}"
+        );
+    }
+    // Near the projection centre grid north is true north: the grid azimuth of the Sun equals
+    // OBS band 1 at the nearest swath pixel.
+    let az = obsr.read_band(0, 0, n).unwrap();
+    let (xc, yc) = (0.0, 0.0);
+    let (rc, cc) = g.pixel(xc, yc);
+    let i = (rc.round() as usize, cc.round() as usize);
+    let s = img.sun[i];
+    assert!(s[0].is_finite(), "the grid centre lies inside the crop");
+    let (glon, glat) = (geo.lon[i], geo.lat[i]);
+    let k = (0..lon.len())
+        .min_by(|&a, &b| {
+            let d = |k: usize| (lon[k] - glon).powi(2) + (lat[k] - glat).powi(2);
+            d(a).total_cmp(&d(b))
+        })
+        .unwrap();
+    let grid_az = s[0].atan2(s[1]).to_degrees().rem_euclid(360.0);
+    let diff = (grid_az - az[k] + 540.0).rem_euclid(360.0) - 180.0;
+    assert!(diff.abs() < 0.5, "grid azimuth {grid_az} vs OBS {}", az[k]);
+}
+
+#[test]
+fn a_grid_outside_the_product_is_refused_with_its_name() {
+    let Some(data) = shared_data() else { return };
+    let label = std::fs::read_dir(data.join("m3_l1b_crops/reverseDescending"))
+        .unwrap()
+        .map(|e| e.unwrap().path())
+        .find(|p| p.extension().is_some_and(|e| e.eq_ignore_ascii_case("lbl")))
+        .unwrap();
+    let obs = Observation::open(&label).unwrap();
+    let solar =
+        SolarSpectrum::read(&data.join("m3_calibration/m3t20110224_rfl_solar_spec.tab")).unwrap();
+    let crs = Crs::Stereographic {
+        lat_0: -40.0,
+        lon_0: 100.0,
+    };
+    let g = Grid::new(crs, 10, 10, -700.0, 700.0, 140.0).unwrap();
+    let pr = crs.projector().unwrap();
+    let e = m3_on_grid(&obs, &solar, 500.92, &g, &pr, &g.geographic(&pr))
+        .unwrap_err()
+        .to_string();
+    assert!(
+        e.contains(&label.file_name().unwrap().to_string_lossy().to_string())
+            && e.contains("no pixel"),
+        "{e}"
+    );
+    // 1209.6 nm is not in this crop (it keeps 3 bands): the error says which band is missing.
+    let g2 = Grid::covering(
+        Crs::Stereographic {
+            lat_0: 9.5,
+            lon_0: 38.0,
+        },
+        &LonLatBox {
+            lon_min: 37.5,
+            lon_max: 38.5,
+            lat_min: 9.0,
+            lat_max: 10.0,
+        },
+        500.0,
+    )
+    .unwrap();
+    let pr2 = g2.crs.projector().unwrap();
+    let e = m3_on_grid(&obs, &solar, 1209.6, &g2, &pr2, &g2.geographic(&pr2))
+        .unwrap_err()
+        .to_string();
+    assert!(e.contains("RDN_IMAGE BANDS"), "{e}");
+}
