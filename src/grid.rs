@@ -76,6 +76,72 @@ impl Crs {
         }
     }
 
+    /// WKT2 (ISO 19162:2019) with the IAU 2015 Moon sphere (IAU_2015:30100) as the base
+    /// geographic CRS and the projection as an EPSG method with EPSG parameter codes.
+    pub fn wkt(&self) -> String {
+        let deg = r#"ANGLEUNIT["degree",0.0174532925199433]"#;
+        let m = r#"LENGTHUNIT["metre",1]"#;
+        let p = |name: &str, v: f64, unit: &str, id: u32| {
+            format!(r#"PARAMETER["{name}",{v},{unit},ID["EPSG",{id}]]"#)
+        };
+        let (method, params) = match *self {
+            Crs::Equirectangular { lon_0 } => (
+                r#"METHOD["Equidistant Cylindrical",ID["EPSG",1028]]"#,
+                vec![
+                    p("Latitude of 1st standard parallel", 0.0, deg, 8823),
+                    p("Longitude of natural origin", lon_0, deg, 8802),
+                ],
+            ),
+            Crs::PolarStereographic { north } => (
+                r#"METHOD["Polar Stereographic (variant A)",ID["EPSG",9810]]"#,
+                vec![
+                    p(
+                        "Latitude of natural origin",
+                        if north { 90.0 } else { -90.0 },
+                        deg,
+                        8801,
+                    ),
+                    p("Longitude of natural origin", 0.0, deg, 8802),
+                    p(
+                        "Scale factor at natural origin",
+                        1.0,
+                        r#"SCALEUNIT["unity",1]"#,
+                        8805,
+                    ),
+                ],
+            ),
+            Crs::Stereographic { lat_0, lon_0 } => (
+                r#"METHOD["Stereographic"]"#,
+                vec![
+                    p("Latitude of natural origin", lat_0, deg, 8801),
+                    p("Longitude of natural origin", lon_0, deg, 8802),
+                    p(
+                        "Scale factor at natural origin",
+                        1.0,
+                        r#"SCALEUNIT["unity",1]"#,
+                        8805,
+                    ),
+                ],
+            ),
+            Crs::Orthographic { lat_0, lon_0 } => (
+                r#"METHOD["Orthographic",ID["EPSG",9840]]"#,
+                vec![
+                    p("Latitude of natural origin", lat_0, deg, 8801),
+                    p("Longitude of natural origin", lon_0, deg, 8802),
+                ],
+            ),
+        };
+        let mut params = params;
+        params.push(p("False easting", 0.0, m, 8806));
+        params.push(p("False northing", 0.0, m, 8807));
+        format!(
+            r#"PROJCRS["{name}",BASEGEOGCRS["Moon (2015) - Sphere / Ocentric",DATUM["Moon (2015) - Sphere",ELLIPSOID["Moon (2015) - Sphere",1737400,0,{m}]],PRIMEM["Reference Meridian",0,{deg}],ID["IAU",30100,2015]],CONVERSION["{conv}",{method},{params}],CS[Cartesian,2],AXIS["easting (E)",east,ORDER[1],{m}],AXIS["northing (N)",north,ORDER[2],{m}]]"#,
+            name = self.name(),
+            conv = self.name(),
+            params = params.join(","),
+        )
+    }
+
     /// A short human name ("Moon stereographic centred 9.5°N 37.9°E").
     pub fn name(&self) -> String {
         match *self {

@@ -123,6 +123,21 @@ fn projections_match_proj() {
     }
 }
 
+/// PROJ parses our WKT2 back to our PROJ string for every CRS.
+#[test]
+fn wkt_means_the_same_to_proj() {
+    let Some(projinfo) = external_tool("projinfo") else {
+        return;
+    };
+    for crs in crss() {
+        let out = run(Command::new(&projinfo)
+            .args(["-o", "PROJ", "-q"])
+            .arg(crs.wkt()));
+        let got = out.trim().trim_end_matches(" +type=crs");
+        assert_eq!(got, crs.proj_string(), "{crs:?}");
+    }
+}
+
 #[test]
 fn geotiff_reads_back_exactly_with_the_tiff_crate() {
     let dir = scratch("tiffcrate");
@@ -223,12 +238,22 @@ sys.stdout.buffer.write(band.ReadRaster(0, 0, ds.RasterXSize, ds.RasterYSize, bu
     (worst, v)
 }
 
-#[test]
-fn gdal_reads_crs_geotransform_nodata_and_values_and_validates_the_cog() {
-    let Some(gdalinfo) = external_tool("gdalinfo") else {
-        return;
+/// Where the test grids of each CRS start.
+fn test_grid(crs: Crs) -> Grid {
+    let (x0, y0) = match crs {
+        Crs::PolarStereographic { .. } => (-200_000.0, 150_000.0),
+        _ => (-37_100.0, 42_000.0),
     };
-    let Some(gdalsrsinfo) = external_tool("gdalsrsinfo") else {
+    Grid::new(crs, 600, 530, x0, y0, 140.0).unwrap()
+}
+
+/// Everything GDAL must find in a file written on `grid` with values `a`: size, geotransform,
+/// type, NaN no-data, unit, 256² blocks, two overviews, COG layout, DEFLATE, our PROJ string,
+/// a CRS equivalent to the IAU_2015 one, the values bit for bit, and COG validity.
+fn check_with_gdal(p: &Path, grid: &Grid, a: &Array2<f64>) {
+    let (Some(gdalinfo), Some(gdalsrsinfo)) =
+        (external_tool("gdalinfo"), external_tool("gdalsrsinfo"))
+    else {
         return;
     };
     let has_python_gdal = Path::new(COG_VALIDATOR).is_file();
@@ -236,53 +261,81 @@ fn gdal_reads_crs_geotransform_nodata_and_values_and_validates_the_cog() {
         has_python_gdal || std::env::var_os("CI").is_none(),
         "CI is set but python3-gdal is missing"
     );
+    let crs = grid.crs;
+    let j: serde_json::Value =
+        serde_json::from_str(&run(Command::new(&gdalinfo).arg("-json").arg(p))).unwrap();
+    assert_eq!(j["size"], serde_json::json!([grid.cols, grid.rows]));
+    let gt: Vec<f64> = j["geoTransform"]
+        .as_array()
+        .unwrap()
+        .iter()
+        .map(|v| v.as_f64().unwrap())
+        .collect();
+    assert_eq!(gt, grid.geotransform());
+    let band = &j["bands"][0];
+    assert_eq!(band["type"], "Float32");
+    assert_eq!(band["noDataValue"], "NaN");
+    assert_eq!(band["unit"], "m");
+    assert_eq!(band["block"], serde_json::json!([256, 256]));
+    assert_eq!(band["overviews"].as_array().unwrap().len(), 2);
+    assert_eq!(j["metadata"]["IMAGE_STRUCTURE"]["LAYOUT"], "COG");
+    assert_eq!(j["metadata"]["IMAGE_STRUCTURE"]["COMPRESSION"], "DEFLATE");
+    // GDAL's own PROJ string of the file's CRS is ours, with the Moon radius.
+    let p4 = run(Command::new(&gdalsrsinfo).args(["-o", "proj4"]).arg(p));
+    assert_eq!(p4.trim(), crs.proj_string(), "{crs:?}");
+    if has_python_gdal {
+        // Against the IAU_2015 code where there is one, else PROJ's reading of our string.
+        let proj_string = crs.proj_string();
+        let reference = crs.iau_2015().unwrap_or(&proj_string);
+        let (worst, v) = gdal_python(p, reference);
+        assert!(
+            worst < 1e-6,
+            "{crs:?}: GDAL maps points {worst} m away from {reference}"
+        );
+        assert_eq!(v.len(), a.len());
+        for (x, y) in v.iter().zip(a.iter()) {
+            assert!((*x as f64).to_bits() == y.to_bits() || (x.is_nan() && y.is_nan()));
+        }
+        let out = run(Command::new("/usr/bin/python3").arg(COG_VALIDATOR).arg(p));
+        assert!(out.contains("is a valid cloud optimized GeoTIFF"), "{out}");
+    }
+}
+
+#[test]
+fn gdal_reads_crs_geotransform_nodata_and_values_and_validates_the_cog() {
     let dir = scratch("gdal");
     let a = pattern(600, 530);
     for (k, crs) in crss().into_iter().enumerate() {
-        let (x0, y0) = match crs {
-            Crs::PolarStereographic { .. } => (-200_000.0, 150_000.0),
-            _ => (-37_100.0, 42_000.0),
-        };
-        let grid = Grid::new(crs, 600, 530, x0, y0, 140.0).unwrap();
+        let grid = test_grid(crs);
         let p = dir.join(format!("c{k}.tif"));
         write_geotiff(&p, &grid, a.view(), &info()).unwrap();
-        let j: serde_json::Value =
-            serde_json::from_str(&run(Command::new(&gdalinfo).arg("-json").arg(&p))).unwrap();
-        assert_eq!(j["size"], serde_json::json!([530, 600]));
-        let gt: Vec<f64> = j["geoTransform"]
-            .as_array()
-            .unwrap()
-            .iter()
-            .map(|v| v.as_f64().unwrap())
-            .collect();
-        assert_eq!(gt, grid.geotransform());
-        let band = &j["bands"][0];
-        assert_eq!(band["type"], "Float32");
-        assert_eq!(band["noDataValue"], "NaN");
-        assert_eq!(band["unit"], "m");
-        assert_eq!(band["block"], serde_json::json!([256, 256]));
-        assert_eq!(band["overviews"].as_array().unwrap().len(), 2);
-        assert_eq!(j["metadata"]["IMAGE_STRUCTURE"]["LAYOUT"], "COG");
-        assert_eq!(j["metadata"]["IMAGE_STRUCTURE"]["COMPRESSION"], "DEFLATE");
-        // GDAL's own PROJ string of the file's CRS is ours, with the Moon radius.
-        let p4 = run(Command::new(&gdalsrsinfo).args(["-o", "proj4"]).arg(&p));
-        assert_eq!(p4.trim(), crs.proj_string(), "{crs:?}");
-        if has_python_gdal {
-            // Against the IAU_2015 code where there is one, else PROJ's reading of our string.
-            let proj_string = crs.proj_string();
-            let reference = crs.iau_2015().unwrap_or(&proj_string);
-            let (worst, v) = gdal_python(&p, reference);
-            assert!(
-                worst < 1e-6,
-                "{crs:?}: GDAL maps points {worst} m away from {reference}"
-            );
-            assert_eq!(v.len(), a.len());
-            for (x, y) in v.iter().zip(a.iter()) {
-                assert!((*x as f64).to_bits() == y.to_bits() || (x.is_nan() && y.is_nan()));
-            }
-            let out = run(Command::new("/usr/bin/python3").arg(COG_VALIDATOR).arg(&p));
-            assert!(out.contains("is a valid cloud optimized GeoTIFF"), "{out}");
-        }
+        check_with_gdal(&p, &grid, &a);
     }
+    std::fs::remove_dir_all(&dir).unwrap();
+}
+
+/// The optional GDAL writer (`--features gdal`) meets the same bar, and its files read back
+/// exactly with the tiff crate too.
+#[cfg(feature = "gdal")]
+#[test]
+fn gdal_cog_driver_output_passes_the_same_checks() {
+    let dir = scratch("gdal-writer");
+    let a = pattern(600, 530);
+    for (k, crs) in crss().into_iter().enumerate() {
+        let grid = test_grid(crs);
+        let p = dir.join(format!("g{k}.tif"));
+        sfsfuse::export::gdal::write_geotiff(&p, &grid, a.view(), &info()).unwrap();
+        let t = read_tiff(&p).unwrap();
+        assert_eq!(t.geotransform, Some(grid.geotransform()));
+        for (x, y) in t.data.iter().zip(a.iter()) {
+            assert!(x.to_bits() == y.to_bits() || (x.is_nan() && y.is_nan()));
+        }
+        check_with_gdal(&p, &grid, &a);
+    }
+    let names: Vec<_> = std::fs::read_dir(&dir)
+        .unwrap()
+        .map(|e| e.unwrap().file_name().into_string().unwrap())
+        .collect();
+    assert!(names.iter().all(|n| !n.ends_with(".tmp")), "{names:?}");
     std::fs::remove_dir_all(&dir).unwrap();
 }

@@ -17,6 +17,9 @@
 //! container is written here; the tiff crate's decoder reads the files back in the tests, and
 //! GDAL itself checks them in CI (tests/gis.rs).
 
+#[cfg(feature = "gdal")]
+pub mod gdal;
+
 use crate::error::{Error, Result};
 use crate::grid::{Crs, Grid, MOON_RADIUS_M};
 use flate2::{write::ZlibEncoder, Compression};
