@@ -15,5 +15,6 @@ pub mod raster;
 pub mod rng;
 pub mod spectral;
 pub mod synth;
+pub mod workflow;
 
 pub use error::{Error, Result};

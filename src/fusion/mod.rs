@@ -52,6 +52,10 @@ pub struct Problem<'a> {
     pub sun: Directions,
     pub view: Directions,
     pub model: &'a dyn ReflectanceModel,
+    /// Ī, the intensity scale E_I is normalised by. `None`: the mean of the usable pixels of
+    /// this image. A tiled run passes the mean over the whole region, so every tile weighs
+    /// E_I against the DEM terms alike (no tile-to-tile offsets).
+    pub intensity_scale: Option<f64>,
 }
 
 /// Effective Gaussian point-spread, in grid pixels, of a DEM sampled `factor` times coarser than
@@ -374,10 +378,22 @@ fn objective<'a, 'p>(
     if count == 0 {
         return Err(FusionError::NoObservations);
     }
-    let scale = Zip::from(&pr.image)
-        .and(&valid)
-        .fold(0.0, |s, &v, &ok| if ok { s + v } else { s })
-        / count as f64;
+    let scale = match pr.intensity_scale {
+        Some(s) if s.is_finite() && s > 0.0 => s,
+        Some(s) => {
+            return Err(FusionError::Parameter {
+                name: "intensity_scale",
+                value: s,
+                why: "must be a positive mean reflectance",
+            })
+        }
+        None => {
+            Zip::from(&pr.image)
+                .and(&valid)
+                .fold(0.0, |s, &v, &ok| if ok { s + v } else { s })
+                / count as f64
+        }
+    };
     let usable = Zip::from(&pr.image)
         .and(&valid)
         .map_collect(|&v, &ok| ok && v / scale >= params.shadow_threshold);

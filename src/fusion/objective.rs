@@ -244,6 +244,7 @@ mod tests {
             sun: Directions::Uniform(crate::synth::direction(50.0, 100.0)),
             view: Directions::Uniform(crate::synth::direction(5.0, 200.0)),
             model: &model,
+            intensity_scale: None,
         };
         let obj = Objective::new(
             &pr,

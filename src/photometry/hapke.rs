@@ -68,7 +68,7 @@ impl HFunction {
 
 /// Hapke IMSA parameters. The albedo ρ of the fusion is the single-scattering albedo w.
 #[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
-#[serde(deny_unknown_fields)]
+#[serde(deny_unknown_fields, default)]
 pub struct Hapke {
     pub phase: PhaseFunction,
     /// Shadow-hiding opposition amplitude B0.

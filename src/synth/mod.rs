@@ -22,6 +22,8 @@ use ndarray::{Array2, Axis, Zip};
 use rayon::prelude::*;
 use serde::Serialize;
 
+pub mod products;
+
 /// What to generate.
 #[derive(Debug, Clone, Serialize)]
 pub struct SceneSpec {
@@ -404,6 +406,7 @@ impl Scene {
             sun: Directions::Uniform(self.sun),
             view: Directions::Uniform(self.view),
             model: &self.model,
+            intensity_scale: None,
         }
     }
 }

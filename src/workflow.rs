@@ -1,0 +1,501 @@
+//! Workflow files (TOML): what a run reads, where on the Moon, on which grid, with which
+//! photometric model and solver parameters, how it is tiled, and what it writes. The schema is
+//! documented in docs/workflows.md; examples are in `workflows/`.
+//!
+//! Every table refuses unknown keys (a typo is an error naming the key, never a silently
+//! ignored setting). Relative paths resolve against the workflow file's directory.
+//! [`Workflow::load`] returns the workflow with every default made explicit, which is what
+//! the run record stores.
+
+use crate::error::{Error, Result};
+use crate::fusion::FusionParams;
+use crate::grid::{Crs, Interpolation, LonLatBox};
+use crate::photometry::{Hapke, ModelSpec};
+use serde::{Deserialize, Serialize};
+use std::path::{Path, PathBuf};
+
+/// A workflow: an orbital run (M3 + LOLA) or a laboratory run (image + range scan).
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+#[serde(tag = "kind", rename_all = "lowercase")]
+pub enum Workflow {
+    Orbital(Orbital),
+    Lab(Lab),
+}
+
+/// M3 L1B observations and LOLA GDR DEMs fused on a lunar grid, tile by tile.
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+#[serde(deny_unknown_fields)]
+pub struct Orbital {
+    pub inputs: OrbitalInputs,
+    /// Absent: the whole swath of the first observation.
+    #[serde(default)]
+    pub region: Option<Region>,
+    #[serde(default)]
+    pub grid: GridSpec,
+    #[serde(default = "default_model")]
+    pub photometry: ModelSpec,
+    #[serde(default)]
+    pub solver: FusionParams,
+    #[serde(default)]
+    pub tiling: Tiling,
+    pub output: Output,
+}
+
+fn default_model() -> ModelSpec {
+    ModelSpec::Hapke(Hapke::moon())
+}
+
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+#[serde(deny_unknown_fields)]
+pub struct OrbitalInputs {
+    /// M3 L1B labels (`*_L1B.LBL`). Where several cover a pixel, the first listed is used.
+    pub m3: Vec<PathBuf>,
+    /// LOLA GDR labels (`LDEM_*.LBL`). Where several cover a pixel, the first listed is used.
+    pub lola: Vec<PathBuf>,
+    /// M3 solar spectrum table (`M3G20110224_RFL_SOLAR_SPEC.TAB` for global mode).
+    pub solar_spectrum: PathBuf,
+    /// Wavelength of the reflectance used for shape from shading, nm (bands are blended
+    /// linearly to reach it).
+    #[serde(default = "default_wavelength")]
+    pub wavelength_nm: f64,
+}
+
+fn default_wavelength() -> f64 {
+    1209.6
+}
+
+/// The region to reconstruct: a longitude/latitude box, or a box in map metres of the grid's
+/// projection. Exactly one of the two.
+#[derive(Debug, Clone, Copy, PartialEq, Serialize, Deserialize, Default)]
+#[serde(deny_unknown_fields)]
+pub struct Region {
+    pub lon_min: Option<f64>,
+    pub lon_max: Option<f64>,
+    pub lat_min: Option<f64>,
+    pub lat_max: Option<f64>,
+    pub x_min: Option<f64>,
+    pub x_max: Option<f64>,
+    pub y_min: Option<f64>,
+    pub y_max: Option<f64>,
+}
+
+/// Which of the two forms a [`Region`] takes.
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub enum RegionKind {
+    LonLat(LonLatBox),
+    /// (x_min, x_max, y_min, y_max), metres.
+    Map([f64; 4]),
+}
+
+impl Region {
+    pub fn kind(&self) -> Result<RegionKind> {
+        let ll = [self.lon_min, self.lon_max, self.lat_min, self.lat_max];
+        let xy = [self.x_min, self.x_max, self.y_min, self.y_max];
+        let all = |a: &[Option<f64>; 4]| a.iter().all(Option::is_some);
+        let none = |a: &[Option<f64>; 4]| a.iter().all(Option::is_none);
+        if all(&ll) && none(&xy) {
+            let b = LonLatBox {
+                lon_min: ll[0].unwrap_or_default(),
+                lon_max: ll[1].unwrap_or_default(),
+                lat_min: ll[2].unwrap_or_default(),
+                lat_max: ll[3].unwrap_or_default(),
+            };
+            b.validate()
+                .map_err(|e| Error::Usage(format!("[region]: {e}")))?;
+            Ok(RegionKind::LonLat(b))
+        } else if all(&xy) && none(&ll) {
+            let v = xy.map(Option::unwrap_or_default);
+            if !(v.iter().all(|x| x.is_finite()) && v[0] < v[1] && v[2] < v[3]) {
+                return Err(Error::Usage(format!(
+                    "[region]: x {}..{}, y {}..{} must have x_min < x_max and y_min < y_max",
+                    v[0], v[1], v[2], v[3]
+                )));
+            }
+            Ok(RegionKind::Map(v))
+        } else {
+            Err(Error::Usage(
+                "[region]: give either all of lon_min, lon_max, lat_min, lat_max or all of x_min, x_max, y_min, y_max (metres in the grid projection), not a mix".into(),
+            ))
+        }
+    }
+}
+
+/// The projection family of the grid.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Serialize, Deserialize, Default)]
+#[serde(rename_all = "snake_case")]
+pub enum ProjectionKind {
+    /// Centred on the region (or on `center_lat`/`center_lon`): the default for SfS.
+    #[default]
+    Stereographic,
+    Orthographic,
+    /// North or south by the sign of the region's centre latitude.
+    PolarStereographic,
+    Equirectangular,
+}
+
+#[derive(Debug, Clone, Copy, PartialEq, Serialize, Deserialize)]
+#[serde(deny_unknown_fields, default)]
+pub struct GridSpec {
+    pub projection: ProjectionKind,
+    /// Projection centre; absent = the region's centre (filled in by [`Workflow::load`] when
+    /// the region is a longitude/latitude box, else by the run from the swath).
+    pub center_lat: Option<f64>,
+    pub center_lon: Option<f64>,
+    /// Pixel size, metres.
+    pub resolution_m: f64,
+    /// How the DEM is resampled to the grid.
+    pub dem_interpolation: Interpolation,
+}
+
+impl Default for GridSpec {
+    fn default() -> Self {
+        GridSpec {
+            projection: ProjectionKind::Stereographic,
+            center_lat: None,
+            center_lon: None,
+            resolution_m: 140.0,
+            dem_interpolation: Interpolation::Bicubic,
+        }
+    }
+}
+
+impl GridSpec {
+    /// The CRS, given the centre (lat, lon) to use where the spec leaves it open.
+    pub fn crs(&self, centre: (f64, f64)) -> Crs {
+        let lat_0 = self.center_lat.unwrap_or(centre.0);
+        let lon_0 = self.center_lon.unwrap_or(centre.1);
+        match self.projection {
+            ProjectionKind::Stereographic => Crs::Stereographic { lat_0, lon_0 },
+            ProjectionKind::Orthographic => Crs::Orthographic { lat_0, lon_0 },
+            ProjectionKind::PolarStereographic => Crs::PolarStereographic {
+                north: lat_0 >= 0.0,
+            },
+            ProjectionKind::Equirectangular => Crs::Equirectangular {
+                lon_0: self.center_lon.unwrap_or(0.0),
+            },
+        }
+    }
+}
+
+/// How the region is cut into tiles.
+#[derive(Debug, Clone, Copy, PartialEq, Serialize, Deserialize)]
+#[serde(deny_unknown_fields, default)]
+pub struct Tiling {
+    /// Edge of a tile's core, pixels.
+    pub tile_size: usize,
+    /// Overlap on each side, pixels; absent = ⌈3 × the largest Gaussian σ⌉ of the solver
+    /// (albedo stages, σ_DEM, the DEM's point spread), the least the issue allows.
+    pub halo: Option<usize>,
+}
+
+impl Default for Tiling {
+    fn default() -> Self {
+        Tiling {
+            tile_size: 512,
+            halo: None,
+        }
+    }
+}
+
+/// Output layers.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Serialize, Deserialize, Hash)]
+#[serde(rename_all = "snake_case")]
+pub enum Layer {
+    /// Fused height, metres above the 1737.4 km sphere (lab: the depth unit × depth_scale).
+    Dem,
+    /// Albedo (Hapke w for the Hapke model).
+    Albedo,
+    /// |I − R| at the solution; no data where the pixel carried no photometric information.
+    Residual,
+    /// 1 where the pixel carried no photometric information (shadow, no image), else 0.
+    Mask,
+    /// The input DEM on the grid, for comparison.
+    InputDem,
+}
+
+impl Layer {
+    pub const ALL: [Layer; 5] = [
+        Layer::Dem,
+        Layer::Albedo,
+        Layer::Residual,
+        Layer::Mask,
+        Layer::InputDem,
+    ];
+
+    pub fn name(self) -> &'static str {
+        match self {
+            Layer::Dem => "dem",
+            Layer::Albedo => "albedo",
+            Layer::Residual => "residual",
+            Layer::Mask => "mask",
+            Layer::InputDem => "input_dem",
+        }
+    }
+}
+
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+#[serde(deny_unknown_fields)]
+pub struct Output {
+    pub directory: PathBuf,
+    #[serde(default = "default_layers")]
+    pub layers: Vec<Layer>,
+}
+
+fn default_layers() -> Vec<Layer> {
+    vec![Layer::Dem, Layer::Albedo, Layer::Residual, Layer::Mask]
+}
+
+/// The seed's laboratory experiments: an intensity image and a range-scan depth map of a small
+/// object, both rasters on one pixel grid (TIFF or PNG), known light and view directions.
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+#[serde(deny_unknown_fields)]
+pub struct Lab {
+    pub inputs: LabInputs,
+    pub illumination: Illumination,
+    #[serde(default = "default_lab_model")]
+    pub photometry: ModelSpec,
+    #[serde(default)]
+    pub solver: FusionParams,
+    pub output: Output,
+}
+
+fn default_lab_model() -> ModelSpec {
+    ModelSpec::Lambert
+}
+
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+#[serde(deny_unknown_fields)]
+pub struct LabInputs {
+    /// Intensity image (TIFF or PNG, first channel).
+    pub image: PathBuf,
+    /// Depth map from the range scanner, same size (TIFF or PNG); larger = closer to the
+    /// camera (height), in the depth unit.
+    pub depth: PathBuf,
+    /// Metres per depth unit (e.g. 0.001 for millimetres).
+    #[serde(default = "one")]
+    pub depth_scale: f64,
+    /// Pixel size on the object, metres.
+    pub pixel_size_m: f64,
+    /// Values of the depth map that mean "no measurement" (in addition to NaN).
+    #[serde(default)]
+    pub depth_nodata: Option<f64>,
+}
+
+fn one() -> f64 {
+    1.0
+}
+
+/// A direction as zenith/azimuth in degrees (azimuth clockwise from image up), in the image
+/// frame: x right, y up, z towards the camera.
+#[derive(Debug, Clone, Copy, PartialEq, Serialize, Deserialize)]
+#[serde(deny_unknown_fields)]
+pub struct Direction {
+    pub zenith_deg: f64,
+    pub azimuth_deg: f64,
+}
+
+#[derive(Debug, Clone, Copy, PartialEq, Serialize, Deserialize)]
+#[serde(deny_unknown_fields)]
+pub struct Illumination {
+    pub light: Direction,
+    #[serde(default = "nadir")]
+    pub view: Direction,
+}
+
+fn nadir() -> Direction {
+    Direction {
+        zenith_deg: 0.0,
+        azimuth_deg: 0.0,
+    }
+}
+
+impl Workflow {
+    /// Read, parse and resolve the workflow at `path`.
+    pub fn load(path: &Path) -> Result<Workflow> {
+        let text = std::fs::read_to_string(path).map_err(|e| Error::io(path, e))?;
+        let base = path.parent().unwrap_or(Path::new("."));
+        Workflow::parse(&text, path, base)
+    }
+
+    /// Parse `text` (named `path` in errors), resolving relative paths against `base`.
+    pub fn parse(text: &str, path: &Path, base: &Path) -> Result<Workflow> {
+        let mut wf: Workflow = toml::from_str(text).map_err(|e| {
+            Error::Usage(format!("{}: {}", path.display(), e.to_string().trim_end()))
+        })?;
+        let abs = |p: &mut PathBuf| {
+            if p.is_relative() {
+                *p = base.join(&*p);
+            }
+        };
+        let fail = |why: String| Error::Usage(format!("{}: {why}", path.display()));
+        match &mut wf {
+            Workflow::Orbital(o) => {
+                o.inputs.m3.iter_mut().for_each(abs);
+                o.inputs.lola.iter_mut().for_each(abs);
+                abs(&mut o.inputs.solar_spectrum);
+                abs(&mut o.output.directory);
+                if o.inputs.m3.is_empty() {
+                    return Err(fail("[inputs] m3 lists no observation".into()));
+                }
+                if o.inputs.lola.is_empty() {
+                    return Err(fail("[inputs] lola lists no DEM".into()));
+                }
+                if !(o.inputs.wavelength_nm.is_finite() && o.inputs.wavelength_nm > 0.0) {
+                    return Err(fail(format!(
+                        "[inputs] wavelength_nm = {} must be positive",
+                        o.inputs.wavelength_nm
+                    )));
+                }
+                if !(o.grid.resolution_m.is_finite() && o.grid.resolution_m > 0.0) {
+                    return Err(fail(format!(
+                        "[grid] resolution_m = {} must be positive",
+                        o.grid.resolution_m
+                    )));
+                }
+                if o.tiling.tile_size < 16 {
+                    return Err(fail(format!(
+                        "[tiling] tile_size = {} must be at least 16",
+                        o.tiling.tile_size
+                    )));
+                }
+                if let Some(r) = &o.region {
+                    if let RegionKind::LonLat(b) = r.kind().map_err(|e| fail(e.to_string()))? {
+                        // Fill in the projection centre: the run record shows it.
+                        let (lon, lat) = b.centre();
+                        o.grid.center_lat.get_or_insert(lat);
+                        o.grid.center_lon.get_or_insert(lon);
+                    } else if (o.grid.center_lat.is_none() || o.grid.center_lon.is_none())
+                        && o.grid.projection != ProjectionKind::Equirectangular
+                    {
+                        return Err(fail("a [region] in map metres needs [grid] center_lat and center_lon: the metres are in that projection".into()));
+                    }
+                }
+                o.tiling.halo.get_or_insert(auto_halo(&o.solver));
+                validate_layers(&o.output.layers).map_err(fail)?;
+            }
+            Workflow::Lab(l) => {
+                abs(&mut l.inputs.image);
+                abs(&mut l.inputs.depth);
+                abs(&mut l.output.directory);
+                if !(l.inputs.pixel_size_m.is_finite() && l.inputs.pixel_size_m > 0.0) {
+                    return Err(fail(format!(
+                        "[inputs] pixel_size_m = {} must be positive",
+                        l.inputs.pixel_size_m
+                    )));
+                }
+                if !(l.inputs.depth_scale.is_finite() && l.inputs.depth_scale != 0.0) {
+                    return Err(fail(format!(
+                        "[inputs] depth_scale = {} must be a non-zero number",
+                        l.inputs.depth_scale
+                    )));
+                }
+                validate_layers(&l.output.layers).map_err(fail)?;
+            }
+        }
+        Ok(wf)
+    }
+}
+
+fn validate_layers(layers: &[Layer]) -> std::result::Result<(), String> {
+    if layers.is_empty() {
+        return Err("[output] layers is empty: nothing would be written".into());
+    }
+    let mut seen = std::collections::HashSet::new();
+    for l in layers {
+        if !seen.insert(l) {
+            return Err(format!("[output] layers names {} twice", l.name()));
+        }
+    }
+    Ok(())
+}
+
+/// ⌈3 × the largest Gaussian σ the solver applies⌉ (albedo stages, final albedo, σ_DEM plus
+/// the DEM point spread of a DEM up to 4× coarser), at least 8 pixels.
+pub fn auto_halo(p: &FusionParams) -> usize {
+    let dem = p.sigma_dem.hypot(crate::fusion::dem_psf_sigma(4.0));
+    let largest = p
+        .albedo_sigmas
+        .iter()
+        .copied()
+        .chain([p.final_albedo_sigma, dem])
+        .fold(0.0f64, f64::max);
+    ((3.0 * largest).ceil() as usize).max(8)
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    const MINIMAL: &str = r#"
+kind = "orbital"
+[inputs]
+m3 = ["obs/M3G_L1B.LBL"]
+lola = ["/abs/LDEM_64.LBL"]
+solar_spectrum = "cal/solar.tab"
+[region]
+lon_min = 355.0
+lon_max = 359.0
+lat_min = -15.0
+lat_max = -11.0
+[output]
+directory = "out"
+"#;
+
+    #[test]
+    fn defaults_are_filled_and_paths_resolved() {
+        let wf = Workflow::parse(MINIMAL, Path::new("w.toml"), Path::new("/data/run")).unwrap();
+        let Workflow::Orbital(o) = wf else { panic!() };
+        assert_eq!(o.inputs.m3[0], Path::new("/data/run/obs/M3G_L1B.LBL"));
+        assert_eq!(o.inputs.lola[0], Path::new("/abs/LDEM_64.LBL"));
+        assert_eq!(o.output.directory, Path::new("/data/run/out"));
+        assert_eq!(o.inputs.wavelength_nm, 1209.6);
+        assert_eq!(
+            (o.grid.center_lat, o.grid.center_lon),
+            (Some(-13.0), Some(357.0))
+        );
+        // Largest σ is the first albedo stage, 100 px.
+        assert_eq!(o.tiling.halo, Some(300));
+        assert_eq!(o.photometry, ModelSpec::Hapke(Hapke::moon()));
+        assert_eq!(o.solver, FusionParams::default());
+    }
+
+    #[test]
+    fn unknown_keys_and_mixed_regions_are_refused_with_their_names() {
+        let typo = MINIMAL.replace("[output]", "[output]\nlayer = [\"dem\"]");
+        let e = Workflow::parse(&typo, Path::new("w.toml"), Path::new("."))
+            .unwrap_err()
+            .to_string();
+        assert!(e.contains("w.toml") && e.contains("layer"), "{e}");
+        let solver = MINIMAL.replace("[output]", "[solver]\ndelat = 3.0\n[output]");
+        let e = Workflow::parse(&solver, Path::new("w.toml"), Path::new("."))
+            .unwrap_err()
+            .to_string();
+        assert!(e.contains("delat"), "{e}");
+        let mixed = MINIMAL.replace("lat_max = -11.0", "lat_max = -11.0\nx_min = 0.0");
+        let e = Workflow::parse(&mixed, Path::new("w.toml"), Path::new("."))
+            .unwrap_err()
+            .to_string();
+        assert!(e.contains("[region]") && e.contains("not a mix"), "{e}");
+        let e = Workflow::parse("kind = \"satellite\"", Path::new("w.toml"), Path::new("."))
+            .unwrap_err()
+            .to_string();
+        assert!(e.contains("satellite"), "{e}");
+    }
+
+    #[test]
+    fn a_metric_region_needs_a_projection_centre() {
+        let m = MINIMAL.replace(
+            "lon_min = 355.0\nlon_max = 359.0\nlat_min = -15.0\nlat_max = -11.0",
+            "x_min = -1000.0\nx_max = 1000.0\ny_min = -500.0\ny_max = 500.0",
+        );
+        let e = Workflow::parse(&m, Path::new("w.toml"), Path::new("."))
+            .unwrap_err()
+            .to_string();
+        assert!(e.contains("center_lat"), "{e}");
+        let ok = m.replace(
+            "[output]",
+            "[grid]\ncenter_lat = -13.4\ncenter_lon = 357.2\n[output]",
+        );
+        Workflow::parse(&ok, Path::new("w.toml"), Path::new(".")).unwrap();
+    }
+}
