@@ -45,62 +45,62 @@ fn read2(r: &pds::raw::Raster, band: usize, first: usize, count: usize) -> Resul
     Array2::from_shape_vec((count, r.samples), v).map_err(|e| Error::Usage(e.to_string()))
 }
 
-/// Resample observation `obs` at `nm` onto `grid` (`geo` = `grid.geographic(pr)`).
-pub fn m3_on_grid(
+/// Lines of a swath per block of a [`SwathIndex`].
+pub const INDEX_BLOCK: usize = 64;
+
+/// Where each block of [`INDEX_BLOCK`] swath lines falls in one map projection: the bounding
+/// box (x_min, x_max, y_min, y_max) in metres of its pixel centres, `None` where no pixel
+/// projects. Lets each tile read only the lines it needs.
+#[derive(Debug, Clone, PartialEq, serde::Serialize, serde::Deserialize)]
+pub struct SwathIndex {
+    pub lines: usize,
+    pub boxes: Vec<Option<[f64; 4]>>,
+}
+
+impl SwathIndex {
+    /// The lines `first..end` whose blocks can reach `grid` (with a 2-pixel margin).
+    pub fn lines_for(&self, grid: &Grid) -> Option<(usize, usize)> {
+        let m = 2.0 * grid.spacing;
+        let (gx0, gx1) = (grid.x0 - m, grid.x0 + grid.cols as f64 * grid.spacing + m);
+        let (gy0, gy1) = (grid.y0 - grid.rows as f64 * grid.spacing - m, grid.y0 + m);
+        let hit: Vec<usize> = self
+            .boxes
+            .iter()
+            .enumerate()
+            .filter(|(_, b)| {
+                b.is_some_and(|b| b[0] <= gx1 && b[1] >= gx0 && b[2] <= gy1 && b[3] >= gy0)
+            })
+            .map(|(k, _)| k)
+            .collect();
+        let (&a, &b) = (hit.first()?, hit.last()?);
+        // One line of margin across block edges.
+        Some((
+            (a * INDEX_BLOCK).saturating_sub(1),
+            ((b + 1) * INDEX_BLOCK + 1).min(self.lines),
+        ))
+    }
+}
+
+/// One pass over an observation for a run: its [`SwathIndex`] in the grid's projection, and
+/// the sum and count of valid reflectances of the pixels that fall on the grid (for the
+/// run-wide intensity scale Ī).
+#[derive(Debug, Clone)]
+pub struct Survey {
+    pub index: SwathIndex,
+    pub sum: f64,
+    pub count: usize,
+}
+
+/// Reflectance at `nm` of lines `first..first + n`: r = L·d²/E, L blended linearly between the
+/// two bands around `nm`, d = SOLAR_DISTANCE + OBS band 6; NaN where L ≤ 0 or not finite.
+fn reflectance_lines(
     obs: &Observation,
+    obsr: &pds::raw::Raster,
     solar: &SolarSpectrum,
     nm: f64,
-    grid: &Grid,
-    pr: &Projector,
-    geo: &Geographic,
-) -> Result<ImageOnGrid> {
-    let label = &obs.label_path;
-    let loc = obs.part("LOC")?;
-    let obsr = obs.part("OBS")?;
-    for (name, r, bands) in [("LOC", &loc, 3), ("OBS", &obsr, 10)] {
-        if (r.lines, r.samples) != (obs.rdn.lines, obs.rdn.samples) || r.bands < bands {
-            return Err(Error::Usage(format!(
-                "{}: {name} is {} lines × {} samples × {} bands, RDN {} × {}: the parts must match ({bands} bands needed)",
-                label.display(), r.lines, r.samples, r.bands, obs.rdn.lines, obs.rdn.samples
-            )));
-        }
-    }
-    // Which lines fall on the grid (with a margin of 2 grid pixels)?
-    let (mut first, mut last) = (usize::MAX, 0usize);
-    let inside = |lo: f64, la: f64| {
-        pr.forward(lo, la).is_some_and(|(x, y)| {
-            let (r, c) = grid.pixel(x, y);
-            r > -2.5 && c > -2.5 && r < grid.rows as f64 + 1.5 && c < grid.cols as f64 + 1.5
-        })
-    };
-    for start in (0..loc.lines).step_by(SCAN_LINES) {
-        let n = SCAN_LINES.min(loc.lines - start);
-        let lon = loc.read_band(0, start, n)?;
-        let lat = loc.read_band(1, start, n)?;
-        for l in 0..n {
-            let row = l * loc.samples..(l + 1) * loc.samples;
-            if lon[row.clone()]
-                .iter()
-                .zip(&lat[row])
-                .any(|(&a, &b)| inside(a, b))
-            {
-                first = first.min(start + l);
-                last = last.max(start + l);
-            }
-        }
-    }
-    if first == usize::MAX {
-        return Err(Error::Usage(format!(
-            "{}: no pixel of this observation falls on the grid (its LOC longitudes/latitudes are outside the region)",
-            label.display()
-        )));
-    }
-    // One swath line of margin each side, so every grid pixel inside has its whole support.
-    let first = first.saturating_sub(1);
-    let end = (last + 2).min(loc.lines);
-    let n = end - first;
-    let lon = read2(&loc, 0, first, n)?;
-    let lat = read2(&loc, 1, first, n)?;
+    first: usize,
+    n: usize,
+) -> Result<(Array2<f64>, (usize, usize), f64)> {
     let bracket = obs.bracket(nm)?;
     let (lo, up, w) = if bracket.weight_upper >= 1.0 {
         (bracket.upper, bracket.upper, 0.0)
@@ -119,7 +119,7 @@ pub fn m3_on_grid(
             solar.path.display()
         ))
     })?;
-    let d_off = read2(&obsr, 5, first, n)?;
+    let d_off = read2(obsr, 5, first, n)?;
     let d0 = obs.solar_distance_au;
     let refl = Zip::from(&l_lo)
         .and(&l_up)
@@ -132,7 +132,97 @@ pub fn m3_on_grid(
                 f64::NAN
             }
         });
-    // East, north and up components, each interpolated on its own.
+    Ok((refl, (lo, up), e))
+}
+
+/// The parts of an observation, checked to match the radiance cube.
+fn parts(obs: &Observation) -> Result<(pds::raw::Raster, pds::raw::Raster)> {
+    let loc = obs.part("LOC")?;
+    let obsr = obs.part("OBS")?;
+    for (name, r, bands) in [("LOC", &loc, 3), ("OBS", &obsr, 10)] {
+        if (r.lines, r.samples) != (obs.rdn.lines, obs.rdn.samples) || r.bands < bands {
+            return Err(Error::Usage(format!(
+                "{}: {name} is {} lines × {} samples × {} bands, RDN {} × {}: the parts must match ({bands} bands needed)",
+                obs.label_path.display(), r.lines, r.samples, r.bands, obs.rdn.lines, obs.rdn.samples
+            )));
+        }
+    }
+    Ok((loc, obsr))
+}
+
+/// Survey `obs` for a run on `grid` (see [`Survey`]).
+pub fn survey(
+    obs: &Observation,
+    solar: &SolarSpectrum,
+    nm: f64,
+    grid: &Grid,
+    pr: &Projector,
+) -> Result<Survey> {
+    let (loc, obsr) = parts(obs)?;
+    let mut boxes = Vec::with_capacity(loc.lines.div_ceil(INDEX_BLOCK));
+    let (mut sum, mut count) = (0.0, 0usize);
+    for start in (0..loc.lines).step_by(INDEX_BLOCK) {
+        let n = INDEX_BLOCK.min(loc.lines - start);
+        let lon = loc.read_band(0, start, n)?;
+        let lat = loc.read_band(1, start, n)?;
+        let (refl, _, _) = reflectance_lines(obs, &obsr, solar, nm, start, n)?;
+        let mut b = [f64::MAX, f64::MIN, f64::MAX, f64::MIN];
+        let mut any = false;
+        for ((&lo, &la), &r) in lon.iter().zip(&lat).zip(refl.iter()) {
+            let Some((x, y)) = pr.forward(lo, la) else {
+                continue;
+            };
+            any = true;
+            b = [b[0].min(x), b[1].max(x), b[2].min(y), b[3].max(y)];
+            let (gr, gc) = grid.pixel(x, y);
+            let on_grid = gr >= -0.5
+                && gc >= -0.5
+                && gr < grid.rows as f64 - 0.5
+                && gc < grid.cols as f64 - 0.5;
+            if on_grid && r.is_finite() && r > 0.0 {
+                sum += r;
+                count += 1;
+            }
+        }
+        boxes.push(any.then_some(b));
+    }
+    Ok(Survey {
+        index: SwathIndex {
+            lines: loc.lines,
+            boxes,
+        },
+        sum,
+        count,
+    })
+}
+
+/// Resample observation `obs` at `nm` onto `grid` (`geo` = `grid.geographic(pr)`), reading
+/// only the lines `index` says can reach the grid (or scanning LOC for them without one).
+pub fn m3_on_grid(
+    obs: &Observation,
+    solar: &SolarSpectrum,
+    nm: f64,
+    grid: &Grid,
+    pr: &Projector,
+    geo: &Geographic,
+    index: Option<&SwathIndex>,
+) -> Result<ImageOnGrid> {
+    let label = &obs.label_path;
+    let (loc, obsr) = parts(obs)?;
+    let range = match index {
+        Some(ix) => ix.lines_for(grid),
+        None => scan_lines(&loc, grid, pr)?,
+    };
+    let Some((first, end)) = range else {
+        return Err(Error::Usage(format!(
+            "{}: no pixel of this observation falls on the grid (its LOC longitudes/latitudes are outside the region)",
+            label.display()
+        )));
+    };
+    let n = end - first;
+    let lon = read2(&loc, 0, first, n)?;
+    let lat = read2(&loc, 1, first, n)?;
+    let (refl, (lo, up), e) = reflectance_lines(obs, &obsr, solar, nm, first, n)?;
     let enu = |az: &Array2<f64>, zen: &Array2<f64>| -> [Array2<f64>; 3] {
         let v = Zip::from(az).and(zen).map_collect(|&a, &z| direction(z, a));
         [v.map(|u| u[0]), v.map(|u| u[1]), v.map(|u| u[2])]
@@ -167,6 +257,39 @@ pub fn m3_on_grid(
         bands: (lo, up),
         irradiance: e,
     })
+}
+
+/// The lines of a swath whose pixels fall on `grid` (with a margin of 2 grid pixels and one
+/// swath line), by scanning LOC in chunks.
+fn scan_lines(
+    loc: &pds::raw::Raster,
+    grid: &Grid,
+    pr: &Projector,
+) -> Result<Option<(usize, usize)>> {
+    let (mut first, mut last) = (usize::MAX, 0usize);
+    let inside = |lo: f64, la: f64| {
+        pr.forward(lo, la).is_some_and(|(x, y)| {
+            let (r, c) = grid.pixel(x, y);
+            r > -2.5 && c > -2.5 && r < grid.rows as f64 + 1.5 && c < grid.cols as f64 + 1.5
+        })
+    };
+    for start in (0..loc.lines).step_by(SCAN_LINES) {
+        let n = SCAN_LINES.min(loc.lines - start);
+        let lon = loc.read_band(0, start, n)?;
+        let lat = loc.read_band(1, start, n)?;
+        for l in 0..n {
+            let row = l * loc.samples..(l + 1) * loc.samples;
+            if lon[row.clone()]
+                .iter()
+                .zip(&lat[row])
+                .any(|(&a, &b)| inside(a, b))
+            {
+                first = first.min(start + l);
+                last = last.max(start + l);
+            }
+        }
+    }
+    Ok((first != usize::MAX).then(|| (first.saturating_sub(1), (last + 2).min(loc.lines))))
 }
 
 /// Bilinear blend of unit vectors at (line, sample), renormalised.

@@ -10,11 +10,14 @@ pub mod grid;
 pub mod ingest;
 pub mod inspect;
 pub mod photometry;
+pub mod pipeline;
+pub mod progress;
 pub mod quicklook;
 pub mod raster;
 pub mod rng;
 pub mod spectral;
 pub mod synth;
+pub mod tiling;
 pub mod workflow;
 
 pub use error::{Error, Result};

@@ -48,6 +48,43 @@ enum Command {
         #[arg(long)]
         json: bool,
     },
+    /// Run a workflow file: M3 + LOLA (or a lab image + range scan) in, fused GeoTIFFs out.
+    /// Tiles already finished are skipped, so an interrupted run resumes where it stopped.
+    Run {
+        /// The workflow (TOML; docs/workflows.md).
+        workflow: PathBuf,
+        /// Run only these tiles, e.g. `3`, `0,4` or `2-5`, and no mosaic (cluster tasks).
+        #[arg(long)]
+        tile: Option<String>,
+        /// Only blend finished tiles into the products and write the run record.
+        #[arg(long, conflicts_with = "tile")]
+        mosaic: bool,
+        /// List the tiles (id, core and halo windows, done or not) and exit.
+        #[arg(long, conflicts_with_all = ["tile", "mosaic"])]
+        list_tiles: bool,
+        /// Progress display: bars on a terminal (auto), log lines, or nothing.
+        #[arg(long, value_enum, default_value_t = ProgressArg::Auto)]
+        progress: ProgressArg,
+        /// Print the summary as JSON.
+        #[arg(long)]
+        json: bool,
+    },
+    /// Write the synthetic scene as mission-format products (an M3-like L1B observation, a
+    /// LOLA-like GDR DEM, a solar spectrum table, truth GeoTIFFs) for `workflows/synthetic.toml`.
+    Synth {
+        /// Directory for the products.
+        #[arg(long, default_value = "out/synthetic/products")]
+        out: PathBuf,
+        /// Scene size in pixels (square).
+        #[arg(long, default_value_t = 512)]
+        size: usize,
+        /// Random seed of the scene.
+        #[arg(long, default_value_t = 1)]
+        seed: u64,
+        /// Print JSON instead of a table.
+        #[arg(long)]
+        json: bool,
+    },
     /// Benchmark the solvers on one synthetic scene and print timings and ratios.
     Bench {
         /// Scene size in pixels (square).
@@ -60,6 +97,13 @@ enum Command {
         #[arg(long)]
         json: bool,
     },
+}
+
+#[derive(Clone, Copy, clap::ValueEnum)]
+enum ProgressArg {
+    Auto,
+    Lines,
+    Quiet,
 }
 
 fn run(cli: Cli) -> Result<(), sfsfuse::Error> {
@@ -92,6 +136,83 @@ fn run(cli: Cli) -> Result<(), sfsfuse::Error> {
         Command::Inspect { path, json } => {
             let i = sfsfuse::inspect::inspect(&path)?;
             emit(json, &i, i.table());
+        }
+        Command::Run {
+            workflow,
+            tile,
+            mosaic,
+            list_tiles,
+            progress,
+            json,
+        } => {
+            use sfsfuse::progress::{Mode, Progress};
+            let wf = sfsfuse::workflow::Workflow::load(&workflow)?;
+            let progress = Progress::new(match progress {
+                ProgressArg::Auto => Mode::Auto,
+                ProgressArg::Lines => Mode::Lines,
+                ProgressArg::Quiet => Mode::Quiet,
+            });
+            if list_tiles {
+                let tiles = sfsfuse::pipeline::list_tiles(&wf, &progress)?;
+                let table: String = tiles
+                    .iter()
+                    .map(|t| {
+                        format!(
+                            "{:5}  core rows {}..{} cols {}..{}  with halo rows {}..{} cols {}..{}  {}\n",
+                            t.id,
+                            t.core.r0,
+                            t.core.r0 + t.core.rows,
+                            t.core.c0,
+                            t.core.c0 + t.core.cols,
+                            t.ext.r0,
+                            t.ext.r0 + t.ext.rows,
+                            t.ext.c0,
+                            t.ext.c0 + t.ext.cols,
+                            if t.done { "done" } else { "pending" }
+                        )
+                    })
+                    .collect();
+                emit(json, &tiles, table);
+                return Ok(());
+            }
+            let req = sfsfuse::pipeline::Request {
+                tiles: tile
+                    .map(|t| sfsfuse::pipeline::parse_tiles(&t))
+                    .transpose()?,
+                mosaic_only: mosaic,
+            };
+            let summary = sfsfuse::pipeline::run(&wf, &req, &progress)?;
+            drop(progress);
+            emit(json, &summary, summary.table());
+        }
+        Command::Synth {
+            out,
+            size,
+            seed,
+            json,
+        } => {
+            let spec = SceneSpec {
+                size,
+                seed,
+                ..SceneSpec::default()
+            };
+            if size < 16 {
+                return Err(sfsfuse::Error::Usage(format!(
+                    "--size {size} is too small: use at least 16"
+                )));
+            }
+            let scene = sfsfuse::synth::generate(&spec);
+            let grid = sfsfuse::demo::demo_grid(&spec)?;
+            let p = sfsfuse::synth::products::write(&scene, &grid, &out)?;
+            let table = format!(
+                "M3-like L1B label   {}\nLOLA-like GDR label {}\nsolar spectrum      {}\ntruth DEM           {}\ntruth albedo        {}\n",
+                p.m3_label.display(),
+                p.lola_label.display(),
+                p.solar_table.display(),
+                p.truth_dem.display(),
+                p.truth_albedo.display()
+            );
+            emit(json, &p, table);
         }
         Command::Bench {
             size,

@@ -54,6 +54,38 @@ pub fn write_panels(path: &Path, panels: &[Array2<u8>], gap: usize) -> Result<()
     crate::raster::write_atomic(path, &bytes)
 }
 
+/// Read the first channel of a PNG (8- or 16-bit, grey or colour; palettes expanded) as
+/// numbers in the file's own scale (0–255 or 0–65535).
+pub fn read_png(path: &Path) -> Result<Array2<f64>> {
+    let bad = |e: png::DecodingError| {
+        Error::Usage(format!("{}: not a readable PNG: {e}", path.display()))
+    };
+    let f = std::fs::File::open(path).map_err(|e| Error::io(path, e))?;
+    let mut dec = png::Decoder::new(std::io::BufReader::new(f));
+    dec.set_transformations(png::Transformations::EXPAND);
+    let mut reader = dec.read_info().map_err(bad)?;
+    let size = reader
+        .output_buffer_size()
+        .ok_or_else(|| Error::Usage(format!("{}: image too large", path.display())))?;
+    let mut buf = vec![0u8; size];
+    let info = reader.next_frame(&mut buf).map_err(bad)?;
+    let channels = info.color_type.samples();
+    let wide = info.bit_depth == png::BitDepth::Sixteen;
+    let step = channels * if wide { 2 } else { 1 };
+    let (w, h) = (info.width as usize, info.height as usize);
+    let v: Vec<f64> = (0..w * h)
+        .map(|k| {
+            let o = k * step;
+            if wide {
+                u16::from_be_bytes([buf[o], buf[o + 1]]) as f64
+            } else {
+                buf[o] as f64
+            }
+        })
+        .collect();
+    Array2::from_shape_vec((h, w), v).map_err(|e| Error::Usage(format!("{}: {e}", path.display())))
+}
+
 #[cfg(test)]
 mod tests {
     use super::*;

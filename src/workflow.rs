@@ -58,6 +58,10 @@ pub struct OrbitalInputs {
     /// linearly to reach it).
     #[serde(default = "default_wavelength")]
     pub wavelength_nm: f64,
+    /// σ, in grid pixels, of the input DEM's point spread relative to the grid. Absent: from
+    /// the first DEM's pixel size, [`crate::fusion::dem_psf_sigma`]`(MAP_SCALE / resolution)`.
+    #[serde(default)]
+    pub dem_psf_sigma_px: Option<f64>,
 }
 
 fn default_wavelength() -> f64 {
@@ -186,6 +190,9 @@ pub struct Tiling {
     /// Overlap on each side, pixels; absent = ⌈3 × the largest Gaussian σ⌉ of the solver
     /// (albedo stages, σ_DEM, the DEM's point spread), the least the issue allows.
     pub halo: Option<usize>,
+    /// Half-width, pixels, of the band around each core edge where neighbouring tiles are
+    /// blended; at most the halo. Absent = halo / 2.
+    pub blend: Option<usize>,
 }
 
 impl Default for Tiling {
@@ -193,6 +200,7 @@ impl Default for Tiling {
         Tiling {
             tile_size: 512,
             halo: None,
+            blend: None,
         }
     }
 }
@@ -370,7 +378,11 @@ impl Workflow {
                         return Err(fail("a [region] in map metres needs [grid] center_lat and center_lon: the metres are in that projection".into()));
                     }
                 }
-                o.tiling.halo.get_or_insert(auto_halo(&o.solver));
+                let halo = *o.tiling.halo.get_or_insert(auto_halo(&o.solver));
+                let blend = *o.tiling.blend.get_or_insert(halo / 2);
+                if blend > halo {
+                    return Err(fail(format!("[tiling] blend = {blend} must not exceed the halo ({halo} px): tiles have no data beyond it")));
+                }
                 validate_layers(&o.output.layers).map_err(fail)?;
             }
             Workflow::Lab(l) => {

@@ -122,7 +122,7 @@ fn m3_global_crop_on_a_local_grid() {
     let pr = crs.projector().unwrap();
     let geo = g.geographic(&pr);
     // 500.92 nm is global band 1, held by the crop (which keeps only the first 3 bands).
-    let img = m3_on_grid(&obs, &solar, 500.92, &g, &pr, &geo).unwrap();
+    let img = m3_on_grid(&obs, &solar, 500.92, &g, &pr, &geo, None).unwrap();
     assert_eq!(img.bands, (1, 1));
     assert_eq!(img.lines, (0, n));
     let filled: Vec<_> = img
@@ -211,7 +211,7 @@ fn a_grid_outside_the_product_is_refused_with_its_name() {
     };
     let g = Grid::new(crs, 10, 10, -700.0, 700.0, 140.0).unwrap();
     let pr = crs.projector().unwrap();
-    let e = m3_on_grid(&obs, &solar, 500.92, &g, &pr, &g.geographic(&pr))
+    let e = m3_on_grid(&obs, &solar, 500.92, &g, &pr, &g.geographic(&pr), None)
         .unwrap_err()
         .to_string();
     assert!(
@@ -235,7 +235,7 @@ fn a_grid_outside_the_product_is_refused_with_its_name() {
     )
     .unwrap();
     let pr2 = g2.crs.projector().unwrap();
-    let e = m3_on_grid(&obs, &solar, 1209.6, &g2, &pr2, &g2.geographic(&pr2))
+    let e = m3_on_grid(&obs, &solar, 1209.6, &g2, &pr2, &g2.geographic(&pr2), None)
         .unwrap_err()
         .to_string();
     assert!(e.contains("RDN_IMAGE BANDS"), "{e}");

@@ -79,13 +79,20 @@ pub fn write_geotiff_as(
             grid.cols
         )));
     }
-    let bytes = encode(grid, data, info, container);
+    let bytes = encode(Some(grid), data, info, container);
     crate::raster::write_atomic(path, &bytes)
 }
 
-/// The whole file in memory.
+/// Write `data` as a tiled, compressed float32 TIFF with overviews and band metadata but no
+/// georeferencing (laboratory products, which are not on the Moon), atomically.
+pub fn write_tiff(path: &Path, data: ArrayView2<f64>, info: &BandInfo) -> Result<()> {
+    let bytes = encode(None, data, info, Container::Auto);
+    crate::raster::write_atomic(path, &bytes)
+}
+
+/// The whole file in memory; `grid` = None writes no GeoTIFF tags.
 pub fn encode(
-    grid: &Grid,
+    grid: Option<&Grid>,
     data: ArrayView2<f64>,
     info: &BandInfo,
     container: Container,
@@ -323,7 +330,7 @@ fn level_tags(
     level: usize,
     (h, w): (usize, usize),
     tiles: &[Vec<u8>],
-    geo: Option<(&Grid, &BandInfo)>,
+    main: Option<(Option<&Grid>, &BandInfo)>,
     width: &Width,
     offsets: &[u64],
 ) -> Vec<Entry> {
@@ -362,14 +369,16 @@ fn level_tags(
         shorts(339, &[3]),
         ascii(42113, "nan"),
     ];
-    if let Some((grid, info)) = geo {
-        let s = grid.spacing;
-        e.push(doubles(33550, &[s, s, 0.0]));
-        e.push(doubles(33922, &[0.0, 0.0, 0.0, grid.x0, grid.y0, 0.0]));
-        let keys = geokeys(&grid.crs);
-        e.push(shorts(34735, &keys.directory));
-        e.push(doubles(34736, &keys.doubles));
-        e.push(ascii(34737, &keys.ascii));
+    if let Some((grid, info)) = main {
+        if let Some(grid) = grid {
+            let s = grid.spacing;
+            e.push(doubles(33550, &[s, s, 0.0]));
+            e.push(doubles(33922, &[0.0, 0.0, 0.0, grid.x0, grid.y0, 0.0]));
+            let keys = geokeys(&grid.crs);
+            e.push(shorts(34735, &keys.directory));
+            e.push(doubles(34736, &keys.doubles));
+            e.push(ascii(34737, &keys.ascii));
+        }
         e.push(ascii(42112, &gdal_metadata(info)));
     }
     e.sort_by_key(|x| x.tag);

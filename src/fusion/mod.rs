@@ -172,7 +172,7 @@ pub enum FusionError {
 }
 
 /// One iteration's record.
-#[derive(Debug, Clone, Serialize)]
+#[derive(Debug, Clone, Serialize, Deserialize)]
 pub struct IterationRecord {
     pub iteration: usize,
     pub energy: Energy,
@@ -181,7 +181,7 @@ pub struct IterationRecord {
 }
 
 /// One albedo stage's record.
-#[derive(Debug, Clone, Serialize)]
+#[derive(Debug, Clone, Serialize, Deserialize)]
 pub struct StageReport {
     pub sigma_rho: f64,
     pub iterations: Vec<IterationRecord>,
@@ -490,4 +490,17 @@ pub fn solve_fixed_albedo(
 ) -> Result<Vec<IterationRecord>, FusionError> {
     let obj = objective(pr, params)?;
     Ok(minimise(&obj, z, rho, params, observe))
+}
+
+/// Anchor a fused surface to the input DEM at large scales: z − G_σ ∗ (z − z_DEM), a Gaussian
+/// of `sigma` pixels with mirror boundaries. Every term of E constrains gradients only, so the
+/// level of z (the mean of z − z_DEM) is otherwise fixed by the domain the solver ran on; this
+/// makes it the DEM's, locally, whatever the domain — the same on a tile with a halo ≥ 3σ as
+/// on the whole region.
+pub fn anchor(z: &Array2<f64>, dem: ArrayView2<f64>, sigma: f64) -> Array2<f64> {
+    let (ny, nx) = z.dim();
+    let dct = Dct2d::new(ny, nx);
+    let diff = Zip::from(z).and(dem).map_collect(|&a, &b| a - b);
+    let low = spectral::gaussian_filter(&dct, &diff, sigma);
+    Zip::from(z).and(&low).map_collect(|&a, &l| a - l)
 }

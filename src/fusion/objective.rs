@@ -22,10 +22,10 @@ use super::Problem;
 use crate::photometry::ReflectanceModel;
 use crate::spectral::{self, Dct2d};
 use ndarray::{Array2, ArrayView2, Zip};
-use serde::Serialize;
+use serde::{Deserialize, Serialize};
 
 /// The terms of the energy at one iterate.
-#[derive(Debug, Clone, Copy, PartialEq, Serialize, Default)]
+#[derive(Debug, Clone, Copy, PartialEq, Serialize, Deserialize, Default)]
 pub struct Energy {
     /// E_I.
     pub intensity: f64,

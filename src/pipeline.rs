@@ -1,0 +1,1187 @@
+//! `sfsfuse run`: a workflow from mission products to fused GeoTIFFs (docs/workflows.md).
+//!
+//! Orbital runs go in three steps, each restartable:
+//!
+//! 1. **Plan** (`<out>/plan.json`): the grid, the tiles, and what needs the whole region — the
+//!    intensity scale Ī (the mean reflectance of every valid swath pixel on the grid) and a
+//!    line index of each swath. Keyed by a hash of the tool version, the resolved workflow
+//!    and each input file's size and modification time; a plan with another key is replaced.
+//! 2. **Tiles** (`<out>/tiles/tile_NNNNN.sfstile`): each tile reads only its window of the
+//!    products, fuses it with the run-wide Ī, and writes its layers over core + halo in one
+//!    atomic file. A tile whose file exists with the plan's key is skipped, so reruns and
+//!    resumed runs (after kill -9) redo only missing tiles. Tiles are independent: `--tile N`
+//!    runs one anywhere (cluster tasks).
+//! 3. **Mosaic**: the tiles blended with [`tiling::weight`] (a partition of unity over the
+//!    inner half of the halos) into `dem.tif`, `albedo.tif`, `residual.tif`, `mask.tif`
+//!    (and `input_dem.tif` on request), then the run record `run.json`.
+//!
+//! Results are bit-identical for any thread count: tiles are independent, each fusion is
+//! deterministic, and the mosaic sums tiles in id order.
+
+use crate::error::{Error, Result};
+use crate::export::{write_geotiff, write_tiff, BandInfo};
+use crate::fusion::{self, Directions, FusionParams, Problem, StageReport};
+use crate::grid::{Crs, Grid, Projector};
+use crate::ingest::{self, SwathIndex};
+use crate::photometry::{ModelSpec, ReflectanceModel};
+use crate::progress::Progress;
+use crate::raster::write_atomic;
+use crate::tiling::{self, Tile, Window};
+use crate::workflow::{Lab, Layer, Orbital, RegionKind, Workflow};
+use ndarray::{s, Array2, Zip};
+use pds::lola::LolaDem;
+use pds::m3::Observation;
+use pds::solar::SolarSpectrum;
+use rayon::prelude::*;
+use serde::{Deserialize, Serialize};
+use sha2::{Digest, Sha256};
+use std::io::Read;
+use std::path::{Path, PathBuf};
+use std::time::Instant;
+
+/// What `run` is asked to do.
+#[derive(Debug, Clone, Default)]
+pub struct Request {
+    /// Only these tiles (and no mosaic); `None` = every pending tile, then the mosaic.
+    pub tiles: Option<Vec<usize>>,
+    /// Only the mosaic (every tile must be done).
+    pub mosaic_only: bool,
+}
+
+/// The opened inputs of an orbital run.
+struct Inputs {
+    obs: Vec<Observation>,
+    lola: Vec<LolaDem>,
+    solar: SolarSpectrum,
+    model: Box<dyn ReflectanceModel>,
+}
+
+impl Inputs {
+    fn open(o: &Orbital) -> Result<Self> {
+        Ok(Inputs {
+            obs: o
+                .inputs
+                .m3
+                .iter()
+                .map(|p| Observation::open(p))
+                .collect::<std::result::Result<_, _>>()?,
+            lola: o
+                .inputs
+                .lola
+                .iter()
+                .map(|p| LolaDem::open(p))
+                .collect::<std::result::Result<_, _>>()?,
+            solar: SolarSpectrum::read(&o.inputs.solar_spectrum)?,
+            model: o.photometry.build(),
+        })
+    }
+
+    /// Every file the run reads.
+    fn files(&self) -> Result<Vec<PathBuf>> {
+        let mut v = Vec::new();
+        for o in &self.obs {
+            v.push(o.label_path.clone());
+            v.push(o.rdn.path.clone());
+            for part in ["LOC", "OBS"] {
+                v.push(o.part(part)?.path);
+            }
+        }
+        for d in &self.lola {
+            v.push(d.label_path.clone());
+            v.push(d.raster.path.clone());
+        }
+        v.push(self.solar.path.clone());
+        v.dedup();
+        Ok(v)
+    }
+}
+
+/// The plan of an orbital run (see the module documentation).
+#[derive(Debug, Clone, Serialize, Deserialize)]
+pub struct Plan {
+    pub version: String,
+    pub key: String,
+    pub grid: Grid,
+    pub halo: usize,
+    /// Blend half-width, pixels ([`tiling::weight`]).
+    pub blend: usize,
+    pub tiles: Vec<Tile>,
+    /// Ī: mean valid reflectance on the grid, sr⁻¹.
+    pub intensity_scale: f64,
+    /// Swath pixels behind Ī.
+    pub intensity_pixels: usize,
+    /// σ of the input DEM's point spread on the grid, pixels.
+    pub dem_psf_sigma: f64,
+    /// One per M3 observation, in input order.
+    pub swaths: Vec<SwathIndex>,
+}
+
+/// A finished tile's record (the header of its file, and a row of the run record).
+#[derive(Debug, Clone, Serialize, Deserialize)]
+pub struct TileRecord {
+    pub id: usize,
+    pub key: String,
+    pub core: Window,
+    pub ext: Window,
+    /// "fused", or "no_image" where no pixel of the tile carries an observation (the tile
+    /// then keeps the input DEM).
+    pub status: String,
+    pub photometric_pixels: usize,
+    pub iterations: usize,
+    pub seconds: f64,
+    pub stages: Vec<StageReport>,
+}
+
+/// Layers stored per tile, in file order.
+const TILE_LAYERS: [Layer; 5] = [
+    Layer::Dem,
+    Layer::Albedo,
+    Layer::Residual,
+    Layer::Mask,
+    Layer::InputDem,
+];
+const TILE_MAGIC: &[u8; 8] = b"SFSTILE1";
+
+/// The summary `run` returns (and prints).
+#[derive(Debug, Clone, Serialize)]
+pub struct RunSummary {
+    pub output_directory: PathBuf,
+    pub tiles_total: usize,
+    pub tiles_run: usize,
+    pub tiles_skipped: usize,
+    pub mosaic: bool,
+    pub outputs: Vec<PathBuf>,
+    pub record: Option<PathBuf>,
+}
+
+impl RunSummary {
+    pub fn table(&self) -> String {
+        let mut s = format!(
+            "tiles: {} total, {} run now, {} already done\n",
+            self.tiles_total, self.tiles_run, self.tiles_skipped
+        );
+        for o in &self.outputs {
+            s.push_str(&format!("wrote {}\n", o.display()));
+        }
+        if let Some(r) = &self.record {
+            s.push_str(&format!("run record {}\n", r.display()));
+        }
+        if !self.mosaic {
+            s.push_str("mosaic not written (run without --tile, or with --mosaic, when every tile is done)\n");
+        }
+        s
+    }
+}
+
+fn json_err(path: &Path, e: serde_json::Error) -> Error {
+    Error::Usage(format!("{}: {e}", path.display()))
+}
+
+/// Hex SHA-256 of `bytes`.
+fn sha256_hex(bytes: &[u8]) -> String {
+    Sha256::digest(bytes)
+        .iter()
+        .map(|b| format!("{b:02x}"))
+        .collect()
+}
+
+/// Hex SHA-256 of a file's contents, streamed.
+pub fn file_sha256(path: &Path) -> Result<String> {
+    let mut f = std::fs::File::open(path).map_err(|e| Error::io(path, e))?;
+    let mut h = Sha256::new();
+    let mut buf = vec![0u8; 1 << 20];
+    loop {
+        let n = f.read(&mut buf).map_err(|e| Error::io(path, e))?;
+        if n == 0 {
+            break;
+        }
+        h.update(&buf[..n]);
+    }
+    Ok(h.finalize().iter().map(|b| format!("{b:02x}")).collect())
+}
+
+/// The key that ties plan and tiles to one workflow and one set of input files.
+fn run_key(wf: &Workflow, files: &[PathBuf]) -> Result<String> {
+    let mut text = format!("sfsfuse {}\n", env!("CARGO_PKG_VERSION"));
+    text.push_str(&serde_json::to_string(wf).expect("workflows serialise"));
+    for f in files {
+        let m = std::fs::metadata(f).map_err(|e| Error::io(f, e))?;
+        let mtime = m
+            .modified()
+            .ok()
+            .and_then(|t| t.duration_since(std::time::UNIX_EPOCH).ok())
+            .map_or(0, |d| d.as_nanos());
+        text.push_str(&format!("\n{}:{}:{mtime}", f.display(), m.len()));
+    }
+    Ok(sha256_hex(text.as_bytes()))
+}
+
+/// The grid of an orbital workflow.
+fn make_grid(o: &Orbital, inputs: &Inputs) -> Result<Grid> {
+    let usage = |e: crate::grid::GridError| Error::Usage(format!("[grid]/[region]: {e}"));
+    let res = o.grid.resolution_m;
+    match o.region.map(|r| r.kind()).transpose()? {
+        Some(RegionKind::LonLat(b)) => {
+            let (lon, lat) = b.centre();
+            Grid::covering(o.grid.crs((lat, lon)), &b, res).map_err(usage)
+        }
+        Some(RegionKind::Map([x0, x1, y0, y1])) => {
+            let crs = o.grid.crs((
+                o.grid.center_lat.unwrap_or(0.0),
+                o.grid.center_lon.unwrap_or(0.0),
+            ));
+            let (c0, c1) = ((x0 / res).floor(), (x1 / res).ceil());
+            let (r0, r1) = ((y0 / res).floor(), (y1 / res).ceil());
+            if (c1 - c0) * (r1 - r0) > crate::grid::MAX_PIXELS as f64 {
+                return Err(Error::Usage(format!("[region]: {} × {} pixels at {res} m is more than one run can hold ({}); use a coarser resolution or a smaller region", r1 - r0, c1 - c0, crate::grid::MAX_PIXELS)));
+            }
+            Grid::new(
+                crs,
+                (r1 - r0) as usize,
+                (c1 - c0) as usize,
+                c0 * res,
+                r1 * res,
+                res,
+            )
+            .map_err(usage)
+        }
+        None => {
+            // The whole swath of the first observation.
+            let obs = &inputs.obs[0];
+            let loc = obs.part("LOC")?;
+            let (lon, lat) = (
+                loc.read_band(0, 0, loc.lines)?,
+                loc.read_band(1, 0, loc.lines)?,
+            );
+            let fin: Vec<(f64, f64)> = lon
+                .iter()
+                .zip(&lat)
+                .filter(|(a, b)| a.is_finite() && b.is_finite())
+                .map(|(&a, &b)| (a, b))
+                .collect();
+            if fin.is_empty() {
+                return Err(Error::Usage(format!(
+                    "{}: LOC has no valid longitude/latitude",
+                    obs.label_path.display()
+                )));
+            }
+            // Longitudes in the half-turn that keeps the swath together.
+            let spread = |shift: f64| {
+                let v = fin.iter().map(|p| (p.0 + shift).rem_euclid(360.0));
+                let (a, b) = v.fold((f64::MAX, f64::MIN), |m, x| (m.0.min(x), m.1.max(x)));
+                (a - shift, b - shift)
+            };
+            let (a0, b0) = spread(0.0);
+            let (a1, b1) = spread(180.0);
+            let (lo0, lo1) = if b0 - a0 <= b1 - a1 {
+                (a0, b0)
+            } else {
+                (a1, b1)
+            };
+            let (la0, la1) = fin
+                .iter()
+                .fold((f64::MAX, f64::MIN), |m, p| (m.0.min(p.1), m.1.max(p.1)));
+            let centre = (0.5 * (la0 + la1), 0.5 * (lo0 + lo1));
+            let crs = o.grid.crs(centre);
+            let pr = crs.projector().map_err(usage)?;
+            let (mut x0, mut x1, mut y0, mut y1) = (f64::MAX, f64::MIN, f64::MAX, f64::MIN);
+            for &(a, b) in &fin {
+                if let Some((x, y)) = pr.forward(a, b) {
+                    (x0, x1, y0, y1) = (x0.min(x), x1.max(x), y0.min(y), y1.max(y));
+                }
+            }
+            let (c0, c1) = ((x0 / res).floor(), (x1 / res).ceil());
+            let (r0, r1) = ((y0 / res).floor(), (y1 / res).ceil());
+            Grid::new(
+                crs,
+                (r1 - r0).max(1.0) as usize,
+                (c1 - c0).max(1.0) as usize,
+                c0 * res,
+                r1 * res,
+                res,
+            )
+            .map_err(usage)
+        }
+    }
+}
+
+/// Make the plan, or load it when one with the same key exists.
+fn plan(o: &Orbital, wf: &Workflow, inputs: &Inputs, progress: &Progress) -> Result<Plan> {
+    let out = &o.output.directory;
+    let key = run_key(wf, &inputs.files()?)?;
+    let path = out.join("plan.json");
+    if let Ok(text) = std::fs::read_to_string(&path) {
+        if let Ok(p) = serde_json::from_str::<Plan>(&text) {
+            if p.key == key {
+                progress.note(&format!("plan: reusing {}", path.display()));
+                return Ok(p);
+            }
+        }
+        progress.note(&format!(
+            "plan: {} belongs to other inputs or parameters; planning anew",
+            path.display()
+        ));
+    }
+    progress.stage("planning: grid, swath index, intensity scale");
+    let grid = make_grid(o, inputs)?;
+    let pr = projector(&grid.crs)?;
+    let mut swaths = Vec::new();
+    let (mut sum, mut count) = (0.0, 0usize);
+    for obs in &inputs.obs {
+        let s = ingest::survey(obs, &inputs.solar, o.inputs.wavelength_nm, &grid, &pr)?;
+        sum += s.sum;
+        count += s.count;
+        swaths.push(s.index);
+    }
+    if count == 0 {
+        return Err(Error::Usage(format!(
+            "no valid M3 pixel falls on the grid ({} × {} px): check [region] against the observations' coverage",
+            grid.rows, grid.cols
+        )));
+    }
+    let halo = o
+        .tiling
+        .halo
+        .unwrap_or_else(|| crate::workflow::auto_halo(&o.solver));
+    let tiles = tiling::layout(grid.rows, grid.cols, o.tiling.tile_size, halo);
+    let factor = inputs.lola[0].map_scale_m / grid.spacing;
+    let blend = o.tiling.blend.unwrap_or(halo / 2).min(halo);
+    let p = Plan {
+        version: env!("CARGO_PKG_VERSION").into(),
+        key,
+        grid,
+        halo,
+        blend,
+        tiles,
+        intensity_scale: sum / count as f64,
+        intensity_pixels: count,
+        dem_psf_sigma: o
+            .inputs
+            .dem_psf_sigma_px
+            .unwrap_or(fusion::dem_psf_sigma(factor)),
+        swaths,
+    };
+    std::fs::create_dir_all(out).map_err(|e| Error::io(out, e))?;
+    write_atomic(
+        &path,
+        serde_json::to_string_pretty(&p)
+            .expect("plans serialise")
+            .as_bytes(),
+    )?;
+    progress.finish();
+    progress.note(&format!(
+        "plan: {} × {} px at {} m ({}), {} tiles of {} px + {} px halo, Ī = {:.5} sr⁻¹ over {} px",
+        p.grid.rows,
+        p.grid.cols,
+        p.grid.spacing,
+        p.grid.crs.name(),
+        p.tiles.len(),
+        o.tiling.tile_size,
+        p.halo,
+        p.intensity_scale,
+        p.intensity_pixels
+    ));
+    Ok(p)
+}
+
+fn projector(crs: &Crs) -> Result<Projector> {
+    crs.projector().map_err(|e| Error::Usage(e.to_string()))
+}
+
+fn tile_path(out: &Path, id: usize) -> PathBuf {
+    out.join("tiles").join(format!("tile_{id:05}.sfstile"))
+}
+
+/// Read a tile file's header; `None` when absent, unreadable or not of this plan.
+fn tile_header(path: &Path, key: &str) -> Option<TileRecord> {
+    let mut f = std::fs::File::open(path).ok()?;
+    let mut head = [0u8; 16];
+    f.read_exact(&mut head).ok()?;
+    if &head[..8] != TILE_MAGIC {
+        return None;
+    }
+    let n = u64::from_le_bytes(head[8..16].try_into().ok()?) as usize;
+    if n > 64 << 20 {
+        return None;
+    }
+    let mut json = vec![0u8; n];
+    f.read_exact(&mut json).ok()?;
+    let r: TileRecord = serde_json::from_slice(&json).ok()?;
+    let want = 16 + n as u64 + (TILE_LAYERS.len() * r.ext.len() * 4) as u64;
+    let len = f.metadata().ok()?.len();
+    (r.key == key && len == want).then_some(r)
+}
+
+/// Read a tile's layers (over its ext window).
+fn read_tile(path: &Path, key: &str) -> Result<(TileRecord, Vec<Array2<f32>>)> {
+    let bad = || {
+        Error::Usage(format!(
+            "{}: not a finished tile of this run (rerun the tile)",
+            path.display()
+        ))
+    };
+    let r = tile_header(path, key).ok_or_else(bad)?;
+    let bytes = std::fs::read(path).map_err(|e| Error::io(path, e))?;
+    let n = u64::from_le_bytes(bytes[8..16].try_into().map_err(|_| bad())?) as usize;
+    let body = &bytes[16 + n..];
+    let px = r.ext.len();
+    let layers = (0..TILE_LAYERS.len())
+        .map(|k| {
+            let v: Vec<f32> = body[k * px * 4..(k + 1) * px * 4]
+                .chunks_exact(4)
+                .map(|c| f32::from_le_bytes([c[0], c[1], c[2], c[3]]))
+                .collect();
+            Array2::from_shape_vec((r.ext.rows, r.ext.cols), v).map_err(|_| bad())
+        })
+        .collect::<Result<Vec<_>>>()?;
+    Ok((r, layers))
+}
+
+/// Run one tile and write its file atomically.
+fn run_tile(o: &Orbital, inputs: &Inputs, plan: &Plan, tile: &Tile) -> Result<TileRecord> {
+    let t0 = Instant::now();
+    let e = tile.ext;
+    let grid = plan
+        .grid
+        .window(e.r0 as isize, e.c0 as isize, e.rows, e.cols);
+    let pr = projector(&grid.crs)?;
+    let geo = grid.geographic(&pr);
+    let dim = (e.rows, e.cols);
+    // The image: the first observation that covers a pixel.
+    let mut image = Array2::from_elem(dim, f64::NAN);
+    let mut sun = Array2::from_elem(dim, [0.0, 0.0, 1.0]);
+    let mut view = Array2::from_elem(dim, [0.0, 0.0, 1.0]);
+    for (obs, index) in inputs.obs.iter().zip(&plan.swaths) {
+        if index.lines_for(&grid).is_none() {
+            continue;
+        }
+        let img = ingest::m3_on_grid(
+            obs,
+            &inputs.solar,
+            o.inputs.wavelength_nm,
+            &grid,
+            &pr,
+            &geo,
+            Some(index),
+        )?;
+        Zip::from(&mut image)
+            .and(&mut sun)
+            .and(&mut view)
+            .and(&img.reflectance)
+            .and(&img.sun)
+            .and(&img.view)
+            .for_each(|i, s, v, &ri, &si, &vi| {
+                if i.is_nan() && ri.is_finite() && si[2].is_finite() && vi[2].is_finite() {
+                    (*i, *s, *v) = (ri, si, vi);
+                }
+            });
+    }
+    // The DEM: the first product that covers a pixel.
+    let mut dem = Array2::from_elem(dim, f64::NAN);
+    for d in &inputs.lola {
+        let Ok(h) = ingest::lola_on_grid(d, &geo, o.grid.dem_interpolation) else {
+            continue;
+        };
+        Zip::from(&mut dem).and(&h).for_each(|a, &b| {
+            if a.is_nan() {
+                *a = b;
+            }
+        });
+    }
+    if let Some(((r, c), _)) = dem.indexed_iter().find(|(_, v)| !v.is_finite()) {
+        let (lon, lat) = (geo.lon[(r, c)], geo.lat[(r, c)]);
+        return Err(Error::Usage(format!(
+            "tile {}: no LOLA DEM of [inputs] lola covers grid pixel ({}, {}) at lon {lon:.4}, lat {lat:.4} (with the interpolation's support): add a DEM that covers the region or shrink [region]",
+            tile.id,
+            e.r0 + r,
+            e.c0 + c
+        )));
+    }
+    let problem = Problem {
+        image: image.view(),
+        dem: dem.view(),
+        spacing: grid.spacing,
+        dem_psf_sigma: plan.dem_psf_sigma,
+        sun: Directions::PerPixel(sun),
+        view: Directions::PerPixel(view),
+        model: inputs.model.as_ref(),
+        intensity_scale: Some(plan.intensity_scale),
+    };
+    let (status, layers, stages, photometric) = match fusion::fuse(&problem, &o.solver) {
+        Ok(mut f) => {
+            f.height = fusion::anchor(&f.height, dem.view(), plan.halo as f64 / 3.0);
+            let n = f.photometric.iter().filter(|&&b| b).count();
+            let mask = f.photometric.mapv(|b| if b { 0.0 } else { 1.0 });
+            (
+                "fused",
+                [f.height, f.albedo, f.residual, mask, dem.clone()],
+                f.stages,
+                n,
+            )
+        }
+        Err(fusion::FusionError::NoObservations) => {
+            let nan = Array2::from_elem(dim, f64::NAN);
+            (
+                "no_image",
+                [
+                    dem.clone(),
+                    nan.clone(),
+                    nan,
+                    Array2::ones(dim),
+                    dem.clone(),
+                ],
+                Vec::new(),
+                0,
+            )
+        }
+        Err(err) => return Err(Error::Usage(format!("tile {}: {err}", tile.id))),
+    };
+    let record = TileRecord {
+        id: tile.id,
+        key: plan.key.clone(),
+        core: tile.core,
+        ext: e,
+        status: status.into(),
+        photometric_pixels: photometric,
+        iterations: stages
+            .iter()
+            .map(|s| s.iterations.len().saturating_sub(1))
+            .sum(),
+        seconds: t0.elapsed().as_secs_f64(),
+        stages,
+    };
+    let json = serde_json::to_vec(&record).expect("records serialise");
+    let mut bytes = Vec::with_capacity(16 + json.len() + layers.len() * e.len() * 4);
+    bytes.extend_from_slice(TILE_MAGIC);
+    bytes.extend_from_slice(&(json.len() as u64).to_le_bytes());
+    bytes.extend_from_slice(&json);
+    for l in &layers {
+        for &v in l.iter() {
+            bytes.extend_from_slice(&(v as f32).to_le_bytes());
+        }
+    }
+    let path = tile_path(&o.output.directory, tile.id);
+    write_atomic(&path, &bytes)?;
+    Ok(record)
+}
+
+/// Parse a tile list like `3`, `0,4,7` or `2-5` (ids are 0-based).
+pub fn parse_tiles(spec: &str) -> Result<Vec<usize>> {
+    let bad = |p: &str| {
+        Error::Usage(format!(
+            "--tile {spec}: `{p}` is not a tile number or range like 2-5"
+        ))
+    };
+    let mut v = Vec::new();
+    for part in spec.split(',').map(str::trim).filter(|p| !p.is_empty()) {
+        match part.split_once('-') {
+            Some((a, b)) => {
+                let (a, b): (usize, usize) = (
+                    a.trim().parse().map_err(|_| bad(part))?,
+                    b.trim().parse().map_err(|_| bad(part))?,
+                );
+                if a > b {
+                    return Err(bad(part));
+                }
+                v.extend(a..=b);
+            }
+            None => v.push(part.parse().map_err(|_| bad(part))?),
+        }
+    }
+    if v.is_empty() {
+        return Err(Error::Usage(format!("--tile {spec}: no tile given")));
+    }
+    v.sort_unstable();
+    v.dedup();
+    Ok(v)
+}
+
+/// One line per tile: id, windows, and whether it is done.
+#[derive(Debug, Clone, Serialize)]
+pub struct TileStatus {
+    pub id: usize,
+    pub core: Window,
+    pub ext: Window,
+    pub done: bool,
+}
+
+/// The tiles of a workflow and their state (plans the run if needed).
+pub fn list_tiles(wf: &Workflow, progress: &Progress) -> Result<Vec<TileStatus>> {
+    let Workflow::Orbital(o) = wf else {
+        return Err(Error::Usage(
+            "a lab workflow is one piece of work: it has no tiles".into(),
+        ));
+    };
+    let inputs = Inputs::open(o)?;
+    let plan = plan(o, wf, &inputs, progress)?;
+    Ok(plan
+        .tiles
+        .iter()
+        .map(|t| TileStatus {
+            id: t.id,
+            core: t.core,
+            ext: t.ext,
+            done: tile_header(&tile_path(&o.output.directory, t.id), &plan.key).is_some(),
+        })
+        .collect())
+}
+
+/// Run a workflow.
+pub fn run(wf: &Workflow, req: &Request, progress: &Progress) -> Result<RunSummary> {
+    match wf {
+        Workflow::Orbital(o) => run_orbital(o, wf, req, progress),
+        Workflow::Lab(l) => {
+            if req.tiles.is_some() || req.mosaic_only {
+                return Err(Error::Usage(
+                    "--tile and --mosaic apply to orbital workflows; a lab workflow runs whole"
+                        .into(),
+                ));
+            }
+            run_lab(l, wf, progress)
+        }
+    }
+}
+
+fn run_orbital(
+    o: &Orbital,
+    wf: &Workflow,
+    req: &Request,
+    progress: &Progress,
+) -> Result<RunSummary> {
+    let out = &o.output.directory;
+    std::fs::create_dir_all(out.join("tiles")).map_err(|e| Error::io(out.join("tiles"), e))?;
+    let inputs = Inputs::open(o)?;
+    let plan = plan(o, wf, &inputs, progress)?;
+    let wanted: Vec<usize> = match &req.tiles {
+        Some(ids) => {
+            if let Some(&bad) = ids.iter().find(|&&i| i >= plan.tiles.len()) {
+                return Err(Error::Usage(format!(
+                    "--tile {bad}: this run has tiles 0 to {}",
+                    plan.tiles.len() - 1
+                )));
+            }
+            ids.clone()
+        }
+        None if req.mosaic_only => Vec::new(),
+        None => (0..plan.tiles.len()).collect(),
+    };
+    let pending: Vec<&Tile> = wanted
+        .iter()
+        .map(|&i| &plan.tiles[i])
+        .filter(|t| tile_header(&tile_path(out, t.id), &plan.key).is_none())
+        .collect();
+    let skipped = wanted.len() - pending.len();
+    if skipped > 0 {
+        progress.note(&format!("{skipped} tile(s) already done: skipped"));
+    }
+    if !pending.is_empty() {
+        progress.steps("tiles", pending.len() as u64);
+        let results: Vec<Result<TileRecord>> = pending
+            .par_iter()
+            .map(|t| {
+                let r = run_tile(o, &inputs, &plan, t);
+                if let Ok(rec) = &r {
+                    progress.step(&format!(
+                        "tile {} {} in {:.1} s ({} iterations)",
+                        rec.id, rec.status, rec.seconds, rec.iterations
+                    ));
+                }
+                r
+            })
+            .collect();
+        progress.finish();
+        // Report the first failure in tile order; the finished tiles are kept.
+        let failed: Vec<String> = results
+            .iter()
+            .filter_map(|r| r.as_ref().err().map(|e| e.to_string()))
+            .collect();
+        if let Some(first) = failed.first() {
+            return Err(Error::Usage(format!(
+                "{} of {} tile(s) failed; finished tiles are kept and a rerun redoes only the rest. First failure: {first}",
+                failed.len(),
+                pending.len()
+            )));
+        }
+    }
+    let mut summary = RunSummary {
+        output_directory: out.clone(),
+        tiles_total: plan.tiles.len(),
+        tiles_run: pending.len(),
+        tiles_skipped: skipped,
+        mosaic: false,
+        outputs: Vec::new(),
+        record: None,
+    };
+    if req.tiles.is_none() {
+        let (outputs, record) = mosaic(o, wf, &inputs, &plan, progress)?;
+        summary.mosaic = true;
+        summary.outputs = outputs;
+        summary.record = Some(record);
+    }
+    Ok(summary)
+}
+
+/// What a GIS user sees of each layer.
+fn layer_info(l: Layer, lunar: bool) -> (&'static str, &'static str) {
+    match l {
+        Layer::Dem if lunar => ("fused height above the 1737.4 km sphere", "m"),
+        Layer::Dem => ("fused height", "m"),
+        Layer::Albedo => (
+            "albedo (Hapke single-scattering albedo w for the Hapke model)",
+            "",
+        ),
+        Layer::Residual => (
+            "|I - R| at the solution; no data without photometric information",
+            "sr-1",
+        ),
+        Layer::Mask => (
+            "1 = no photometric information (shadow or no image), 0 = fused from shading",
+            "",
+        ),
+        Layer::InputDem if lunar => (
+            "input DEM resampled to the grid, height above the 1737.4 km sphere",
+            "m",
+        ),
+        Layer::InputDem => ("input depth map as height", "m"),
+    }
+}
+
+#[derive(Debug, Clone, Serialize)]
+struct InputFile {
+    path: PathBuf,
+    bytes: u64,
+    sha256: String,
+}
+
+#[derive(Debug, Clone, Serialize)]
+struct Metrics {
+    pixels: usize,
+    photometric_fraction: f64,
+    residual_mean: f64,
+    /// RMS of (fused − input DEM), metres.
+    height_change_rms_m: f64,
+    height_min_m: f64,
+    height_max_m: f64,
+    albedo_mean: f64,
+}
+
+#[derive(Debug, Clone, Serialize)]
+struct RunRecord<'a> {
+    tool: &'static str,
+    version: &'static str,
+    /// The workflow with every default filled in.
+    workflow: &'a Workflow,
+    inputs: Vec<InputFile>,
+    grid: Option<Grid>,
+    crs_wkt: Option<String>,
+    halo: Option<usize>,
+    intensity_scale: Option<f64>,
+    dem_psf_sigma: Option<f64>,
+    threads: usize,
+    tiles: Vec<TileRecord>,
+    metrics: Metrics,
+    outputs: Vec<PathBuf>,
+}
+
+fn metrics(layers: &[Array2<f64>; 5]) -> Metrics {
+    let [h, a, r, m, d] = layers;
+    let n = h.len();
+    let phot = m.iter().filter(|&&v| v == 0.0).count();
+    let mean = |x: &Array2<f64>| {
+        let (s, k) = x
+            .iter()
+            .filter(|v| v.is_finite())
+            .fold((0.0, 0usize), |(s, k), &v| (s + v, k + 1));
+        if k == 0 {
+            f64::NAN
+        } else {
+            s / k as f64
+        }
+    };
+    let dh: f64 = h.iter().zip(d).map(|(a, b)| (a - b) * (a - b)).sum::<f64>() / n as f64;
+    Metrics {
+        pixels: n,
+        photometric_fraction: phot as f64 / n as f64,
+        residual_mean: mean(r),
+        height_change_rms_m: dh.sqrt(),
+        height_min_m: h.iter().copied().fold(f64::INFINITY, f64::min),
+        height_max_m: h.iter().copied().fold(f64::NEG_INFINITY, f64::max),
+        albedo_mean: mean(a),
+    }
+}
+
+fn checksums(files: &[PathBuf], progress: &Progress) -> Result<Vec<InputFile>> {
+    progress.steps("checksums", files.len() as u64);
+    let v = files
+        .iter()
+        .map(|f| {
+            let bytes = std::fs::metadata(f).map_err(|e| Error::io(f, e))?.len();
+            let sha256 = file_sha256(f)?;
+            progress.step(&format!("sha256 {}", f.display()));
+            Ok(InputFile {
+                path: f.clone(),
+                bytes,
+                sha256,
+            })
+        })
+        .collect::<Result<Vec<_>>>();
+    progress.finish();
+    v
+}
+
+/// Blend every tile into the products and write the run record.
+fn mosaic(
+    o: &Orbital,
+    wf: &Workflow,
+    inputs: &Inputs,
+    plan: &Plan,
+    progress: &Progress,
+) -> Result<(Vec<PathBuf>, PathBuf)> {
+    let out = &o.output.directory;
+    let missing: Vec<usize> = plan
+        .tiles
+        .iter()
+        .filter(|t| tile_header(&tile_path(out, t.id), &plan.key).is_none())
+        .map(|t| t.id)
+        .collect();
+    if !missing.is_empty() {
+        return Err(Error::Usage(format!(
+            "cannot mosaic: {} of {} tiles are missing or failed: {} (run them with --tile, then --mosaic)",
+            missing.len(),
+            plan.tiles.len(),
+            compact_ids(&missing)
+        )));
+    }
+    let (rows, cols) = (plan.grid.rows, plan.grid.cols);
+    let mut acc: Vec<Array2<f64>> = (0..TILE_LAYERS.len())
+        .map(|_| Array2::zeros((rows, cols)))
+        .collect();
+    let mut wsum: Vec<Array2<f64>> = acc.clone();
+    let mut records = Vec::with_capacity(plan.tiles.len());
+    progress.steps("mosaic", plan.tiles.len() as u64);
+    for t in &plan.tiles {
+        let (rec, layers) = read_tile(&tile_path(out, t.id), &plan.key)?;
+        let e = rec.ext;
+        let w = Array2::from_shape_fn((e.rows, e.cols), |(r, c)| {
+            tiling::weight(t, rows, cols, plan.blend as f64, e.r0 + r, e.c0 + c)
+        });
+        for (k, l) in layers.iter().enumerate() {
+            let mut a = acc[k].slice_mut(s![e.r0..e.r0 + e.rows, e.c0..e.c0 + e.cols]);
+            let mut ws = wsum[k].slice_mut(s![e.r0..e.r0 + e.rows, e.c0..e.c0 + e.cols]);
+            Zip::from(&mut a)
+                .and(&mut ws)
+                .and(l)
+                .and(&w)
+                .for_each(|a, ws, &v, &w| {
+                    if w > 0.0 && v.is_finite() {
+                        *a += w * v as f64;
+                        *ws += w;
+                    }
+                });
+        }
+        progress.step(&format!("tile {}", t.id));
+        records.push(rec);
+    }
+    progress.finish();
+    let mut layers: Vec<Array2<f64>> = acc
+        .iter()
+        .zip(&wsum)
+        .map(|(a, w)| {
+            Zip::from(a)
+                .and(w)
+                .map_collect(|&a, &w| if w > 0.0 { a / w } else { f64::NAN })
+        })
+        .collect();
+    // Mask: a pixel is without photometric information where the blend says so by majority;
+    // the residual is no-data there.
+    layers[3].mapv_inplace(|m| if m >= 0.5 { 1.0 } else { 0.0 });
+    let mask = layers[3].clone();
+    Zip::from(&mut layers[2]).and(&mask).for_each(|r, &m| {
+        if m == 1.0 {
+            *r = f64::NAN;
+        }
+    });
+    let layers: [Array2<f64>; 5] = layers.try_into().expect("five layers");
+    // Only what the pixels depend on, so identical runs give identical files.
+    let meta = [("SFSFUSE_VERSION", env!("CARGO_PKG_VERSION").to_string())];
+    let mut outputs = Vec::new();
+    progress.stage("writing GeoTIFFs");
+    for &l in &o.output.layers {
+        let k = TILE_LAYERS
+            .iter()
+            .position(|&x| x == l)
+            .expect("every layer is stored per tile");
+        let (description, unit) = layer_info(l, true);
+        let path = out.join(format!("{}.tif", l.name()));
+        write_geotiff(
+            &path,
+            &plan.grid,
+            layers[k].view(),
+            &BandInfo {
+                description,
+                unit,
+                metadata: &meta,
+            },
+        )?;
+        outputs.push(path);
+    }
+    progress.finish();
+    let record = RunRecord {
+        tool: "sfsfuse",
+        version: env!("CARGO_PKG_VERSION"),
+        workflow: wf,
+        inputs: checksums(&inputs.files()?, progress)?,
+        grid: Some(plan.grid),
+        crs_wkt: Some(plan.grid.crs.wkt()),
+        halo: Some(plan.halo),
+        intensity_scale: Some(plan.intensity_scale),
+        dem_psf_sigma: Some(plan.dem_psf_sigma),
+        threads: rayon::current_num_threads(),
+        tiles: records,
+        metrics: metrics(&layers),
+        outputs: outputs.clone(),
+    };
+    let path = out.join("run.json");
+    write_atomic(
+        &path,
+        serde_json::to_string_pretty(&record)
+            .map_err(|e| json_err(&path, e))?
+            .as_bytes(),
+    )?;
+    Ok((outputs, path))
+}
+
+/// `0-3, 7, 9-10`.
+fn compact_ids(ids: &[usize]) -> String {
+    let mut parts = Vec::new();
+    let mut i = 0;
+    while i < ids.len() {
+        let mut j = i;
+        while j + 1 < ids.len() && ids[j + 1] == ids[j] + 1 {
+            j += 1;
+        }
+        parts.push(if i == j {
+            ids[i].to_string()
+        } else {
+            format!("{}-{}", ids[i], ids[j])
+        });
+        i = j + 1;
+    }
+    parts.join(", ")
+}
+
+/// Read a single-band raster (TIFF or PNG) for lab mode.
+fn read_raster(path: &Path) -> Result<Array2<f64>> {
+    let ext = path
+        .extension()
+        .and_then(|e| e.to_str())
+        .unwrap_or("")
+        .to_ascii_lowercase();
+    match ext.as_str() {
+        "tif" | "tiff" => Ok(crate::export::read_tiff(path)?.data),
+        "png" => crate::quicklook::read_png(path),
+        _ => Err(Error::Usage(format!(
+            "{}: give a .tif/.tiff or .png raster",
+            path.display()
+        ))),
+    }
+}
+
+/// Fill holes (NaN) in a depth map with the mean of their valid 8-neighbours, repeatedly,
+/// inward from the hole's edge (deterministic: each sweep reads the previous sweep).
+fn fill_holes(a: &mut Array2<f64>) -> usize {
+    let (h, w) = a.dim();
+    let holes = a.iter().filter(|v| !v.is_finite()).count();
+    for _ in 0..h.max(w) {
+        let prev = a.clone();
+        let mut left = 0;
+        for r in 0..h {
+            for c in 0..w {
+                if prev[(r, c)].is_finite() {
+                    continue;
+                }
+                let (mut s, mut n) = (0.0, 0);
+                for dr in -1isize..=1 {
+                    for dc in -1isize..=1 {
+                        let (rr, cc) = (r as isize + dr, c as isize + dc);
+                        if (0..h as isize).contains(&rr) && (0..w as isize).contains(&cc) {
+                            let v = prev[(rr as usize, cc as usize)];
+                            if v.is_finite() {
+                                s += v;
+                                n += 1;
+                            }
+                        }
+                    }
+                }
+                if n > 0 {
+                    a[(r, c)] = s / n as f64;
+                } else {
+                    left += 1;
+                }
+            }
+        }
+        if left == 0 {
+            break;
+        }
+    }
+    holes
+}
+
+fn run_lab(l: &Lab, wf: &Workflow, progress: &Progress) -> Result<RunSummary> {
+    let out = &l.output.directory;
+    std::fs::create_dir_all(out).map_err(|e| Error::io(out, e))?;
+    progress.stage("reading the image and the depth map");
+    let image = read_raster(&l.inputs.image)?;
+    let mut depth = read_raster(&l.inputs.depth)?;
+    if image.dim() != depth.dim() {
+        return Err(Error::Usage(format!(
+            "{} is {:?} pixels but {} is {:?}: the image and the depth map must share one pixel grid",
+            l.inputs.image.display(),
+            image.dim(),
+            l.inputs.depth.display(),
+            depth.dim()
+        )));
+    }
+    if let Some(nd) = l.inputs.depth_nodata {
+        depth.mapv_inplace(|v| if v == nd { f64::NAN } else { v });
+    }
+    depth.mapv_inplace(|v| v * l.inputs.depth_scale);
+    if depth.iter().all(|v| !v.is_finite()) {
+        return Err(Error::Usage(format!(
+            "{}: the depth map has no valid value",
+            l.inputs.depth.display()
+        )));
+    }
+    let filled = fill_holes(&mut depth);
+    if filled > 0 {
+        progress.note(&format!(
+            "depth map: {filled} missing values filled from their neighbours"
+        ));
+    }
+    let model = l.photometry.build();
+    if let ModelSpec::Hapke(_) = l.photometry {
+        progress.note("lab workflow with the Hapke model: intensities must be bidirectional reflectance (sr⁻¹)");
+    }
+    let d = |x: crate::workflow::Direction| crate::synth::direction(x.zenith_deg, x.azimuth_deg);
+    let problem = Problem {
+        image: image.view(),
+        dem: depth.view(),
+        spacing: l.inputs.pixel_size_m,
+        dem_psf_sigma: 0.0,
+        sun: Directions::Uniform(d(l.illumination.light)),
+        view: Directions::Uniform(d(l.illumination.view)),
+        model: model.as_ref(),
+        intensity_scale: None,
+    };
+    progress.stage("fusing");
+    let t0 = Instant::now();
+    let params: &FusionParams = &l.solver;
+    let f = fusion::fuse(&problem, params)?;
+    let seconds = t0.elapsed().as_secs_f64();
+    progress.finish();
+    let mask = f.photometric.mapv(|b| if b { 0.0 } else { 1.0 });
+    let layers = [
+        f.height.clone(),
+        f.albedo.clone(),
+        f.residual.clone(),
+        mask,
+        depth.clone(),
+    ];
+    let meta = [("SFSFUSE_VERSION", env!("CARGO_PKG_VERSION").to_string())];
+    let mut outputs = Vec::new();
+    for &layer in &l.output.layers {
+        let k = TILE_LAYERS
+            .iter()
+            .position(|&x| x == layer)
+            .expect("every layer exists");
+        let (description, unit) = layer_info(layer, false);
+        let path = out.join(format!("{}.tif", layer.name()));
+        write_tiff(
+            &path,
+            layers[k].view(),
+            &BandInfo {
+                description,
+                unit,
+                metadata: &meta,
+            },
+        )?;
+        outputs.push(path);
+    }
+    let files = vec![l.inputs.image.clone(), l.inputs.depth.clone()];
+    let (rows, cols) = image.dim();
+    let record = RunRecord {
+        tool: "sfsfuse",
+        version: env!("CARGO_PKG_VERSION"),
+        workflow: wf,
+        inputs: checksums(&files, progress)?,
+        grid: None,
+        crs_wkt: None,
+        halo: None,
+        intensity_scale: None,
+        dem_psf_sigma: None,
+        threads: rayon::current_num_threads(),
+        tiles: vec![TileRecord {
+            id: 0,
+            key: String::new(),
+            core: Window {
+                r0: 0,
+                c0: 0,
+                rows,
+                cols,
+            },
+            ext: Window {
+                r0: 0,
+                c0: 0,
+                rows,
+                cols,
+            },
+            status: "fused".into(),
+            photometric_pixels: f.photometric.iter().filter(|&&b| b).count(),
+            iterations: f.iterations(),
+            seconds,
+            stages: f.stages.clone(),
+        }],
+        metrics: metrics(&layers),
+        outputs: outputs.clone(),
+    };
+    let path = out.join("run.json");
+    write_atomic(
+        &path,
+        serde_json::to_string_pretty(&record)
+            .map_err(|e| json_err(&path, e))?
+            .as_bytes(),
+    )?;
+    Ok(RunSummary {
+        output_directory: out.clone(),
+        tiles_total: 1,
+        tiles_run: 1,
+        tiles_skipped: 0,
+        mosaic: true,
+        outputs,
+        record: Some(path),
+    })
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn tile_lists_parse_and_compact() {
+        assert_eq!(parse_tiles("3").unwrap(), [3]);
+        assert_eq!(parse_tiles("5, 0-2,2").unwrap(), [0, 1, 2, 5]);
+        assert!(parse_tiles("4-1").unwrap_err().to_string().contains("4-1"));
+        assert!(parse_tiles("x").is_err());
+        assert_eq!(compact_ids(&[0, 1, 2, 3, 7, 9, 10]), "0-3, 7, 9-10");
+    }
+
+    #[test]
+    fn holes_fill_from_their_edges() {
+        let mut a = Array2::from_shape_fn((5, 5), |(r, c)| (r + c) as f64);
+        a[(2, 2)] = f64::NAN;
+        a[(0, 0)] = f64::NAN;
+        assert_eq!(fill_holes(&mut a), 2);
+        assert!(a.iter().all(|v| v.is_finite()));
+        assert!((a[(2, 2)] - 4.0).abs() < 1e-12);
+    }
+}
