@@ -1067,7 +1067,7 @@ fn run_lab(l: &Lab, wf: &Workflow, progress: &Progress) -> Result<RunSummary> {
         image: image.view(),
         dem: depth.view(),
         spacing: l.inputs.pixel_size_m,
-        dem_psf_sigma: 0.0,
+        dem_psf_sigma: l.inputs.depth_psf_sigma_px,
         sun: Directions::Uniform(d(l.illumination.light)),
         view: Directions::Uniform(d(l.illumination.view)),
         model: model.as_ref(),

@@ -287,6 +287,10 @@ pub struct LabInputs {
     /// Values of the depth map that mean "no measurement" (in addition to NaN).
     #[serde(default)]
     pub depth_nodata: Option<f64>,
+    /// σ, in pixels, of the range scanner's point spread on the image grid (0 = the scan is
+    /// as sharp as the image).
+    #[serde(default)]
+    pub depth_psf_sigma_px: f64,
 }
 
 fn one() -> f64 {
@@ -332,7 +336,7 @@ impl Workflow {
         })?;
         let abs = |p: &mut PathBuf| {
             if p.is_relative() {
-                *p = base.join(&*p);
+                *p = normalise(&base.join(&*p));
             }
         };
         let fail = |why: String| Error::Usage(format!("{}: {why}", path.display()));
@@ -395,6 +399,13 @@ impl Workflow {
                         l.inputs.pixel_size_m
                     )));
                 }
+                if !(l.inputs.depth_psf_sigma_px.is_finite() && l.inputs.depth_psf_sigma_px >= 0.0)
+                {
+                    return Err(fail(format!(
+                        "[inputs] depth_psf_sigma_px = {} must be ≥ 0",
+                        l.inputs.depth_psf_sigma_px
+                    )));
+                }
                 if !(l.inputs.depth_scale.is_finite() && l.inputs.depth_scale != 0.0) {
                     return Err(fail(format!(
                         "[inputs] depth_scale = {} must be a non-zero number",
@@ -406,6 +417,24 @@ impl Workflow {
         }
         Ok(wf)
     }
+}
+
+/// `a/./b/../c` → `a/c`, lexically (no file system access; a leading `..` is kept).
+fn normalise(p: &Path) -> PathBuf {
+    use std::path::Component;
+    let mut out = PathBuf::new();
+    for c in p.components() {
+        match c {
+            Component::CurDir => {}
+            Component::ParentDir
+                if matches!(out.components().next_back(), Some(Component::Normal(_))) =>
+            {
+                out.pop();
+            }
+            other => out.push(other),
+        }
+    }
+    out
 }
 
 fn validate_layers(layers: &[Layer]) -> std::result::Result<(), String> {
@@ -458,6 +487,8 @@ directory = "out"
         let wf = Workflow::parse(MINIMAL, Path::new("w.toml"), Path::new("/data/run")).unwrap();
         let Workflow::Orbital(o) = wf else { panic!() };
         assert_eq!(o.inputs.m3[0], Path::new("/data/run/obs/M3G_L1B.LBL"));
+        assert_eq!(normalise(Path::new("w/../out/./x")), Path::new("out/x"));
+        assert_eq!(normalise(Path::new("../a/b/../c")), Path::new("../a/c"));
         assert_eq!(o.inputs.lola[0], Path::new("/abs/LDEM_64.LBL"));
         assert_eq!(o.output.directory, Path::new("/data/run/out"));
         assert_eq!(o.inputs.wavelength_nm, 1209.6);
