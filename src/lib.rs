@@ -5,6 +5,7 @@ pub mod bench;
 pub mod demo;
 pub mod error;
 pub mod export;
+pub mod fetch;
 pub mod fusion;
 pub mod grid;
 pub mod ingest;

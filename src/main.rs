@@ -69,6 +69,38 @@ enum Command {
         #[arg(long)]
         json: bool,
     },
+    /// Download M3 L1B observations, LOLA GDR DEMs and M3 solar spectra from the PDS by
+    /// product ID: resumable, retried, verified against the label, cached.
+    Fetch {
+        /// Product IDs: M3G20090106T113423, LDEM_64, M3G20110224_RFL_SOLAR_SPEC, …
+        #[arg(required = true)]
+        ids: Vec<String>,
+        /// Target directory (default: $SFSFUSE_CACHE, else $XDG_CACHE_HOME/sfsfuse, else
+        /// ~/.cache/sfsfuse).
+        #[arg(long)]
+        to: Option<PathBuf>,
+        /// Root of the M3 volumes (default: the PDS Imaging Node).
+        #[arg(long)]
+        m3_base: Option<String>,
+        /// The LOLA `lola_gdr` directory (default: the PDS Geosciences Node).
+        #[arg(long)]
+        lola_base: Option<String>,
+        /// md5sum-style manifest URL(s) to verify downloads against.
+        #[arg(long)]
+        checksums: Vec<String>,
+        /// Attempts per file.
+        #[arg(long)]
+        retries: Option<u32>,
+        /// Seconds without progress before a request is abandoned.
+        #[arg(long)]
+        timeout: Option<f64>,
+        /// Progress display.
+        #[arg(long, value_enum, default_value_t = ProgressArg::Auto)]
+        progress: ProgressArg,
+        /// Print JSON instead of a table.
+        #[arg(long)]
+        json: bool,
+    },
     /// Write the synthetic scene as mission-format products (an M3-like L1B observation, a
     /// LOLA-like GDR DEM, a solar spectrum table, truth GeoTIFFs) for `workflows/synthetic.toml`.
     Synth {
@@ -104,6 +136,15 @@ enum ProgressArg {
     Auto,
     Lines,
     Quiet,
+}
+
+fn progress_of(p: ProgressArg) -> sfsfuse::progress::Progress {
+    use sfsfuse::progress::{Mode, Progress};
+    Progress::new(match p {
+        ProgressArg::Auto => Mode::Auto,
+        ProgressArg::Lines => Mode::Lines,
+        ProgressArg::Quiet => Mode::Quiet,
+    })
 }
 
 fn run(cli: Cli) -> Result<(), sfsfuse::Error> {
@@ -145,13 +186,8 @@ fn run(cli: Cli) -> Result<(), sfsfuse::Error> {
             progress,
             json,
         } => {
-            use sfsfuse::progress::{Mode, Progress};
             let wf = sfsfuse::workflow::Workflow::load(&workflow)?;
-            let progress = Progress::new(match progress {
-                ProgressArg::Auto => Mode::Auto,
-                ProgressArg::Lines => Mode::Lines,
-                ProgressArg::Quiet => Mode::Quiet,
-            });
+            let progress = progress_of(progress);
             if list_tiles {
                 let tiles = sfsfuse::pipeline::list_tiles(&wf, &progress)?;
                 let table: String = tiles
@@ -184,6 +220,37 @@ fn run(cli: Cli) -> Result<(), sfsfuse::Error> {
             let summary = sfsfuse::pipeline::run(&wf, &req, &progress)?;
             drop(progress);
             emit(json, &summary, summary.table());
+        }
+        Command::Fetch {
+            ids,
+            to,
+            m3_base,
+            lola_base,
+            checksums,
+            retries,
+            timeout,
+            progress,
+            json,
+        } => {
+            let mut src = sfsfuse::fetch::archive::Sources::default();
+            if let Some(b) = m3_base {
+                src.m3_base = b;
+            }
+            if let Some(b) = lola_base {
+                src.lola_base = b;
+            }
+            src.checksums = checksums;
+            if let Some(r) = retries {
+                src.retries = r;
+            }
+            if let Some(t) = timeout {
+                src.timeout_s = t;
+            }
+            let dir = to.unwrap_or_else(sfsfuse::fetch::default_dir);
+            let progress = progress_of(progress);
+            let fetched = sfsfuse::fetch::fetch(&ids, &dir, &src, &progress)?;
+            drop(progress);
+            emit(json, &fetched, sfsfuse::fetch::table(&fetched));
         }
         Command::Synth {
             out,

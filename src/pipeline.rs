@@ -57,7 +57,13 @@ struct Inputs {
 }
 
 impl Inputs {
-    fn open(o: &Orbital) -> Result<Self> {
+    /// Fetch what `[fetch]` lists (cached files are not downloaded again), then open.
+    fn open(o: &Orbital, progress: &Progress) -> Result<Self> {
+        if let Some(f) = &o.fetch {
+            progress.stage("fetching inputs");
+            crate::fetch::fetch(&f.products, &f.directory, &f.sources, progress)?;
+            progress.finish();
+        }
         Ok(Inputs {
             obs: o
                 .inputs
@@ -612,7 +618,7 @@ pub fn list_tiles(wf: &Workflow, progress: &Progress) -> Result<Vec<TileStatus>>
             "a lab workflow is one piece of work: it has no tiles".into(),
         ));
     };
-    let inputs = Inputs::open(o)?;
+    let inputs = Inputs::open(o, progress)?;
     let plan = plan(o, wf, &inputs, progress)?;
     Ok(plan
         .tiles
@@ -650,7 +656,7 @@ fn run_orbital(
 ) -> Result<RunSummary> {
     let out = &o.output.directory;
     std::fs::create_dir_all(out.join("tiles")).map_err(|e| Error::io(out.join("tiles"), e))?;
-    let inputs = Inputs::open(o)?;
+    let inputs = Inputs::open(o, progress)?;
     let plan = plan(o, wf, &inputs, progress)?;
     let wanted: Vec<usize> = match &req.tiles {
         Some(ids) => {

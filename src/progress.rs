@@ -97,6 +97,43 @@ impl Progress {
         }
     }
 
+    /// A transfer of `total` bytes (if known) begins at `start` (bytes, rate and ETA on a
+    /// terminal; one line when not).
+    pub fn bytes(&self, name: &str, total: Option<u64>, start: u64) {
+        self.finish();
+        if self.mode == Mode::Auto {
+            let b = match total {
+                Some(t) => ProgressBar::new(t),
+                None => ProgressBar::new_spinner(),
+            }
+            .with_style(
+                ProgressStyle::with_template(
+                    "{prefix} [{bar:30}] {bytes}/{total_bytes} {bytes_per_sec} ETA {eta}",
+                )
+                .expect("a valid template")
+                .progress_chars("=> "),
+            );
+            b.set_prefix(name.to_string());
+            b.set_position(start);
+            *self.bar.lock().expect("progress lock") = Some(b);
+        } else {
+            let size = total.map_or("unknown size".to_string(), |t| format!("{t} bytes"));
+            let from = if start > 0 {
+                format!(", resuming at byte {start}")
+            } else {
+                String::new()
+            };
+            self.line(&format!("downloading {name} ({size}{from})"));
+        }
+    }
+
+    /// `n` more bytes of the current transfer.
+    pub fn advance(&self, n: u64) {
+        if let Some(b) = self.bar.lock().expect("progress lock").as_ref() {
+            b.inc(n);
+        }
+    }
+
     /// A message that stays in the log.
     pub fn note(&self, msg: &str) {
         self.line(msg);

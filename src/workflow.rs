@@ -18,8 +18,8 @@ use std::path::{Path, PathBuf};
 #[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
 #[serde(tag = "kind", rename_all = "lowercase")]
 pub enum Workflow {
-    Orbital(Orbital),
-    Lab(Lab),
+    Orbital(Box<Orbital>),
+    Lab(Box<Lab>),
 }
 
 /// M3 L1B observations and LOLA GDR DEMs fused on a lunar grid, tile by tile.
@@ -39,6 +39,22 @@ pub struct Orbital {
     #[serde(default)]
     pub tiling: Tiling,
     pub output: Output,
+    /// Products to fetch from the PDS before the run (skipped when already present).
+    #[serde(default)]
+    pub fetch: Option<FetchSpec>,
+}
+
+/// `[fetch]`: what `sfsfuse run` downloads first (docs/fetch.md).
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+#[serde(deny_unknown_fields)]
+pub struct FetchSpec {
+    /// Where the products go; `[inputs]` names files in it.
+    pub directory: PathBuf,
+    /// Product IDs, as for `sfsfuse fetch`.
+    pub products: Vec<String>,
+    /// Archive base URLs, checksum manifests, retries, time-out.
+    #[serde(default)]
+    pub sources: crate::fetch::archive::Sources,
 }
 
 fn default_model() -> ModelSpec {
@@ -346,6 +362,13 @@ impl Workflow {
                 o.inputs.lola.iter_mut().for_each(abs);
                 abs(&mut o.inputs.solar_spectrum);
                 abs(&mut o.output.directory);
+                if let Some(f) = &mut o.fetch {
+                    abs(&mut f.directory);
+                    for id in &f.products {
+                        crate::fetch::archive::Product::parse(id)
+                            .map_err(|e| fail(format!("[fetch] products: {e}")))?;
+                    }
+                }
                 if o.inputs.m3.is_empty() {
                     return Err(fail("[inputs] m3 lists no observation".into()));
                 }
