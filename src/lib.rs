@@ -2,6 +2,7 @@
 //!
 //! The map of the code is docs/architecture.md.
 pub mod bench;
+pub mod cluster;
 pub mod demo;
 pub mod error;
 pub mod export;

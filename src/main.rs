@@ -101,6 +101,44 @@ enum Command {
         #[arg(long)]
         json: bool,
     },
+    /// Submit a workflow's tiles to a cluster: an array job of tile batches and a mosaic job
+    /// that runs after it (docs/cluster.md). Resubmitting submits only missing tiles.
+    Submit {
+        /// The workflow (its output directory must be on a file system the nodes share).
+        workflow: PathBuf,
+        #[arg(long, value_enum, default_value_t = sfsfuse::cluster::Scheduler::Slurm)]
+        scheduler: sfsfuse::cluster::Scheduler,
+        /// Array tasks running at once.
+        #[arg(long)]
+        max_parallel: Option<usize>,
+        /// Tiles per array task.
+        #[arg(long, default_value_t = 1)]
+        tiles_per_task: usize,
+        /// Partition (SLURM) or queue (PBS).
+        #[arg(long)]
+        partition: Option<String>,
+        /// CPUs (and threads) per task.
+        #[arg(long, default_value_t = 1)]
+        cpus_per_task: usize,
+        /// Wall-clock limit per task, e.g. 02:00:00.
+        #[arg(long)]
+        time: Option<String>,
+        /// Memory per task, e.g. 8G.
+        #[arg(long)]
+        mem: Option<String>,
+        /// When the mosaic job starts: after the array in any case (it then checks every tile
+        /// and lists missing ones), or only if every task succeeded.
+        #[arg(long, value_enum, default_value_t = sfsfuse::cluster::Dependency::Afterany)]
+        dependency: sfsfuse::cluster::Dependency,
+        /// Print the scripts; submit nothing.
+        #[arg(long)]
+        dry_run: bool,
+        #[arg(long, value_enum, default_value_t = ProgressArg::Auto)]
+        progress: ProgressArg,
+        /// Print JSON instead of a table.
+        #[arg(long)]
+        json: bool,
+    },
     /// Write the synthetic scene as mission-format products (an M3-like L1B observation, a
     /// LOLA-like GDR DEM, a solar spectrum table, truth GeoTIFFs) for `workflows/synthetic.toml`.
     Synth {
@@ -251,6 +289,37 @@ fn run(cli: Cli) -> Result<(), sfsfuse::Error> {
             let fetched = sfsfuse::fetch::fetch(&ids, &dir, &src, &progress)?;
             drop(progress);
             emit(json, &fetched, sfsfuse::fetch::table(&fetched));
+        }
+        Command::Submit {
+            workflow,
+            scheduler,
+            max_parallel,
+            tiles_per_task,
+            partition,
+            cpus_per_task,
+            time,
+            mem,
+            dependency,
+            dry_run,
+            progress,
+            json,
+        } => {
+            let wf = sfsfuse::workflow::Workflow::load(&workflow)?;
+            let opts = sfsfuse::cluster::Options {
+                scheduler,
+                max_parallel,
+                tiles_per_task,
+                partition,
+                cpus_per_task,
+                time,
+                mem,
+                dependency,
+                dry_run,
+            };
+            let progress = progress_of(progress);
+            let s = sfsfuse::cluster::submit(&workflow, &wf, &opts, &progress)?;
+            drop(progress);
+            emit(json, &s, s.table());
         }
         Command::Synth {
             out,

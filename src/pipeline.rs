@@ -855,7 +855,7 @@ fn mosaic(
             "cannot mosaic: {} of {} tiles are missing or failed: {} (run them with --tile, then --mosaic)",
             missing.len(),
             plan.tiles.len(),
-            compact_ids(&missing)
+            tile_spec(&missing, ", ")
         )));
     }
     let (rows, cols) = (plan.grid.rows, plan.grid.cols);
@@ -957,8 +957,9 @@ fn mosaic(
     Ok((outputs, path))
 }
 
-/// `0-3, 7, 9-10`.
-fn compact_ids(ids: &[usize]) -> String {
+/// `0-3, 7, 9-10`: sorted tile ids as ranges joined by `sep` (", " for people, "," for a
+/// `--tile` argument).
+pub fn tile_spec(ids: &[usize], sep: &str) -> String {
     let mut parts = Vec::new();
     let mut i = 0;
     while i < ids.len() {
@@ -973,7 +974,7 @@ fn compact_ids(ids: &[usize]) -> String {
         });
         i = j + 1;
     }
-    parts.join(", ")
+    parts.join(sep)
 }
 
 /// Read a single-band raster (TIFF or PNG) for lab mode.
@@ -1178,7 +1179,11 @@ mod tests {
         assert_eq!(parse_tiles("5, 0-2,2").unwrap(), [0, 1, 2, 5]);
         assert!(parse_tiles("4-1").unwrap_err().to_string().contains("4-1"));
         assert!(parse_tiles("x").is_err());
-        assert_eq!(compact_ids(&[0, 1, 2, 3, 7, 9, 10]), "0-3, 7, 9-10");
+        assert_eq!(tile_spec(&[0, 1, 2, 3, 7, 9, 10], ", "), "0-3, 7, 9-10");
+        assert_eq!(
+            parse_tiles(&tile_spec(&[0, 1, 2, 3, 7, 9, 10], ",")).unwrap(),
+            [0, 1, 2, 3, 7, 9, 10]
+        );
     }
 
     #[test]

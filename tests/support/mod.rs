@@ -1,0 +1,96 @@
+//! Shared by the end-to-end tests: the synthetic scene as mission-format products, workflow
+//! files over its grid, and running the binary.
+#![allow(dead_code)]
+
+use sfsfuse::synth::{generate, products, SceneSpec};
+use std::path::{Path, PathBuf};
+use std::process::Command;
+use std::sync::OnceLock;
+
+pub fn sfsfuse() -> Command {
+    Command::new(env!("CARGO_BIN_EXE_sfsfuse"))
+}
+
+pub fn scratch(name: &str) -> PathBuf {
+    let d = std::env::temp_dir().join(format!(
+        "sfsfuse-{}-{}-{name}",
+        env!("CARGO_CRATE_NAME"),
+        std::process::id()
+    ));
+    let _ = std::fs::remove_dir_all(&d);
+    std::fs::create_dir_all(&d).unwrap();
+    d
+}
+
+/// Products of one synthetic scene, written once per test binary.
+pub fn scene_products(size: usize, seed: u64) -> &'static products::Products {
+    static SMALL: OnceLock<products::Products> = OnceLock::new();
+    static LARGE: OnceLock<products::Products> = OnceLock::new();
+    let cell = if size <= 256 { &SMALL } else { &LARGE };
+    cell.get_or_init(|| {
+        let spec = SceneSpec {
+            size,
+            seed,
+            ..SceneSpec::default()
+        };
+        let scene = generate(&spec);
+        let grid = sfsfuse::demo::demo_grid(&spec).unwrap();
+        products::write(&scene, &grid, &scratch(&format!("products-{size}"))).unwrap()
+    })
+}
+
+/// A workflow over the scene's own grid (the region in map metres).
+pub fn workflow(p: &products::Products, out: &Path, tile: usize, extra: &str) -> String {
+    let half = p.grid.rows as f64 * p.grid.spacing / 2.0;
+    format!(
+        r#"kind = "orbital"
+[inputs]
+m3 = ["{m3}"]
+lola = ["{lola}"]
+solar_spectrum = "{solar}"
+# The LOLA-like product samples a DEM whose own point spread is 4/√2 px every 3.38 px:
+# σ = √(2.83² + 3.38²/12) ≈ 3.0 px (docs/workflows.md).
+dem_psf_sigma_px = 3.0
+[region]
+x_min = {lo}
+x_max = {half}
+y_min = {lo}
+y_max = {half}
+[grid]
+center_lat = -13.4
+center_lon = 357.2
+resolution_m = 140.0
+[tiling]
+tile_size = {tile}
+[output]
+directory = "{out}"
+layers = ["dem", "albedo", "residual", "mask", "input_dem"]
+{extra}
+"#,
+        m3 = p.m3_label.display(),
+        lola = p.lola_label.display(),
+        solar = p.solar_table.display(),
+        lo = -half,
+        out = out.display(),
+    )
+}
+
+pub fn write_workflow(dir: &Path, text: &str) -> PathBuf {
+    let p = dir.join("workflow.toml");
+    std::fs::write(&p, text).unwrap();
+    p
+}
+
+pub fn run_ok(args: &[&str], wf: &Path) {
+    let o = sfsfuse().args(args).arg(wf).output().unwrap();
+    assert!(
+        o.status.success(),
+        "sfsfuse {args:?} failed:\n{}",
+        String::from_utf8_lossy(&o.stderr)
+    );
+}
+
+pub fn rmse(a: &ndarray::Array2<f64>, b: &ndarray::Array2<f64>) -> f64 {
+    let s: f64 = a.iter().zip(b).map(|(x, y)| (x - y) * (x - y)).sum();
+    (s / a.len() as f64).sqrt()
+}
