@@ -19,7 +19,7 @@
 //! deterministic, and the mosaic sums tiles in id order.
 
 use crate::error::{Error, Result};
-use crate::export::{write_geotiff, write_tiff, BandInfo};
+use crate::export::{write_tiff, BandInfo, CogWriter, Container};
 use crate::fusion::{self, Directions, FusionParams, Problem, StageReport};
 use crate::grid::{Crs, Grid, Projector};
 use crate::ingest::{self, SwathIndex};
@@ -147,6 +147,8 @@ const TILE_LAYERS: [Layer; 5] = [
     Layer::InputDem,
 ];
 const TILE_MAGIC: &[u8; 8] = b"SFSTILE1";
+/// Rows the mosaic blends at a time.
+const MOSAIC_BAND: usize = 256;
 
 /// The summary `run` returns (and prints).
 #[derive(Debug, Clone, Serialize)]
@@ -193,17 +195,7 @@ fn sha256_hex(bytes: &[u8]) -> String {
 
 /// Hex SHA-256 of a file's contents, streamed.
 pub fn file_sha256(path: &Path) -> Result<String> {
-    let mut f = std::fs::File::open(path).map_err(|e| Error::io(path, e))?;
-    let mut h = Sha256::new();
-    let mut buf = vec![0u8; 1 << 20];
-    loop {
-        let n = f.read(&mut buf).map_err(|e| Error::io(path, e))?;
-        if n == 0 {
-            break;
-        }
-        h.update(&buf[..n]);
-    }
-    Ok(h.finalize().iter().map(|b| format!("{b:02x}")).collect())
+    crate::raster::file_digest::<Sha256>(path)
 }
 
 /// The key that ties plan and tiles to one workflow and one set of input files.
@@ -398,8 +390,9 @@ fn tile_path(out: &Path, id: usize) -> PathBuf {
     out.join("tiles").join(format!("tile_{id:05}.sfstile"))
 }
 
-/// Read a tile file's header; `None` when absent, unreadable or not of this plan.
-fn tile_header(path: &Path, key: &str) -> Option<TileRecord> {
+/// Read a tile file's header and where its layers start; `None` when absent, unreadable, of
+/// the wrong size or not of this plan.
+fn tile_header(path: &Path, key: &str) -> Option<(TileRecord, u64)> {
     let mut f = std::fs::File::open(path).ok()?;
     let mut head = [0u8; 16];
     f.read_exact(&mut head).ok()?;
@@ -415,32 +408,29 @@ fn tile_header(path: &Path, key: &str) -> Option<TileRecord> {
     let r: TileRecord = serde_json::from_slice(&json).ok()?;
     let want = 16 + n as u64 + (TILE_LAYERS.len() * r.ext.len() * 4) as u64;
     let len = f.metadata().ok()?.len();
-    (r.key == key && len == want).then_some(r)
+    (r.key == key && len == want).then_some((r, 16 + n as u64))
 }
 
-/// Read a tile's layers (over its ext window).
-fn read_tile(path: &Path, key: &str) -> Result<(TileRecord, Vec<Array2<f32>>)> {
-    let bad = || {
-        Error::Usage(format!(
-            "{}: not a finished tile of this run (rerun the tile)",
-            path.display()
-        ))
-    };
-    let r = tile_header(path, key).ok_or_else(bad)?;
-    let bytes = std::fs::read(path).map_err(|e| Error::io(path, e))?;
-    let n = u64::from_le_bytes(bytes[8..16].try_into().map_err(|_| bad())?) as usize;
-    let body = &bytes[16 + n..];
-    let px = r.ext.len();
-    let layers = (0..TILE_LAYERS.len())
-        .map(|k| {
-            let v: Vec<f32> = body[k * px * 4..(k + 1) * px * 4]
-                .chunks_exact(4)
-                .map(|c| f32::from_le_bytes([c[0], c[1], c[2], c[3]]))
-                .collect();
-            Array2::from_shape_vec((r.ext.rows, r.ext.cols), v).map_err(|_| bad())
-        })
-        .collect::<Result<Vec<_>>>()?;
-    Ok((r, layers))
+/// Rows `r0..r1` (of the tile's ext window) of layer `k` of a tile file whose layers start at
+/// byte `data`.
+fn read_tile_rows(
+    path: &Path,
+    data: u64,
+    ext: &Window,
+    k: usize,
+    r0: usize,
+    r1: usize,
+) -> Result<Vec<f32>> {
+    use std::os::unix::fs::FileExt;
+    let f = std::fs::File::open(path).map_err(|e| Error::io(path, e))?;
+    let mut buf = vec![0u8; (r1 - r0) * ext.cols * 4];
+    let at = data + ((k * ext.len() + r0 * ext.cols) * 4) as u64;
+    f.read_exact_at(&mut buf, at)
+        .map_err(|e| Error::io(path, e))?;
+    Ok(buf
+        .chunks_exact(4)
+        .map(|c| f32::from_le_bytes([c[0], c[1], c[2], c[3]]))
+        .collect())
 }
 
 /// Run one tile and write its file atomically.
@@ -789,30 +779,54 @@ struct RunRecord<'a> {
     outputs: Vec<PathBuf>,
 }
 
-fn metrics(layers: &[Array2<f64>; 5]) -> Metrics {
-    let [h, a, r, m, d] = layers;
-    let n = h.len();
-    let phot = m.iter().filter(|&&v| v == 0.0).count();
-    let mean = |x: &Array2<f64>| {
-        let (s, k) = x
-            .iter()
-            .filter(|v| v.is_finite())
-            .fold((0.0, 0usize), |(s, k), &v| (s + v, k + 1));
-        if k == 0 {
-            f64::NAN
-        } else {
-            s / k as f64
+/// [`Metrics`] gathered band by band.
+#[derive(Default)]
+struct MetricsAcc {
+    n: usize,
+    phot: usize,
+    res: (f64, usize),
+    alb: (f64, usize),
+    dh2: f64,
+    hmin: f64,
+    hmax: f64,
+}
+
+impl MetricsAcc {
+    fn new() -> Self {
+        MetricsAcc {
+            hmin: f64::INFINITY,
+            hmax: f64::NEG_INFINITY,
+            ..Default::default()
         }
-    };
-    let dh: f64 = h.iter().zip(d).map(|(a, b)| (a - b) * (a - b)).sum::<f64>() / n as f64;
-    Metrics {
-        pixels: n,
-        photometric_fraction: phot as f64 / n as f64,
-        residual_mean: mean(r),
-        height_change_rms_m: dh.sqrt(),
-        height_min_m: h.iter().copied().fold(f64::INFINITY, f64::min),
-        height_max_m: h.iter().copied().fold(f64::NEG_INFINITY, f64::max),
-        albedo_mean: mean(a),
+    }
+
+    /// Add pixels: the five layers in [`TILE_LAYERS`] order.
+    fn add(&mut self, l: &[Array2<f64>; 5]) {
+        let [h, a, r, m, d] = l;
+        self.n += h.len();
+        self.phot += m.iter().filter(|&&v| v == 0.0).count();
+        for (x, acc) in [(r, &mut self.res), (a, &mut self.alb)] {
+            for &v in x.iter().filter(|v| v.is_finite()) {
+                acc.0 += v;
+                acc.1 += 1;
+            }
+        }
+        self.dh2 += h.iter().zip(d).map(|(a, b)| (a - b) * (a - b)).sum::<f64>();
+        self.hmin = h.iter().copied().fold(self.hmin, f64::min);
+        self.hmax = h.iter().copied().fold(self.hmax, f64::max);
+    }
+
+    fn finish(&self) -> Metrics {
+        let mean = |(s, k): (f64, usize)| if k == 0 { f64::NAN } else { s / k as f64 };
+        Metrics {
+            pixels: self.n,
+            photometric_fraction: self.phot as f64 / self.n as f64,
+            residual_mean: mean(self.res),
+            height_change_rms_m: (self.dh2 / self.n as f64).sqrt(),
+            height_min_m: self.hmin,
+            height_max_m: self.hmax,
+            albedo_mean: mean(self.alb),
+        }
     }
 }
 
@@ -833,6 +847,14 @@ fn checksums(files: &[PathBuf], progress: &Progress) -> Result<Vec<InputFile>> {
         .collect::<Result<Vec<_>>>();
     progress.finish();
     v
+}
+
+/// Write `run.json` into `out`, atomically.
+fn write_record(out: &Path, record: &RunRecord) -> Result<PathBuf> {
+    let path = out.join("run.json");
+    let text = serde_json::to_string_pretty(record).map_err(|e| json_err(&path, e))?;
+    write_atomic(&path, text.as_bytes())?;
+    Ok(path)
 }
 
 /// Blend every tile into the products and write the run record.
@@ -859,59 +881,15 @@ fn mosaic(
         )));
     }
     let (rows, cols) = (plan.grid.rows, plan.grid.cols);
-    let mut acc: Vec<Array2<f64>> = (0..TILE_LAYERS.len())
-        .map(|_| Array2::zeros((rows, cols)))
-        .collect();
-    let mut wsum: Vec<Array2<f64>> = acc.clone();
-    let mut records = Vec::with_capacity(plan.tiles.len());
-    progress.steps("mosaic", plan.tiles.len() as u64);
-    for t in &plan.tiles {
-        let (rec, layers) = read_tile(&tile_path(out, t.id), &plan.key)?;
-        let e = rec.ext;
-        let w = Array2::from_shape_fn((e.rows, e.cols), |(r, c)| {
-            tiling::weight(t, rows, cols, plan.blend as f64, e.r0 + r, e.c0 + c)
-        });
-        for (k, l) in layers.iter().enumerate() {
-            let mut a = acc[k].slice_mut(s![e.r0..e.r0 + e.rows, e.c0..e.c0 + e.cols]);
-            let mut ws = wsum[k].slice_mut(s![e.r0..e.r0 + e.rows, e.c0..e.c0 + e.cols]);
-            Zip::from(&mut a)
-                .and(&mut ws)
-                .and(l)
-                .and(&w)
-                .for_each(|a, ws, &v, &w| {
-                    if w > 0.0 && v.is_finite() {
-                        *a += w * v as f64;
-                        *ws += w;
-                    }
-                });
-        }
-        progress.step(&format!("tile {}", t.id));
-        records.push(rec);
-    }
-    progress.finish();
-    let mut layers: Vec<Array2<f64>> = acc
+    let heads: Vec<(TileRecord, u64)> = plan
+        .tiles
         .iter()
-        .zip(&wsum)
-        .map(|(a, w)| {
-            Zip::from(a)
-                .and(w)
-                .map_collect(|&a, &w| if w > 0.0 { a / w } else { f64::NAN })
-        })
+        .map(|t| tile_header(&tile_path(out, t.id), &plan.key).expect("checked above"))
         .collect();
-    // Mask: a pixel is without photometric information where the blend says so by majority;
-    // the residual is no-data there.
-    layers[3].mapv_inplace(|m| if m >= 0.5 { 1.0 } else { 0.0 });
-    let mask = layers[3].clone();
-    Zip::from(&mut layers[2]).and(&mask).for_each(|r, &m| {
-        if m == 1.0 {
-            *r = f64::NAN;
-        }
-    });
-    let layers: [Array2<f64>; 5] = layers.try_into().expect("five layers");
     // Only what the pixels depend on, so identical runs give identical files.
     let meta = [("SFSFUSE_VERSION", env!("CARGO_PKG_VERSION").to_string())];
+    let mut writers = Vec::new();
     let mut outputs = Vec::new();
-    progress.stage("writing GeoTIFFs");
     for &l in &o.output.layers {
         let k = TILE_LAYERS
             .iter()
@@ -919,19 +897,85 @@ fn mosaic(
             .expect("every layer is stored per tile");
         let (description, unit) = layer_info(l, true);
         let path = out.join(format!("{}.tif", l.name()));
-        write_geotiff(
-            &path,
-            &plan.grid,
-            layers[k].view(),
-            &BandInfo {
-                description,
-                unit,
-                metadata: &meta,
-            },
-        )?;
+        let info = BandInfo {
+            description,
+            unit,
+            metadata: &meta,
+        };
+        writers.push((
+            k,
+            CogWriter::create(&path, Some(&plan.grid), cols, rows, &info, Container::Auto)?,
+        ));
         outputs.push(path);
     }
+    // Blend band by band: memory is one band of rows, whatever the region's size.
+    let mut stats = MetricsAcc::new();
+    progress.steps("mosaic", rows.div_ceil(MOSAIC_BAND) as u64);
+    for b0 in (0..rows).step_by(MOSAIC_BAND) {
+        let b1 = (b0 + MOSAIC_BAND).min(rows);
+        let mut acc: Vec<Array2<f64>> = (0..TILE_LAYERS.len())
+            .map(|_| Array2::zeros((b1 - b0, cols)))
+            .collect();
+        let mut wsum = acc.clone();
+        for (t, (rec, data)) in plan.tiles.iter().zip(&heads) {
+            let e = rec.ext;
+            let (lo, hi) = (b0.max(e.r0), b1.min(e.r0 + e.rows));
+            if lo >= hi {
+                continue;
+            }
+            let w = Array2::from_shape_fn((hi - lo, e.cols), |(r, c)| {
+                tiling::weight(t, rows, cols, plan.blend as f64, lo + r, e.c0 + c)
+            });
+            let path = tile_path(out, t.id);
+            for k in 0..TILE_LAYERS.len() {
+                let v = read_tile_rows(&path, *data, &e, k, lo - e.r0, hi - e.r0)?;
+                let v = Array2::from_shape_vec((hi - lo, e.cols), v).expect("rows of the tile");
+                let mut a = acc[k].slice_mut(s![lo - b0..hi - b0, e.c0..e.c0 + e.cols]);
+                let mut ws = wsum[k].slice_mut(s![lo - b0..hi - b0, e.c0..e.c0 + e.cols]);
+                Zip::from(&mut a)
+                    .and(&mut ws)
+                    .and(&v)
+                    .and(&w)
+                    .for_each(|a, ws, &v, &w| {
+                        if w > 0.0 && v.is_finite() {
+                            *a += w * v as f64;
+                            *ws += w;
+                        }
+                    });
+            }
+        }
+        let mut layers: Vec<Array2<f64>> = acc
+            .iter()
+            .zip(&wsum)
+            .map(|(a, w)| {
+                Zip::from(a)
+                    .and(w)
+                    .map_collect(|&a, &w| if w > 0.0 { a / w } else { f64::NAN })
+            })
+            .collect();
+        // Mask: without photometric information where the blend says so by majority; the
+        // residual is no-data there.
+        layers[3].mapv_inplace(|m| if m >= 0.5 { 1.0 } else { 0.0 });
+        let mask = layers[3].clone();
+        Zip::from(&mut layers[2]).and(&mask).for_each(|r, &m| {
+            if m == 1.0 {
+                *r = f64::NAN;
+            }
+        });
+        let layers: [Array2<f64>; 5] = layers.try_into().expect("five layers");
+        stats.add(&layers);
+        for (k, w) in &mut writers {
+            w.push(layers[*k].view())?;
+        }
+        progress.step(&format!("rows {b0}..{b1}"));
+    }
     progress.finish();
+    progress.stage("writing GeoTIFFs");
+    for (_, w) in writers {
+        w.finish()?;
+    }
+    progress.finish();
+    let records: Vec<TileRecord> = heads.into_iter().map(|(r, _)| r).collect();
     let record = RunRecord {
         tool: "sfsfuse",
         version: env!("CARGO_PKG_VERSION"),
@@ -944,16 +988,10 @@ fn mosaic(
         dem_psf_sigma: Some(plan.dem_psf_sigma),
         threads: rayon::current_num_threads(),
         tiles: records,
-        metrics: metrics(&layers),
+        metrics: stats.finish(),
         outputs: outputs.clone(),
     };
-    let path = out.join("run.json");
-    write_atomic(
-        &path,
-        serde_json::to_string_pretty(&record)
-            .map_err(|e| json_err(&path, e))?
-            .as_bytes(),
-    )?;
+    let path = write_record(out, &record)?;
     Ok((outputs, path))
 }
 
@@ -1148,16 +1186,14 @@ fn run_lab(l: &Lab, wf: &Workflow, progress: &Progress) -> Result<RunSummary> {
             seconds,
             stages: f.stages.clone(),
         }],
-        metrics: metrics(&layers),
+        metrics: {
+            let mut m = MetricsAcc::new();
+            m.add(&layers);
+            m.finish()
+        },
         outputs: outputs.clone(),
     };
-    let path = out.join("run.json");
-    write_atomic(
-        &path,
-        serde_json::to_string_pretty(&record)
-            .map_err(|e| json_err(&path, e))?
-            .as_bytes(),
-    )?;
+    let path = write_record(out, &record)?;
     Ok(RunSummary {
         output_directory: out.clone(),
         tiles_total: 1,

@@ -1,4 +1,4 @@
-//! Atomic file output: every product is written under a temporary sibling name, synced, and
+//! File helpers at the I/O edge. Atomic output: every product is written under a temporary sibling name, synced, and
 //! renamed into place, so a reader (or a resumed run) never sees a half-written file.
 
 use crate::error::{Error, Result};
@@ -19,6 +19,22 @@ pub fn write_atomic(path: &Path, bytes: &[u8]) -> Result<()> {
         return Err(Error::io(path, e));
     }
     Ok(())
+}
+
+/// Hex digest (SHA-256, MD5, …) of a file's contents, streamed in 1 MiB reads.
+pub fn file_digest<D: sha2::Digest>(path: &Path) -> Result<String> {
+    use std::io::Read;
+    let mut f = std::fs::File::open(path).map_err(|e| Error::io(path, e))?;
+    let mut h = D::new();
+    let mut buf = vec![0u8; 1 << 20];
+    loop {
+        let n = f.read(&mut buf).map_err(|e| Error::io(path, e))?;
+        if n == 0 {
+            break;
+        }
+        h.update(&buf[..n]);
+    }
+    Ok(h.finalize().iter().map(|b| format!("{b:02x}")).collect())
 }
 
 /// `<name>.<pid>.tmp` beside `path`: unique per process, so concurrent writers (cluster tasks

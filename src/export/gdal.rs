@@ -25,15 +25,7 @@ pub fn write_geotiff(
     let fail = |what: &str, e: gdal::errors::GdalError| {
         Error::Usage(format!("{}: GDAL {what}: {e}", path.display()))
     };
-    if data.dim() != (grid.rows, grid.cols) {
-        return Err(Error::Usage(format!(
-            "{}: data is {:?} pixels but the grid is {} × {}",
-            path.display(),
-            data.dim(),
-            grid.rows,
-            grid.cols
-        )));
-    }
+    super::check_shape(path, grid, data)?;
     let mem = DriverManager::get_driver_by_name("MEM").map_err(|e| fail("MEM driver", e))?;
     let mut ds = mem
         .create_with_band_type::<f32, _>("", grid.cols, grid.rows, 1)

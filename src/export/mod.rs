@@ -25,8 +25,9 @@ use crate::grid::{Crs, Grid, MOON_RADIUS_M};
 use flate2::{write::ZlibEncoder, Compression};
 use ndarray::{Array2, ArrayView2};
 use rayon::prelude::*;
+use std::io::Read;
 use std::io::Write;
-use std::path::Path;
+use std::path::{Path, PathBuf};
 
 /// Tile edge in pixels.
 pub const TILE: usize = 256;
@@ -70,6 +71,21 @@ pub fn write_geotiff_as(
     info: &BandInfo,
     container: Container,
 ) -> Result<()> {
+    check_shape(path, grid, data)?;
+    let mut w = CogWriter::create(
+        path,
+        Some(grid),
+        data.ncols(),
+        data.nrows(),
+        info,
+        container,
+    )?;
+    w.push(data)?;
+    w.finish()
+}
+
+/// The data must cover the grid exactly.
+pub(crate) fn check_shape(path: &Path, grid: &Grid, data: ArrayView2<f64>) -> Result<()> {
     if data.dim() != (grid.rows, grid.cols) {
         return Err(Error::Usage(format!(
             "{}: data is {:?} pixels but the grid is {} × {}",
@@ -79,110 +95,287 @@ pub fn write_geotiff_as(
             grid.cols
         )));
     }
-    let bytes = encode(Some(grid), data, info, container);
-    crate::raster::write_atomic(path, &bytes)
+    Ok(())
 }
 
 /// Write `data` as a tiled, compressed float32 TIFF with overviews and band metadata but no
 /// georeferencing (laboratory products, which are not on the Moon), atomically.
 pub fn write_tiff(path: &Path, data: ArrayView2<f64>, info: &BandInfo) -> Result<()> {
-    let bytes = encode(None, data, info, Container::Auto);
-    crate::raster::write_atomic(path, &bytes)
+    let mut w = CogWriter::create(
+        path,
+        None,
+        data.ncols(),
+        data.nrows(),
+        info,
+        Container::Auto,
+    )?;
+    w.push(data)?;
+    w.finish()
 }
 
-/// The whole file in memory; `grid` = None writes no GeoTIFF tags.
-pub fn encode(
-    grid: Option<&Grid>,
-    data: ArrayView2<f64>,
-    info: &BandInfo,
+/// Streams one float32 band into a COG in bounded memory: rows go in top to bottom
+/// ([`CogWriter::push`]); as soon as a row of 256-px tiles of any level is complete it is
+/// compressed (in parallel) into that level's temporary file, and its 2 × 2 means feed the
+/// next level. [`CogWriter::finish`] then writes the header, every IFD and the tile data —
+/// smallest overview first — into a temporary sibling and renames it into place. Memory is a
+/// few tile rows per level, whatever the image size.
+pub struct CogWriter {
+    path: PathBuf,
+    grid: Option<Grid>,
+    info: OwnedInfo,
     container: Container,
-) -> Vec<u8> {
-    let mut levels = vec![data.mapv(|v| v as f32)];
-    while levels
-        .last()
-        .is_some_and(|l| l.nrows().max(l.ncols()) > TILE)
-    {
-        let next = halve(levels.last().expect("a level").view());
-        levels.push(next);
-    }
-    // Compressed tiles of every level, row-major.
-    let tiles: Vec<Vec<Vec<u8>>> = levels.iter().map(|l| compress_level(l.view())).collect();
-    let data_bytes: u64 = tiles.iter().flatten().map(|t| t.len() as u64 + 8).sum();
-    let big = container == Container::BigTiff
-        || data_bytes + 1_000_000 + 64 * tiles.iter().map(|t| t.len() as u64).sum::<u64>()
-            > u32::MAX as u64;
-    let w = Width { big };
-    let ghost = ghost_block();
-    let header_len = if big { 16 } else { 8 };
-    let mut pos = (header_len + ghost.len()) as u64;
-    pos += pos % 2;
-    // Lay out the IFDs: their sizes do not depend on the offsets they hold.
-    let ifd_tags: Vec<Vec<Entry>> = levels
-        .iter()
-        .enumerate()
-        .map(|(k, l)| {
-            level_tags(
-                k,
-                l.dim(),
-                &tiles[k],
-                if k == 0 { Some((grid, info)) } else { None },
-                &w,
-                &[],
-            )
+    levels: Vec<Level>,
+    done: bool,
+}
+
+/// [`BandInfo`] with owned strings (a writer outlives its caller's borrows).
+struct OwnedInfo {
+    description: String,
+    unit: String,
+    metadata: Vec<(String, String)>,
+}
+
+struct Level {
+    w: usize,
+    h: usize,
+    /// Rows received and not yet compressed (row-major, `w` wide).
+    buf: Vec<f32>,
+    rows_in: usize,
+    tmp: PathBuf,
+    file: std::io::BufWriter<std::fs::File>,
+    /// Compressed size of each tile so far, row-major.
+    sizes: Vec<u64>,
+}
+
+impl CogWriter {
+    /// A writer for a `width × height` band to `path` (`grid` = None: no GeoTIFF tags).
+    pub fn create(
+        path: &Path,
+        grid: Option<&Grid>,
+        width: usize,
+        height: usize,
+        info: &BandInfo,
+        container: Container,
+    ) -> Result<Self> {
+        if width == 0 || height == 0 || width > u32::MAX as usize || height > u32::MAX as usize {
+            return Err(Error::Usage(format!(
+                "{}: cannot write a {height} × {width} image",
+                path.display()
+            )));
+        }
+        let mut dims = vec![(height, width)];
+        while let Some(&(h, w)) = dims.last().filter(|(h, w)| *h.max(w) > TILE) {
+            dims.push((h.div_ceil(2), w.div_ceil(2)));
+        }
+        let mut levels: Vec<Level> = Vec::with_capacity(dims.len());
+        for (k, &(h, w)) in dims.iter().enumerate() {
+            let tmp = crate::raster::tmp_name(&path.with_extension(format!("L{k}")));
+            // Errors name the file the caller asked for, not the temporary.
+            let f = match std::fs::File::create(&tmp) {
+                Ok(f) => f,
+                Err(e) => {
+                    for l in &levels {
+                        let _ = std::fs::remove_file(&l.tmp);
+                    }
+                    return Err(Error::io(path, e));
+                }
+            };
+            levels.push(Level {
+                w,
+                h,
+                buf: Vec::new(),
+                rows_in: 0,
+                tmp,
+                file: std::io::BufWriter::new(f),
+                sizes: Vec::new(),
+            });
+        }
+        Ok(CogWriter {
+            path: path.to_path_buf(),
+            grid: grid.copied(),
+            info: OwnedInfo {
+                description: info.description.to_string(),
+                unit: info.unit.to_string(),
+                metadata: info
+                    .metadata
+                    .iter()
+                    .map(|(k, v)| (k.to_string(), v.clone()))
+                    .collect(),
+            },
+            container,
+            levels,
+            done: false,
         })
-        .collect();
-    let mut ifd_pos = Vec::new();
-    for tags in &ifd_tags {
-        ifd_pos.push(pos);
-        pos += ifd_size(tags, &w);
+    }
+
+    /// Append rows (each `width` wide) below those already pushed.
+    pub fn push(&mut self, rows: ArrayView2<f64>) -> Result<()> {
+        let l = &self.levels[0];
+        if rows.ncols() != l.w || l.rows_in + rows.nrows() > l.h {
+            return Err(Error::Usage(format!(
+                "{}: pushing {} × {} rows at row {} of a {} × {} image",
+                self.path.display(),
+                rows.nrows(),
+                rows.ncols(),
+                l.rows_in,
+                l.h,
+                l.w
+            )));
+        }
+        let v: Vec<f32> = rows.iter().map(|&x| x as f32).collect();
+        self.push_level(0, v, rows.nrows())
+    }
+
+    fn push_level(&mut self, k: usize, rows: Vec<f32>, n: usize) -> Result<()> {
+        let lv = &mut self.levels[k];
+        lv.buf.extend_from_slice(&rows);
+        lv.rows_in += n;
+        loop {
+            let lv = &mut self.levels[k];
+            let buffered = lv.buf.len() / lv.w;
+            let last = lv.rows_in == lv.h;
+            if !(buffered >= TILE || (last && buffered > 0)) {
+                return Ok(());
+            }
+            let take = buffered.min(TILE);
+            let band: Vec<f32> = lv.buf.drain(..take * lv.w).collect();
+            let band = Array2::from_shape_vec((take, lv.w), band).expect("band shape");
+            for t in compress_level(band.view()) {
+                lv.file.write_all(&t).map_err(|e| Error::io(&lv.tmp, e))?;
+                lv.sizes.push(t.len() as u64);
+            }
+            if k + 1 < self.levels.len() {
+                let half = halve(band.view());
+                let n = half.nrows();
+                self.push_level(k + 1, half.into_raw_vec_and_offset().0, n)?;
+            }
+        }
+    }
+
+    /// Write the file (see the type's documentation).
+    pub fn finish(mut self) -> Result<()> {
+        let res = self.assemble();
+        self.cleanup();
+        res
+    }
+
+    fn assemble(&mut self) -> Result<()> {
+        if let Some(l) = self.levels.iter().find(|l| l.rows_in != l.h) {
+            return Err(Error::Usage(format!(
+                "{}: {} of {} rows were written",
+                self.path.display(),
+                l.rows_in,
+                l.h
+            )));
+        }
+        for l in &mut self.levels {
+            l.file.flush().map_err(|e| Error::io(&l.tmp, e))?;
+        }
+        let info = BandInfo {
+            description: &self.info.description,
+            unit: &self.info.unit,
+            metadata: &self
+                .info
+                .metadata
+                .iter()
+                .map(|(k, v)| (k.as_str(), v.clone()))
+                .collect::<Vec<_>>(),
+        };
+        let data_bytes: u64 = self
+            .levels
+            .iter()
+            .flat_map(|l| &l.sizes)
+            .map(|s| s + 8)
+            .sum();
+        let ntiles: u64 = self.levels.iter().map(|l| l.sizes.len() as u64).sum();
+        let big = self.container == Container::BigTiff
+            || data_bytes + 1_000_000 + 64 * ntiles > u32::MAX as u64;
+        let w = Width { big };
+        let ghost = ghost_block();
+        let header_len = if big { 16 } else { 8 };
+        let mut pos = (header_len + ghost.len()) as u64;
         pos += pos % 2;
+        let grid = self.grid;
+        let main = |k: usize| (k == 0).then_some((grid.as_ref(), &info));
+        let mut ifd_pos = Vec::new();
+        for (k, l) in self.levels.iter().enumerate() {
+            ifd_pos.push(pos);
+            pos += ifd_size(&level_tags(k, (l.h, l.w), &l.sizes, main(k), &w, &[]), &w);
+            pos += pos % 2;
+        }
+        // Data: smallest overview first, full resolution last.
+        let mut offsets: Vec<Vec<u64>> = vec![Vec::new(); self.levels.len()];
+        let data_start = pos;
+        for k in (0..self.levels.len()).rev() {
+            for s in &self.levels[k].sizes {
+                offsets[k].push(pos + 4);
+                pos += s + 8;
+            }
+        }
+        let tmp = crate::raster::tmp_name(&self.path);
+        let res = (|| -> Result<()> {
+            let f = std::fs::File::create(&tmp).map_err(|e| Error::io(&tmp, e))?;
+            let mut out = std::io::BufWriter::new(f);
+            let mut head = Vec::with_capacity(data_start as usize);
+            if big {
+                head.extend_from_slice(b"II\x2b\x00\x08\x00\x00\x00");
+                head.extend_from_slice(&ifd_pos[0].to_le_bytes());
+            } else {
+                head.extend_from_slice(b"II\x2a\x00");
+                head.extend_from_slice(&(ifd_pos[0] as u32).to_le_bytes());
+            }
+            head.extend_from_slice(&ghost);
+            for (k, l) in self.levels.iter().enumerate() {
+                pad_to(&mut head, ifd_pos[k]);
+                let tags = level_tags(k, (l.h, l.w), &l.sizes, main(k), &w, &offsets[k]);
+                let next = ifd_pos.get(k + 1).copied().unwrap_or(0);
+                write_ifd(&mut head, &tags, ifd_pos[k], next, &w);
+            }
+            pad_to(&mut head, data_start);
+            out.write_all(&head).map_err(|e| Error::io(&tmp, e))?;
+            for l in self.levels.iter().rev() {
+                let mut r = std::io::BufReader::new(
+                    std::fs::File::open(&l.tmp).map_err(|e| Error::io(&l.tmp, e))?,
+                );
+                let mut t = Vec::new();
+                for &s in &l.sizes {
+                    t.resize(s as usize, 0);
+                    r.read_exact(&mut t).map_err(|e| Error::io(&l.tmp, e))?;
+                    out.write_all(&(s as u32).to_le_bytes())
+                        .map_err(|e| Error::io(&tmp, e))?;
+                    out.write_all(&t).map_err(|e| Error::io(&tmp, e))?;
+                    out.write_all(&t[t.len() - 4..])
+                        .map_err(|e| Error::io(&tmp, e))?;
+                }
+            }
+            let f = out
+                .into_inner()
+                .map_err(|e| Error::io(&tmp, e.into_error()))?;
+            f.sync_all().map_err(|e| Error::io(&tmp, e))?;
+            debug_assert_eq!(f.metadata().map(|m| m.len()).unwrap_or(pos), pos);
+            std::fs::rename(&tmp, &self.path).map_err(|e| Error::io(&self.path, e))
+        })();
+        if res.is_err() {
+            let _ = std::fs::remove_file(&tmp);
+        }
+        res
     }
-    // Data: smallest overview first, full resolution last.
-    let mut offsets: Vec<Vec<u64>> = vec![Vec::new(); levels.len()];
-    for k in (0..levels.len()).rev() {
-        for t in &tiles[k] {
-            offsets[k].push(pos + 4);
-            pos += t.len() as u64 + 8;
+
+    fn cleanup(&mut self) {
+        if !self.done {
+            for l in &self.levels {
+                let _ = std::fs::remove_file(&l.tmp);
+            }
+            self.done = true;
         }
     }
-    let mut out = Vec::with_capacity(pos as usize);
-    if big {
-        out.extend_from_slice(b"II\x2b\x00\x08\x00\x00\x00");
-        out.extend_from_slice(&ifd_pos[0].to_le_bytes());
-    } else {
-        out.extend_from_slice(b"II\x2a\x00");
-        out.extend_from_slice(&(ifd_pos[0] as u32).to_le_bytes());
+}
+
+impl Drop for CogWriter {
+    /// An abandoned writer leaves no temporary behind.
+    fn drop(&mut self) {
+        self.cleanup();
     }
-    out.extend_from_slice(&ghost);
-    for (k, l) in levels.iter().enumerate() {
-        pad_to(&mut out, ifd_pos[k]);
-        let tags = level_tags(
-            k,
-            l.dim(),
-            &tiles[k],
-            if k == 0 { Some((grid, info)) } else { None },
-            &w,
-            &offsets[k],
-        );
-        let next = ifd_pos.get(k + 1).copied().unwrap_or(0);
-        write_ifd(&mut out, &tags, ifd_pos[k], next, &w);
-    }
-    pad_to(
-        &mut out,
-        offsets
-            .last()
-            .and_then(|o| o.first())
-            .map_or(pos, |&o| o - 4),
-    );
-    for k in (0..levels.len()).rev() {
-        for t in &tiles[k] {
-            out.extend_from_slice(&(t.len() as u32).to_le_bytes());
-            out.extend_from_slice(t);
-            out.extend_from_slice(&t[t.len() - 4..]);
-        }
-    }
-    debug_assert_eq!(out.len() as u64, pos);
-    out
 }
 
 /// GDAL's structural metadata block (gcore/gdal_priv.h, COG driver): a fixed first line giving
@@ -329,12 +522,12 @@ fn ascii(tag: u16, s: &str) -> Entry {
 fn level_tags(
     level: usize,
     (h, w): (usize, usize),
-    tiles: &[Vec<u8>],
+    sizes: &[u64],
     main: Option<(Option<&Grid>, &BandInfo)>,
     width: &Width,
     offsets: &[u64],
 ) -> Vec<Entry> {
-    let n = tiles.len();
+    let n = sizes.len();
     let offsets: Vec<u64> = if offsets.is_empty() {
         vec![0; n]
     } else {
@@ -362,10 +555,7 @@ fn level_tags(
         } else {
             longs(324, &offsets.iter().map(|&x| x as u32).collect::<Vec<_>>())
         },
-        longs(
-            325,
-            &tiles.iter().map(|t| t.len() as u32).collect::<Vec<_>>(),
-        ),
+        longs(325, &sizes.iter().map(|&t| t as u32).collect::<Vec<_>>()),
         shorts(339, &[3]),
         ascii(42113, "nan"),
     ];

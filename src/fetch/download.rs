@@ -9,7 +9,7 @@
 use super::archive::Sources;
 use crate::error::{Error, Result};
 use crate::progress::Progress;
-use md5::{Digest, Md5};
+use md5::Md5;
 use reqwest::blocking::Client;
 use reqwest::header::{CONTENT_LENGTH, CONTENT_RANGE, RANGE};
 use reqwest::StatusCode;
@@ -56,17 +56,7 @@ fn part_path(dest: &Path) -> PathBuf {
 
 /// Hex MD5 of a file.
 pub fn file_md5(path: &Path) -> Result<String> {
-    let mut f = std::fs::File::open(path).map_err(|e| Error::io(path, e))?;
-    let mut h = Md5::new();
-    let mut buf = vec![0u8; 1 << 20];
-    loop {
-        let n = f.read(&mut buf).map_err(|e| Error::io(path, e))?;
-        if n == 0 {
-            break;
-        }
-        h.update(&buf[..n]);
-    }
-    Ok(h.finalize().iter().map(|b| format!("{b:02x}")).collect())
+    crate::raster::file_digest::<Md5>(path)
 }
 
 /// Does `path` exist and satisfy `expect`?
