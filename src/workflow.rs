@@ -342,8 +342,11 @@ impl Workflow {
     /// Read, parse and resolve the workflow at `path`.
     pub fn load(path: &Path) -> Result<Workflow> {
         let text = std::fs::read_to_string(path).map_err(|e| Error::io(path, e))?;
-        let base = path.parent().unwrap_or(Path::new("."));
-        Workflow::parse(&text, path, base)
+        // Absolute, so the resolved workflow (and the run key hashed from it) is the same
+        // however the path was spelled: `w.toml`, `./w.toml` or `/data/w.toml`.
+        let abs = std::path::absolute(path).map_err(|e| Error::io(path, e))?;
+        let base = normalise(abs.parent().unwrap_or(Path::new("/")));
+        Workflow::parse(&text, path, &base)
     }
 
     /// Parse `text` (named `path` in errors), resolving relative paths against `base`.

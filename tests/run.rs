@@ -431,3 +431,44 @@ fn shipped_workflows_parse() {
     }
     assert!(n >= 5, "{n} workflows");
 }
+
+/// However the workflow's path is spelled, it is the same run: tiles run through one spelling
+/// are found through another (cluster tasks get absolute paths; users type relative ones).
+#[test]
+fn relative_and_absolute_workflow_paths_are_one_run() {
+    let p = scene_products(256, 10);
+    let dir = scratch("spelling");
+    let wf = write_workflow(
+        &dir,
+        &workflow(
+            p,
+            Path::new("out"),
+            128,
+            "[solver]\nalbedo_sigmas = [30.0, 10.0, 4.0]",
+        ),
+    );
+    let o = sfsfuse()
+        .current_dir(&dir)
+        .args([
+            "run",
+            "--tile",
+            "0-3",
+            "--progress",
+            "quiet",
+            "workflow.toml",
+        ])
+        .output()
+        .unwrap();
+    assert!(o.status.success(), "{}", String::from_utf8_lossy(&o.stderr));
+    run_ok(&["run", "--mosaic", "--progress", "quiet"], &wf);
+    assert!(dir.join("out/dem.tif").is_file());
+    let o = sfsfuse()
+        .current_dir(dir.parent().unwrap())
+        .args(["run", "--json", "--progress", "quiet"])
+        .arg(Path::new(dir.file_name().unwrap()).join("./workflow.toml"))
+        .output()
+        .unwrap();
+    let s: serde_json::Value = serde_json::from_slice(&o.stdout).unwrap();
+    assert_eq!(s["tiles_run"], 0, "a third spelling redid tiles");
+    std::fs::remove_dir_all(&dir).unwrap();
+}
