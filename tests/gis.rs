@@ -6,9 +6,8 @@
 use ndarray::Array2;
 use sfsfuse::export::{read_tiff, write_geotiff, write_geotiff_as, BandInfo, Container};
 use sfsfuse::grid::{Crs, Grid};
-use std::io::Write;
 use std::path::{Path, PathBuf};
-use std::process::{Command, Stdio};
+use std::process::Command;
 
 #[path = "../pds/tests/common/mod.rs"]
 mod common;
@@ -95,24 +94,11 @@ fn projections_match_proj() {
             .filter(|&(_, (x, y))| x.abs() < 3e6 && y.abs() < 3e6)
             .collect();
         assert!(usable.len() >= 2, "{crs:?}");
-        let mut child = Command::new(&proj)
-            .args(crs.proj_string().split(' '))
-            .args(["-f", "%.6f"])
-            .stdin(Stdio::piped())
-            .stdout(Stdio::piped())
-            .spawn()
-            .unwrap();
         let input: String = usable
             .iter()
             .map(|((lon, lat), _)| format!("{lon} {lat}\n"))
             .collect();
-        child
-            .stdin
-            .take()
-            .unwrap()
-            .write_all(input.as_bytes())
-            .unwrap();
-        let out = String::from_utf8(child.wait_with_output().unwrap().stdout).unwrap();
+        let out = common::proj_forward(&proj, &crs.proj_string(), &input);
         for ((_, (x, y)), row) in usable.iter().zip(out.lines()) {
             let v: Vec<f64> = row.split_whitespace().map(|t| t.parse().unwrap()).collect();
             assert!(

@@ -224,21 +224,7 @@ fn polar_stereographic_matches_proj() {
             "+proj=stere +lat_0={} +lon_0=0 +k=1 +R=1737400",
             if north { 90 } else { -90 }
         );
-        let mut child = std::process::Command::new(&proj)
-            .args(def.split(' '))
-            .args(["-f", "%.6f"])
-            .stdin(std::process::Stdio::piped())
-            .stdout(std::process::Stdio::piped())
-            .spawn()
-            .unwrap();
-        use std::io::Write;
-        child
-            .stdin
-            .take()
-            .unwrap()
-            .write_all(input.as_bytes())
-            .unwrap();
-        let out = String::from_utf8(child.wait_with_output().unwrap().stdout).unwrap();
+        let out = common::proj_forward(&proj, &def, &input);
         for (&(l, s), row) in pixels.iter().zip(out.lines()) {
             let v: Vec<f64> = row.split_whitespace().map(|t| t.parse().unwrap()).collect();
             // Map x = X, map y = −Y (lines grow downwards).

@@ -49,3 +49,26 @@ pub fn external_tool(name: &str) -> Option<PathBuf> {
     }
     found
 }
+
+/// Run PROJ's `proj` with the PROJ string `def` on "lon lat" lines; its "x y" lines, with
+/// 6 decimals.
+#[allow(dead_code)]
+pub fn proj_forward(proj: &std::path::Path, def: &str, input: &str) -> String {
+    use std::io::Write;
+    use std::process::{Command, Stdio};
+    let mut child = Command::new(proj)
+        .args(def.split(' '))
+        .args(["-f", "%.6f"])
+        .stdin(Stdio::piped())
+        .stdout(Stdio::piped())
+        .spawn()
+        .expect("proj starts");
+    child
+        .stdin
+        .take()
+        .expect("a stdin pipe")
+        .write_all(input.as_bytes())
+        .expect("proj reads its input");
+    String::from_utf8(child.wait_with_output().expect("proj ends").stdout)
+        .expect("proj prints text")
+}
