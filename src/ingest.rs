@@ -341,3 +341,210 @@ pub fn lola_on_grid(dem: &LolaDem, geo: &Geographic, method: Interpolation) -> R
         grid::interpolate(window.view(), l - first as f64, s, method, wrap)
     }))
 }
+
+/// A DEM in a (Geo)TIFF file: heights in metres above the 1737.4 km sphere, on the grid its
+/// ModelPixelScale/ModelTiepoint describe, in the CRS its GeoKeys describe
+/// ([`crate::export::crs_from_geokeys`]); GDAL_NODATA and NaN are no data. Only the strips or
+/// tiles a grid needs are read.
+#[derive(Debug, Clone)]
+pub struct GeoTiffDem {
+    pub path: std::path::PathBuf,
+    pub crs: crate::export::GeoTiffCrs,
+    /// GDAL geotransform (north-up).
+    pub geotransform: [f64; 6],
+    pub width: usize,
+    pub height: usize,
+    pub nodata: Option<f64>,
+}
+
+impl GeoTiffDem {
+    pub fn open(path: &std::path::Path) -> Result<Self> {
+        use tiff::decoder::Decoder;
+        use tiff::tags::Tag;
+        let bad = |e: tiff::TiffError| {
+            Error::Usage(format!("{}: not a readable GeoTIFF: {e}", path.display()))
+        };
+        let f = std::fs::File::open(path).map_err(|e| Error::io(path, e))?;
+        let mut d = Decoder::new(std::io::BufReader::new(f)).map_err(bad)?;
+        let (w, h) = d.dimensions().map_err(bad)?;
+        let get_f64 = |d: &mut Decoder<_>, t: Tag| -> Result<Option<Vec<f64>>> {
+            d.find_tag(t)
+                .map_err(bad)?
+                .map(|v| v.into_f64_vec().map_err(bad))
+                .transpose()
+        };
+        let scale = get_f64(&mut d, Tag::ModelPixelScaleTag)?;
+        let tie = get_f64(&mut d, Tag::ModelTiepointTag)?;
+        let (Some(s), Some(t)) = (scale, tie) else {
+            return Err(Error::Usage(format!(
+                "{}: no ModelPixelScale/ModelTiepoint: the DEM is not georeferenced",
+                path.display()
+            )));
+        };
+        if s.len() < 2 || t.len() < 6 || !(s[0] > 0.0 && s[1] > 0.0) {
+            return Err(Error::Usage(format!(
+                "{}: ModelPixelScale/ModelTiepoint are malformed",
+                path.display()
+            )));
+        }
+        let geotransform = [
+            t[3] - t[0] * s[0],
+            s[0],
+            0.0,
+            t[4] + t[1] * s[1],
+            0.0,
+            -s[1],
+        ];
+        let dir: Vec<u16> = d
+            .find_tag(Tag::GeoKeyDirectoryTag)
+            .map_err(bad)?
+            .ok_or_else(|| {
+                Error::Usage(format!(
+                    "{}: no GeoKeys: the DEM's CRS is unknown",
+                    path.display()
+                ))
+            })?
+            .into_u16_vec()
+            .map_err(bad)?;
+        let doubles = get_f64(&mut d, Tag::GeoDoubleParamsTag)?.unwrap_or_default();
+        let crs = crate::export::crs_from_geokeys(path, &dir, &doubles)?;
+        let nodata = d
+            .find_tag(Tag::GdalNodata)
+            .map_err(bad)?
+            .and_then(|v| v.into_string().ok())
+            .and_then(|s| s.trim_matches(char::from(0)).trim().parse::<f64>().ok());
+        Ok(GeoTiffDem {
+            path: path.into(),
+            crs,
+            geotransform,
+            width: w as usize,
+            height: h as usize,
+            nodata,
+        })
+    }
+
+    /// Pixel size in metres (along the first axis; degrees converted on the sphere).
+    pub fn pixel_m(&self) -> f64 {
+        match self.crs {
+            crate::export::GeoTiffCrs::Projected(_) => self.geotransform[1],
+            crate::export::GeoTiffCrs::Geographic => {
+                self.geotransform[1].to_radians() * crate::grid::MOON_RADIUS_M
+            }
+        }
+    }
+
+    /// Rows `r0..r1`, columns `c0..c1` (heights; no data → NaN), reading only the chunks there.
+    fn window(&self, r0: usize, r1: usize, c0: usize, c1: usize) -> Result<Array2<f64>> {
+        use tiff::decoder::{Decoder, DecodingResult};
+        let path = &self.path;
+        let bad = |e: tiff::TiffError| Error::Usage(format!("{}: {e}", path.display()));
+        let f = std::fs::File::open(path).map_err(|e| Error::io(path, e))?;
+        let mut d = Decoder::new(std::io::BufReader::new(f)).map_err(bad)?;
+        let channels = match d.colortype().map_err(bad)? {
+            tiff::ColorType::Gray(_) => 1,
+            other => {
+                return Err(Error::Usage(format!(
+                    "{}: colour type {other:?}: a DEM has one band",
+                    path.display()
+                )))
+            }
+        };
+        let (cw, ch) = d.chunk_dimensions();
+        let (cw, ch) = (cw as usize, ch as usize);
+        let across = self.width.div_ceil(cw);
+        let mut out = Array2::from_elem((r1 - r0, c1 - c0), f64::NAN);
+        for cy in r0 / ch..=(r1 - 1) / ch {
+            for cx in c0 / cw..=(c1 - 1) / cw {
+                let idx = (cy * across + cx) as u32;
+                let (dw, dh) = d.chunk_data_dimensions(idx);
+                let v: Vec<f64> = match d.read_chunk(idx).map_err(bad)? {
+                    DecodingResult::I16(v) => v.into_iter().map(f64::from).collect(),
+                    DecodingResult::U16(v) => v.into_iter().map(f64::from).collect(),
+                    DecodingResult::I32(v) => v.into_iter().map(f64::from).collect(),
+                    DecodingResult::F32(v) => v.into_iter().map(f64::from).collect(),
+                    DecodingResult::F64(v) => v,
+                    _ => return Err(Error::Usage(format!("{}: sample type not supported for a DEM (int16/uint16/int32/float32/float64)", path.display()))),
+                };
+                let (dw, dh) = (dw as usize, dh as usize);
+                for y in 0..dh {
+                    let r = cy * ch + y;
+                    if r < r0 || r >= r1 {
+                        continue;
+                    }
+                    for x in 0..dw {
+                        let c = cx * cw + x;
+                        if c < c0 || c >= c1 {
+                            continue;
+                        }
+                        let h = v[(y * dw + x) * channels];
+                        out[(r - r0, c - c0)] = if self.nodata.is_some_and(|n| n == h) {
+                            f64::NAN
+                        } else {
+                            h
+                        };
+                    }
+                }
+            }
+        }
+        Ok(out)
+    }
+}
+
+/// Heights of a GeoTIFF DEM at every centre of the grid whose geography is `geo` (as
+/// [`lola_on_grid`]: NaN outside the DEM or where the support touches no data).
+pub fn geotiff_on_grid(
+    dem: &GeoTiffDem,
+    geo: &Geographic,
+    method: Interpolation,
+) -> Result<Array2<f64>> {
+    use crate::export::GeoTiffCrs;
+    let pr = match dem.crs {
+        GeoTiffCrs::Projected(c) => Some(c.projector().map_err(|e| Error::Usage(e.to_string()))?),
+        GeoTiffCrs::Geographic => None,
+    };
+    let gt = dem.geotransform;
+    let dim = geo.lon.dim();
+    let mut pos_r = Array2::from_elem(dim, f64::NAN);
+    let mut pos_c = pos_r.clone();
+    Zip::from(&mut pos_r)
+        .and(&mut pos_c)
+        .and(&geo.lon)
+        .and(&geo.lat)
+        .par_for_each(|r, c, &lo, &la| {
+            let xy = match &pr {
+                Some(p) => p.forward(lo, la),
+                None => {
+                    // Longitude into the turn that starts at the DEM's west edge.
+                    let lo = gt[0] + (lo - gt[0]).rem_euclid(360.0);
+                    Some((lo, la))
+                }
+            };
+            if let Some((x, y)) = xy {
+                *c = (x - gt[0]) / gt[1] - 0.5;
+                *r = (gt[3] - y) / -gt[5] - 0.5;
+            }
+        });
+    let (mut r_lo, mut r_hi, mut c_lo, mut c_hi) = (f64::MAX, f64::MIN, f64::MAX, f64::MIN);
+    for (&r, &c) in pos_r
+        .iter()
+        .zip(&pos_c)
+        .filter(|(r, c)| r.is_finite() && c.is_finite())
+    {
+        (r_lo, r_hi, c_lo, c_hi) = (r_lo.min(r), r_hi.max(r), c_lo.min(c), c_hi.max(c));
+    }
+    let (hh, ww) = (dem.height as f64, dem.width as f64);
+    if r_lo > r_hi || r_hi < -0.5 || r_lo > hh - 0.5 || c_hi < -0.5 || c_lo > ww - 0.5 {
+        return Err(Error::Usage(format!(
+            "{}: the grid lies outside this DEM (no grid pixel falls on it)",
+            dem.path.display()
+        )));
+    }
+    let r0 = (r_lo.floor() - 2.0).clamp(0.0, hh - 1.0) as usize;
+    let r1 = (r_hi.ceil() + 3.0).clamp(1.0, hh) as usize;
+    let c0 = (c_lo.floor() - 2.0).clamp(0.0, ww - 1.0) as usize;
+    let c1 = (c_hi.ceil() + 3.0).clamp(1.0, ww) as usize;
+    let window = dem.window(r0, r1, c0, c1)?;
+    Ok(Zip::from(&pos_r).and(&pos_c).par_map_collect(|&r, &c| {
+        grid::interpolate(window.view(), r - r0 as f64, c - c0 as f64, method, false)
+    }))
+}

@@ -51,7 +51,7 @@ pub struct Request {
 /// The opened inputs of an orbital run.
 struct Inputs {
     obs: Vec<Observation>,
-    lola: Vec<LolaDem>,
+    lola: Vec<Dem>,
     solar: SolarSpectrum,
     model: Box<dyn ReflectanceModel>,
 }
@@ -75,8 +75,8 @@ impl Inputs {
                 .inputs
                 .lola
                 .iter()
-                .map(|p| LolaDem::open(p))
-                .collect::<std::result::Result<_, _>>()?,
+                .map(|p| Dem::open(p))
+                .collect::<Result<_>>()?,
             solar: SolarSpectrum::read(&o.inputs.solar_spectrum)?,
             model: o.photometry.build(),
         })
@@ -93,12 +93,55 @@ impl Inputs {
             }
         }
         for d in &self.lola {
-            v.push(d.label_path.clone());
-            v.push(d.raster.path.clone());
+            match d {
+                Dem::Pds(d) => v.extend([d.label_path.clone(), d.raster.path.clone()]),
+                Dem::GeoTiff(d) => v.push(d.path.clone()),
+            }
         }
         v.push(self.solar.path.clone());
         v.dedup();
         Ok(v)
+    }
+}
+
+/// An input DEM: a LOLA GDR (PDS3 label) or a GeoTIFF on the Moon sphere.
+enum Dem {
+    Pds(LolaDem),
+    GeoTiff(ingest::GeoTiffDem),
+}
+
+impl Dem {
+    /// `.tif`/`.tiff` is a GeoTIFF; anything else a PDS3 label.
+    fn open(p: &Path) -> Result<Dem> {
+        let ext = p
+            .extension()
+            .and_then(|e| e.to_str())
+            .unwrap_or("")
+            .to_ascii_lowercase();
+        Ok(if ext == "tif" || ext == "tiff" {
+            Dem::GeoTiff(ingest::GeoTiffDem::open(p)?)
+        } else {
+            Dem::Pds(LolaDem::open(p)?)
+        })
+    }
+
+    fn on_grid(
+        &self,
+        geo: &crate::grid::Geographic,
+        method: crate::grid::Interpolation,
+    ) -> Result<Array2<f64>> {
+        match self {
+            Dem::Pds(d) => ingest::lola_on_grid(d, geo, method),
+            Dem::GeoTiff(d) => ingest::geotiff_on_grid(d, geo, method),
+        }
+    }
+
+    /// Pixel size, metres.
+    fn pixel_m(&self) -> f64 {
+        match self {
+            Dem::Pds(d) => d.map_scale_m,
+            Dem::GeoTiff(d) => d.pixel_m(),
+        }
     }
 }
 
@@ -342,7 +385,7 @@ fn plan(o: &Orbital, wf: &Workflow, inputs: &Inputs, progress: &Progress) -> Res
         .halo
         .unwrap_or_else(|| crate::workflow::auto_halo(&o.solver));
     let tiles = tiling::layout(grid.rows, grid.cols, o.tiling.tile_size, halo);
-    let factor = inputs.lola[0].map_scale_m / grid.spacing;
+    let factor = inputs.lola[0].pixel_m() / grid.spacing;
     let blend = o.tiling.blend.unwrap_or(halo / 2).min(halo);
     let p = Plan {
         version: env!("CARGO_PKG_VERSION").into(),
@@ -475,7 +518,7 @@ fn run_tile(o: &Orbital, inputs: &Inputs, plan: &Plan, tile: &Tile) -> Result<Ti
     // The DEM: the first product that covers a pixel.
     let mut dem = Array2::from_elem(dim, f64::NAN);
     for d in &inputs.lola {
-        let Ok(h) = ingest::lola_on_grid(d, &geo, o.grid.dem_interpolation) else {
+        let Ok(h) = d.on_grid(&geo, o.grid.dem_interpolation) else {
             continue;
         };
         Zip::from(&mut dem).and(&h).for_each(|a, &b| {

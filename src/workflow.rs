@@ -66,7 +66,9 @@ fn default_model() -> ModelSpec {
 pub struct OrbitalInputs {
     /// M3 L1B labels (`*_L1B.LBL`). Where several cover a pixel, the first listed is used.
     pub m3: Vec<PathBuf>,
-    /// LOLA GDR labels (`LDEM_*.LBL`). Where several cover a pixel, the first listed is used.
+    /// DEMs: LOLA GDR labels (`LDEM_*.LBL`), or GeoTIFFs (`.tif`) of heights in metres above
+    /// the 1737.4 km sphere on the Moon sphere CRS (docs/workflows.md). Where several cover a
+    /// pixel, the first listed is used.
     pub lola: Vec<PathBuf>,
     /// M3 solar spectrum table (`M3G20110224_RFL_SOLAR_SPEC.TAB` for global mode).
     pub solar_spectrum: PathBuf,

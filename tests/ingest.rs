@@ -240,3 +240,138 @@ fn a_grid_outside_the_product_is_refused_with_its_name() {
         .to_string();
     assert!(e.contains("RDN_IMAGE BANDS"), "{e}");
 }
+
+/// A DEM given as a GeoTIFF: LDEM_4 written as a COG on its own equirectangular lattice, and
+/// GDAL's strip-organised LZW copy of it, give the same heights on a local grid as the PDS
+/// product; a GeoTIFF on the Earth is refused.
+#[test]
+fn geotiff_dems_resample_like_the_pds_product() {
+    let Some(data) = shared_data() else { return };
+    use sfsfuse::export::{write_geotiff, BandInfo};
+    use sfsfuse::ingest::{geotiff_on_grid, GeoTiffDem};
+    let dem = LolaDem::open(&data.join("lola_ldem4/LDEM_4.LBL")).unwrap();
+    let s = 2.0 * std::f64::consts::PI * 1_737_400.0 / 360.0 / 4.0;
+    let eqc = Grid::new(
+        Crs::Equirectangular { lon_0: 180.0 },
+        720,
+        1440,
+        -720.0 * s,
+        360.0 * s,
+        s,
+    )
+    .unwrap();
+    let h =
+        ndarray::Array2::from_shape_vec((720, 1440), dem.read_heights(0, 720).unwrap()).unwrap();
+    let dir = std::env::temp_dir().join(format!("sfsfuse-geotiff-dem-{}", std::process::id()));
+    std::fs::create_dir_all(&dir).unwrap();
+    let tif = dir.join("ldem4.tif");
+    write_geotiff(
+        &tif,
+        &eqc,
+        h.view(),
+        &BandInfo {
+            description: "LDEM_4 heights",
+            unit: "m",
+            metadata: &[],
+        },
+    )
+    .unwrap();
+    let region = LonLatBox {
+        lon_min: 180.0,
+        lon_max: 195.0,
+        lat_min: -75.0,
+        lat_max: -66.0,
+    };
+    let (lon_0, lat_0) = region.centre();
+    let crs = Crs::Stereographic { lat_0, lon_0 };
+    let g = Grid::covering(crs, &region, 2000.0).unwrap();
+    let geo = g.geographic(&crs.projector().unwrap());
+    let want = lola_on_grid(&dem, &geo, Interpolation::Bicubic).unwrap();
+    let mut files = vec![tif.clone()];
+    if let Some(gdal_translate) = common::external_tool("gdal_translate") {
+        let strips = dir.join("strips.tif");
+        let o = std::process::Command::new(gdal_translate)
+            .args([
+                "-q",
+                "-co",
+                "TILED=NO",
+                "-co",
+                "COMPRESS=LZW",
+                "-co",
+                "BLOCKYSIZE=7",
+            ])
+            .arg(&tif)
+            .arg(&strips)
+            .output()
+            .unwrap();
+        assert!(o.status.success(), "{}", String::from_utf8_lossy(&o.stderr));
+        files.push(strips);
+        // Warped to longitude/latitude on the IAU Moon sphere, on the same 0.25° lattice.
+        if let Some(gdalwarp) = common::external_tool("gdalwarp") {
+            let geog = dir.join("geographic.tif");
+            let o = std::process::Command::new(gdalwarp)
+                .args([
+                    "-q",
+                    "-t_srs",
+                    "IAU_2015:30100",
+                    "-r",
+                    "near",
+                    "-te",
+                    "0",
+                    "-90",
+                    "360",
+                    "90",
+                    "-tr",
+                    "0.25",
+                    "0.25",
+                ])
+                .arg(&tif)
+                .arg(&geog)
+                .output()
+                .unwrap();
+            assert!(o.status.success(), "{}", String::from_utf8_lossy(&o.stderr));
+            files.push(geog);
+        }
+        // The same pixels labelled as on the Earth: refused, naming the file.
+        let earth = dir.join("earth.tif");
+        let o = std::process::Command::new(common::external_tool("gdal_translate").unwrap())
+            .args([
+                "-q",
+                "-a_srs",
+                "EPSG:4326",
+                "-a_ullr",
+                "-180",
+                "90",
+                "180",
+                "-90",
+            ])
+            .arg(&tif)
+            .arg(&earth)
+            .output()
+            .unwrap();
+        assert!(o.status.success());
+        let e = GeoTiffDem::open(&earth).unwrap_err().to_string();
+        assert!(e.contains("earth.tif") && e.contains("6378137"), "{e}");
+    }
+    for f in &files {
+        let d = GeoTiffDem::open(f).unwrap();
+        assert!(
+            (d.pixel_m() - s).abs() < 1e-3,
+            "{}: pixel {} m",
+            f.display(),
+            d.pixel_m()
+        );
+        let got = geotiff_on_grid(&d, &geo, Interpolation::Bicubic).unwrap();
+        let worst = got
+            .iter()
+            .zip(&want)
+            .map(|(a, b)| (a - b).abs())
+            .fold(0.0, f64::max);
+        assert!(
+            worst < 1e-3,
+            "{}: differs from the PDS product by {worst} m",
+            f.display()
+        );
+    }
+    std::fs::remove_dir_all(&dir).unwrap();
+}

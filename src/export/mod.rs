@@ -871,3 +871,108 @@ pub fn read_tiff(path: &Path) -> Result<TiffRaster> {
         images,
     })
 }
+
+/// What a GeoTIFF's GeoKeys say its CRS is, when it is one of ours.
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub enum GeoTiffCrs {
+    Projected(Crs),
+    /// Longitude/latitude in degrees on the Moon sphere.
+    Geographic,
+}
+
+/// Read the CRS from GeoKeys (tags 34735/34736): the Moon sphere (semi-major axis 1 737 400 m,
+/// no flattening) with one of the coordinate transformations [`geokeys`] writes — CT 17
+/// (equirectangular, standard parallel 0), 15 (polar stereographic, pole longitude 0), 14/16
+/// (stereographic, scale 1), 21 (orthographic) — metres, no false easting/northing; or a
+/// geographic model. Anything else is refused with the key that does not fit.
+pub fn crs_from_geokeys(path: &Path, dir: &[u16], doubles: &[f64]) -> Result<GeoTiffCrs> {
+    let bad = |why: String| {
+        Error::Usage(format!("{}: GeoKeys: {why}; give a DEM on the IAU 2015 Moon sphere in an equirectangular, polar stereographic, stereographic or orthographic projection (or reproject it with gdalwarp)", path.display()))
+    };
+    if dir.len() < 4 || dir[0] != 1 {
+        return Err(bad("no GeoKey directory".into()));
+    }
+    let n = dir[3] as usize;
+    if dir.len() < 4 + 4 * n {
+        return Err(bad("the key directory is shorter than it says".into()));
+    }
+    let key = |id: u16| -> Option<f64> {
+        dir[4..4 + 4 * n]
+            .chunks_exact(4)
+            .find(|k| k[0] == id)
+            .and_then(|k| match k[1] {
+                0 => Some(k[3] as f64),
+                34736 => doubles.get(k[3] as usize).copied(),
+                _ => None,
+            })
+    };
+    let a = key(2057).ok_or_else(|| {
+        bad("no semi-major axis (key 2057): not a Moon CRS sphere sfsfuse can check".into())
+    })?;
+    let b = key(2058).unwrap_or(a);
+    let inv_f = key(2059).unwrap_or(0.0);
+    if (a - MOON_RADIUS_M).abs() > 1.0 || (b - a).abs() > 1.0 || inv_f != 0.0 {
+        return Err(bad(format!(
+            "the ellipsoid is a = {a} m, b = {b} m, 1/f = {inv_f}, not the 1 737 400 m Moon sphere"
+        )));
+    }
+    match key(1024).map(|v| v as u16) {
+        Some(2) => return Ok(GeoTiffCrs::Geographic),
+        Some(1) => {}
+        other => {
+            return Err(bad(format!(
+                "model type (key 1024) {other:?} is neither projected nor geographic"
+            )))
+        }
+    }
+    if key(3076).is_some_and(|u| u != 9001.0) {
+        return Err(bad("linear units (key 3076) are not metres".into()));
+    }
+    if key(3082).unwrap_or(0.0) != 0.0 || key(3083).unwrap_or(0.0) != 0.0 {
+        return Err(bad(
+            "false easting/northing (keys 3082/3083) are not 0".into()
+        ));
+    }
+    let lat = key(3089).or(key(3081)).unwrap_or(0.0);
+    let lon = key(3088).or(key(3080)).unwrap_or(0.0);
+    let crs = match key(3075).map(|v| v as u16) {
+        Some(17) => {
+            if key(3078).unwrap_or(0.0) != 0.0 || lat != 0.0 {
+                return Err(bad(
+                    "equirectangular with a standard parallel or origin latitude other than 0"
+                        .into(),
+                ));
+            }
+            Crs::Equirectangular { lon_0: lon }
+        }
+        Some(15) => {
+            if key(3095).unwrap_or(0.0) != 0.0 {
+                return Err(bad(
+                    "polar stereographic with a pole longitude (key 3095) other than 0".into(),
+                ));
+            }
+            Crs::PolarStereographic {
+                north: key(3081).unwrap_or(lat) > 0.0,
+            }
+        }
+        Some(14) | Some(16) => {
+            if key(3092).or(key(3093)).unwrap_or(1.0) != 1.0 {
+                return Err(bad("stereographic with a scale factor other than 1".into()));
+            }
+            Crs::Stereographic {
+                lat_0: lat,
+                lon_0: lon,
+            }
+        }
+        Some(21) => Crs::Orthographic {
+            lat_0: lat,
+            lon_0: lon,
+        },
+        other => {
+            return Err(bad(format!(
+                "coordinate transformation (key 3075) {other:?} is not one sfsfuse reads"
+            )))
+        }
+    };
+    Ok(GeoTiffCrs::Projected(crs))
+}
