@@ -178,3 +178,110 @@ impl BenchReport {
         s
     }
 }
+
+/// `sfsfuse bench --pipeline`: `sfsfuse run` on the synthetic scene written as mission-format
+/// products, once as one tile and once tiled, in one process (so the ratio compares like with
+/// like): wall time of the whole run (plan, ingest, fusion, mosaic, COG writing, checksums),
+/// seconds per megapixel, and peak resident memory of each.
+#[derive(Debug, Clone, Serialize)]
+pub struct PipelineBench {
+    pub size: usize,
+    pub tile_size: usize,
+    pub halo: usize,
+    pub tiles: usize,
+    pub threads: usize,
+    pub single_seconds: f64,
+    pub tiled_seconds: f64,
+    /// tiled / single wall time.
+    pub tiled_over_single: f64,
+    pub single_seconds_per_megapixel: f64,
+    pub tiled_seconds_per_megapixel: f64,
+    pub single_peak_memory_mib: Option<f64>,
+    pub tiled_peak_memory_mib: Option<f64>,
+}
+
+pub fn run_pipeline(size: usize, tile_size: usize) -> Result<PipelineBench> {
+    use crate::progress::{Mode, Progress};
+    use crate::workflow::Workflow;
+    let spec = SceneSpec {
+        size,
+        ..SceneSpec::default()
+    };
+    let dir = std::env::temp_dir().join(format!("sfsfuse-bench-pipeline-{}", std::process::id()));
+    let _ = std::fs::remove_dir_all(&dir);
+    let scene = generate(&spec);
+    let grid = crate::demo::demo_grid(&spec)?;
+    let p = crate::synth::products::write(&scene, &grid, &dir.join("products"))?;
+    drop(scene);
+    let half = size as f64 * spec.spacing / 2.0;
+    let workflow = |tile: usize, out: &str| {
+        format!(
+            "kind = \"orbital\"\n[inputs]\nm3 = [{:?}]\nlola = [{:?}]\nsolar_spectrum = {:?}\ndem_psf_sigma_px = 3.0\n[region]\nx_min = {}\nx_max = {half}\ny_min = {}\ny_max = {half}\n[grid]\ncenter_lat = -13.4\ncenter_lon = 357.2\nresolution_m = {}\n[tiling]\ntile_size = {tile}\n[output]\ndirectory = {out:?}\n",
+            p.m3_label.display().to_string(),
+            p.lola_label.display().to_string(),
+            p.solar_table.display().to_string(),
+            -half,
+            -half,
+            spec.spacing
+        )
+    };
+    let quiet = Progress::new(Mode::Quiet);
+    let timed = |tile: usize, name: &str| -> Result<(f64, Option<f64>, usize, usize)> {
+        let path = dir.join(format!("{name}.toml"));
+        crate::raster::write_atomic(&path, workflow(tile, name).as_bytes())?;
+        let wf = Workflow::load(&path)?;
+        let peak_ok = reset_peak();
+        let t0 = Instant::now();
+        let s = crate::pipeline::run(&wf, &crate::pipeline::Request::default(), &quiet)?;
+        let secs = t0.elapsed().as_secs_f64();
+        let halo = match &wf {
+            Workflow::Orbital(o) => o.tiling.halo.unwrap_or(0),
+            Workflow::Lab(_) => 0,
+        };
+        Ok((
+            secs,
+            if peak_ok { peak_mib() } else { None },
+            s.tiles_total,
+            halo,
+        ))
+    };
+    let (single, single_mem, _, halo) = timed(size.max(tile_size), "single")?;
+    let (tiled, tiled_mem, tiles, _) = timed(tile_size, "tiled")?;
+    let _ = std::fs::remove_dir_all(&dir);
+    let mp = (size * size) as f64 / 1e6;
+    Ok(PipelineBench {
+        size,
+        tile_size,
+        halo,
+        tiles,
+        threads: rayon::current_num_threads(),
+        single_seconds: single,
+        tiled_seconds: tiled,
+        tiled_over_single: tiled / single,
+        single_seconds_per_megapixel: single / mp,
+        tiled_seconds_per_megapixel: tiled / mp,
+        single_peak_memory_mib: single_mem,
+        tiled_peak_memory_mib: tiled_mem,
+    })
+}
+
+impl PipelineBench {
+    pub fn table(&self) -> String {
+        let mem = |m: Option<f64>| m.map_or("n/a".to_string(), |m| format!("{m:.0} MiB"));
+        format!(
+            "sfsfuse run on {0}×{0} px synthetic products, {1} threads, halo {2} px\n  one tile:            {3:.2} s ({4:.2} s/MP), peak {5}\n  {6} tiles of {7} px:  {8:.2} s ({9:.2} s/MP), peak {10}\n  tiled / single:      {11:.2}×\n",
+            self.size,
+            self.threads,
+            self.halo,
+            self.single_seconds,
+            self.single_seconds_per_megapixel,
+            mem(self.single_peak_memory_mib),
+            self.tiles,
+            self.tile_size,
+            self.tiled_seconds,
+            self.tiled_seconds_per_megapixel,
+            mem(self.tiled_peak_memory_mib),
+            self.tiled_over_single
+        )
+    }
+}

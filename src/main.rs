@@ -163,6 +163,12 @@ enum Command {
         /// Sweep limit for the `paper` solver.
         #[arg(long, default_value_t = 20000)]
         paper_sweeps: usize,
+        /// Benchmark `sfsfuse run` instead: one tile against tiles of `--tile` px.
+        #[arg(long)]
+        pipeline: bool,
+        /// Tile size for `--pipeline`.
+        #[arg(long, default_value_t = 512)]
+        tile: usize,
         /// Print JSON instead of a table.
         #[arg(long)]
         json: bool,
@@ -352,8 +358,20 @@ fn run(cli: Cli) -> Result<(), sfsfuse::Error> {
         }
         Command::Bench {
             size,
+            json,
+            pipeline: true,
+            tile,
+            ..
+        } => {
+            let report = sfsfuse::bench::run_pipeline(size, tile)?;
+            emit(json, &report, report.table());
+        }
+        Command::Bench {
+            size,
             paper_sweeps,
             json,
+            pipeline: false,
+            ..
         } => {
             let report = sfsfuse::bench::run(size, paper_sweeps)?;
             emit(json, &report, report.table());
