@@ -381,20 +381,12 @@ impl GeoTiffDem {
                 path.display()
             )));
         };
-        if s.len() < 2 || t.len() < 6 || !(s[0] > 0.0 && s[1] > 0.0) {
-            return Err(Error::Usage(format!(
+        let geotransform = crate::export::geotransform_from(&s, &t).ok_or_else(|| {
+            Error::Usage(format!(
                 "{}: ModelPixelScale/ModelTiepoint are malformed",
                 path.display()
-            )));
-        }
-        let geotransform = [
-            t[3] - t[0] * s[0],
-            s[0],
-            0.0,
-            t[4] + t[1] * s[1],
-            0.0,
-            -s[1],
-        ];
+            ))
+        })?;
         let dir: Vec<u16> = d
             .find_tag(Tag::GeoKeyDirectoryTag)
             .map_err(bad)?

@@ -781,6 +781,22 @@ mod tests {
     }
 }
 
+/// GDAL's geotransform of a north-up GeoTIFF from ModelPixelScale (sx, sy, …) and one
+/// ModelTiepoint (i, j, k, x, y, z): (x − i·sx, sx, 0, y + j·sy, 0, −sy); `None` if either is
+/// too short or a scale is not positive.
+pub fn geotransform_from(scale: &[f64], tie: &[f64]) -> Option<[f64; 6]> {
+    (scale.len() >= 2 && tie.len() >= 6 && scale[0] > 0.0 && scale[1] > 0.0).then(|| {
+        [
+            tie[3] - tie[0] * scale[0],
+            scale[0],
+            0.0,
+            tie[4] + tie[1] * scale[1],
+            0.0,
+            -scale[1],
+        ]
+    })
+}
+
 /// A single-band raster read from a (Geo)TIFF, with its georeferencing where it has one.
 #[derive(Debug, Clone)]
 pub struct TiffRaster {
@@ -821,16 +837,7 @@ pub fn read_tiff(path: &Path) -> Result<TiffRaster> {
         (Some(s), Some(t)) => {
             let s = s.into_f64_vec().map_err(bad)?;
             let t = t.into_f64_vec().map_err(bad)?;
-            (s.len() >= 2 && t.len() >= 6).then(|| {
-                [
-                    t[3] - t[0] * s[0],
-                    s[0],
-                    0.0,
-                    t[4] + t[1] * s[1],
-                    0.0,
-                    -s[1],
-                ]
-            })
+            geotransform_from(&s, &t)
         }
         _ => None,
     };
