@@ -48,10 +48,8 @@ fn ldem4_on_its_own_grid_gives_its_own_heights() {
     }
 }
 
-#[test]
-fn antoniadi_is_the_deepest_point_of_a_local_grid() {
-    let Some(data) = shared_data() else { return };
-    let dem = LolaDem::open(&data.join("lola_ldem4/LDEM_4.LBL")).unwrap();
+/// A 2 km local stereographic grid over 180–195° E, 66–75° S, around crater Antoniadi.
+fn antoniadi_grid() -> (Grid, Crs) {
     let region = LonLatBox {
         lon_min: 180.0,
         lon_max: 195.0,
@@ -60,7 +58,14 @@ fn antoniadi_is_the_deepest_point_of_a_local_grid() {
     };
     let (lon_0, lat_0) = region.centre();
     let crs = Crs::Stereographic { lat_0, lon_0 };
-    let g = Grid::covering(crs, &region, 2000.0).unwrap();
+    (Grid::covering(crs, &region, 2000.0).unwrap(), crs)
+}
+
+#[test]
+fn antoniadi_is_the_deepest_point_of_a_local_grid() {
+    let Some(data) = shared_data() else { return };
+    let dem = LolaDem::open(&data.join("lola_ldem4/LDEM_4.LBL")).unwrap();
+    let (g, crs) = antoniadi_grid();
     let pr = crs.projector().unwrap();
     let geo = g.geographic(&pr);
     let h = lola_on_grid(&dem, &geo, Interpolation::Bicubic).unwrap();
@@ -276,15 +281,7 @@ fn geotiff_dems_resample_like_the_pds_product() {
         },
     )
     .unwrap();
-    let region = LonLatBox {
-        lon_min: 180.0,
-        lon_max: 195.0,
-        lat_min: -75.0,
-        lat_max: -66.0,
-    };
-    let (lon_0, lat_0) = region.centre();
-    let crs = Crs::Stereographic { lat_0, lon_0 };
-    let g = Grid::covering(crs, &region, 2000.0).unwrap();
+    let (g, crs) = antoniadi_grid();
     let geo = g.geographic(&crs.projector().unwrap());
     let want = lola_on_grid(&dem, &geo, Interpolation::Bicubic).unwrap();
     let mut files = vec![tif.clone()];

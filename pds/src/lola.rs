@@ -69,6 +69,19 @@ fn number(path: &Path, obj: &Object, key: &str) -> Result<f64> {
         .ok_or_else(|| Error::invalid(path, key, format!("{v:?} is not a number")))
 }
 
+/// `value` must be a positive, finite number; the error names the keyword and the value.
+fn positive(path: &Path, key: &str, value: f64, unit: &str) -> Result<()> {
+    if value.is_finite() && value > 0.0 {
+        Ok(())
+    } else {
+        Err(Error::invalid(
+            path,
+            key,
+            format!("{value}{unit} must be positive"),
+        ))
+    }
+}
+
 /// Convert a length with unit (km or m; none = `default_unit`) to metres.
 fn metres(path: &Path, obj: &Object, key: &str, default_unit: &str) -> Result<f64> {
     let v = obj.get(key).ok_or_else(|| Error::missing(path, key))?;
@@ -173,13 +186,7 @@ impl LolaDem {
             || kind.eq_ignore_ascii_case("EQUIRECTANGULAR")
         {
             let resolution = number(path, map, "MAP_RESOLUTION")?;
-            if !(resolution.is_finite() && resolution > 0.0) {
-                return Err(Error::invalid(
-                    path,
-                    "MAP_RESOLUTION",
-                    format!("{resolution} must be positive"),
-                ));
-            }
+            positive(path, "MAP_RESOLUTION", resolution, "")?;
             Projection::SimpleCylindrical {
                 resolution,
                 center_lat: number(path, map, "CENTER_LATITUDE")?,
@@ -208,13 +215,7 @@ impl LolaDem {
                     format!("{center_lon}: LOLA polar products have longitude 0 on the vertical axis; other orientations are not supported"),
                 ));
             }
-            if !(map_scale_m.is_finite() && map_scale_m > 0.0) {
-                return Err(Error::invalid(
-                    path,
-                    "MAP_SCALE",
-                    format!("{map_scale_m} m/pix must be positive"),
-                ));
-            }
+            positive(path, "MAP_SCALE", map_scale_m, " m/pix")?;
             Projection::PolarStereographic {
                 north,
                 scale_m: map_scale_m,
@@ -229,13 +230,7 @@ impl LolaDem {
                 format!("{kind} is not supported (simple cylindrical and polar stereographic are)"),
             ));
         };
-        if !(radius_m.is_finite() && radius_m > 0.0) {
-            return Err(Error::invalid(
-                path,
-                "A_AXIS_RADIUS",
-                format!("{radius_m} m must be positive"),
-            ));
-        }
+        positive(path, "A_AXIS_RADIUS", radius_m, " m")?;
         Ok(LolaDem {
             label_path: path.into(),
             map_scale_m,
