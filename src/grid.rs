@@ -491,6 +491,22 @@ fn keys(t: f64) -> f64 {
     }
 }
 
+/// Positions within this many pixels of a centre are taken to be on it.
+const NODE_TOLERANCE: f64 = 1e-9;
+
+/// Whole and fractional part of a position, with positions within [`NODE_TOLERANCE`] of a
+/// whole number snapped onto it: the support of an interpolation (and so whether it touches
+/// no-data) must not hinge on rounding, or one map pixel could be data on one window of a grid
+/// and no-data on another.
+fn split(x: f64) -> (isize, f64) {
+    let n = x.round();
+    if (x - n).abs() <= NODE_TOLERANCE {
+        (n as isize, 0.0)
+    } else {
+        (x.floor() as isize, x - x.floor())
+    }
+}
+
 /// Interpolate `src` at fractional (row, col) (centres at whole numbers). Columns wrap modulo
 /// `src.ncols()` when `wrap_cols` (a product spanning 360° of longitude); otherwise a support
 /// that leaves the raster, or touches a NaN, gives NaN (no data propagates, never invents).
@@ -505,9 +521,7 @@ pub fn interpolate(
         return f64::NAN;
     }
     let (nr, nc) = (src.nrows() as isize, src.ncols() as isize);
-    let (r0, c0) = (row.floor(), col.floor());
-    let (tr, tc) = (row - r0, col - c0);
-    let (r0, c0) = (r0 as isize, c0 as isize);
+    let ((r0, tr), (c0, tc)) = (split(row), split(col));
     let (lo, n) = match method {
         Interpolation::Bilinear => (0, 2),
         Interpolation::Bicubic => (-1, 4),
@@ -553,6 +567,20 @@ pub fn interpolate(
     acc
 }
 
+/// Tolerance, in grid pixels and in barycentric weight, for a grid pixel centre to count as
+/// inside a swath triangle.
+const EDGE_TOLERANCE: f64 = 1e-7;
+
+/// The grid indices `lo..=hi` (within `0..n`) between the least and greatest of three
+/// coordinates, widened by [`EDGE_TOLERANCE`]; `None` when no index falls in between.
+fn span(x: [f64; 3], n: usize) -> Option<(usize, usize)> {
+    let lo = (x[0].min(x[1]).min(x[2]) - EDGE_TOLERANCE).ceil().max(0.0);
+    let hi = (x[0].max(x[1]).max(x[2]) + EDGE_TOLERANCE)
+        .floor()
+        .min(n as f64 - 1.0);
+    (lo <= hi).then_some((lo as usize, hi as usize))
+}
+
 /// Where each grid pixel centre falls in a swath whose pixel (line, sample) centres are at map
 /// positions given by `lon`/`lat` (degrees, NaN = unknown): fractional (line, sample) per grid
 /// pixel, NaN outside the swath.
@@ -589,41 +617,24 @@ pub fn swath_positions(
         if v.iter().any(|p| !(p.0.is_finite() && p.1.is_finite())) {
             return;
         }
-        let rmin = v
-            .iter()
-            .map(|p| p.0)
-            .fold(f64::MAX, f64::min)
-            .ceil()
-            .max(0.0);
-        let rmax = v
-            .iter()
-            .map(|p| p.0)
-            .fold(f64::MIN, f64::max)
-            .floor()
-            .min(grid.rows as f64 - 1.0);
-        let cmin = v
-            .iter()
-            .map(|p| p.1)
-            .fold(f64::MAX, f64::min)
-            .ceil()
-            .max(0.0);
-        let cmax = v
-            .iter()
-            .map(|p| p.1)
-            .fold(f64::MIN, f64::max)
-            .floor()
-            .min(grid.cols as f64 - 1.0);
-        if rmin > rmax || cmin > cmax {
+        // The bounding box and the barycentric test share one tolerance, so a grid pixel
+        // centre on a triangle's edge or vertex (as when the swath and the grid share a
+        // lattice) is filled whatever rounding put it a hair outside: one pixel gets the same
+        // value on every window of the grid.
+        let (Some((rmin, rmax)), Some((cmin, cmax))) = (
+            span(v.map(|p| p.0), grid.rows),
+            span(v.map(|p| p.1), grid.cols),
+        ) else {
             return;
-        }
+        };
         let det = (v[1].1 - v[0].1) * (v[2].0 - v[0].0) - (v[2].1 - v[0].1) * (v[1].0 - v[0].0);
         if det.abs() < 1e-12 {
             return;
         }
         // Barycentric tolerance: points on a shared edge belong to both triangles.
-        let tol = -1e-9;
-        for r in rmin as usize..=rmax as usize {
-            for c in cmin as usize..=cmax as usize {
+        let tol = -EDGE_TOLERANCE;
+        for r in rmin..=rmax {
+            for c in cmin..=cmax {
                 let (y, x) = (r as f64, c as f64);
                 let b1 =
                     ((x - v[0].1) * (v[2].0 - v[0].0) - (v[2].1 - v[0].1) * (y - v[0].0)) / det;
@@ -651,6 +662,34 @@ pub fn swath_positions(
 #[cfg(test)]
 mod tests {
     use super::*;
+
+    /// A position a rounding error off a centre interpolates as the centre itself: its
+    /// support does not reach a no-data neighbour.
+    #[test]
+    fn positions_a_hair_off_a_centre_do_not_touch_no_data_beyond_it() {
+        let mut a = Array2::from_shape_fn((3, 3), |(i, j)| (i * 3 + j) as f64);
+        a[(1, 2)] = f64::NAN;
+        a[(2, 1)] = f64::NAN;
+        for m in [Interpolation::Bilinear, Interpolation::Bicubic] {
+            for (r, c) in [(1.0 + 1e-12, 1.0 + 1e-12), (1.0 - 1e-12, 1.0), (1.0, 1.0)] {
+                assert_eq!(interpolate(a.view(), r, c, m, false), 4.0, "({r}, {c})");
+            }
+            assert!(interpolate(a.view(), 1.0, 1.0 + 1e-6, m, false).is_nan());
+        }
+        assert_eq!(split(2.0 - 1e-12), (2, 0.0));
+        assert_eq!(split(-1e-12), (0, 0.0));
+        assert_eq!(split(0.25), (0, 0.25));
+    }
+
+    /// A grid centre on a triangle vertex or edge is filled even when rounding puts the
+    /// vertex a hair past it.
+    #[test]
+    fn swath_triangles_cover_grid_centres_on_their_edges() {
+        assert_eq!(span([3.0 + 1e-12, 5.5, 4.0], 10), Some((3, 5)));
+        assert_eq!(span([2.0, 3.0 - 1e-12, 2.5], 10), Some((2, 3)));
+        assert_eq!(span([2.2, 2.9, 2.5], 10), None);
+        assert_eq!(span([-1.0, 12.0, 3.0], 10), Some((0, 9)));
+    }
 
     #[test]
     fn keys_kernel_reproduces_quadratics_and_bilinear_planes() {
