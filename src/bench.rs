@@ -88,9 +88,11 @@ pub fn run(size: usize, paper_sweeps: usize) -> Result<BenchReport> {
     let base = FusionParams::default();
     let rho = initial_albedo(&scene.problem(), &base)?;
 
+    // Run to the energy's own stagnation, not to the default step criterion.
     let fast_params = FusionParams {
         max_iterations: 100,
         tolerance: 1e-9,
+        step_tolerance: 0.0,
         ..base.clone()
     };
     let fast = timed_solve(&scene, &fast_params, &rho)?;

@@ -50,6 +50,7 @@ fn paper_and_fast_solvers_reach_the_same_energy() {
     let fast = FusionParams {
         max_iterations: 200,
         tolerance: 1e-12,
+        step_tolerance: 0.0,
         cg_tolerance: 1e-6,
         cg_iterations: 500,
         ..base.clone()
@@ -150,4 +151,23 @@ fn bad_problems_are_reported() {
     };
     let e = fuse(&scene.problem(), &params).unwrap_err().to_string();
     assert!(e.contains("eta"), "{e}");
+    for (name, params) in [
+        (
+            "step_tolerance",
+            FusionParams {
+                step_tolerance: -0.01,
+                ..FusionParams::default()
+            },
+        ),
+        (
+            "curvature_residual",
+            FusionParams {
+                curvature_residual: f64::NAN,
+                ..FusionParams::default()
+            },
+        ),
+    ] {
+        let e = fuse(&scene.problem(), &params).unwrap_err().to_string();
+        assert!(e.contains(name), "{e}");
+    }
 }

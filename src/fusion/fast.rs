@@ -7,19 +7,29 @@ use super::{ops, FusionParams, IterationRecord};
 use crate::spectral;
 use ndarray::{Array2, ArrayView2, Zip};
 
-/// 2JᵀJ·v for the linearised photometric term, J v = a·D_x v + b·D_y v.
-fn data_normal(obj: &Objective, photo: &Photo, v: &Array2<f64>) -> Array2<f64> {
+/// (2JᵀJ + DᵀMD)·v for the photometric term, J v = a·D_x v + b·D_y v, M the per-pixel
+/// residual curvature of [`Objective::curvature`] acting on (D_x v, D_y v).
+fn data_normal(
+    obj: &Objective,
+    photo: &Photo,
+    curv: &Array2<[f64; 3]>,
+    v: &Array2<f64>,
+) -> Array2<f64> {
     let eps = obj.problem.spacing;
     let (vx, vy) = ops::gradient(v.view(), eps);
-    let mut jv = Array2::zeros(v.dim());
-    Zip::from(&mut jv)
+    let mut u = Array2::zeros(v.dim());
+    let mut w = Array2::zeros(v.dim());
+    Zip::indexed(&mut u)
+        .and(&mut w)
         .and(&photo.a)
         .and(&photo.b)
-        .and(&vx)
-        .and(&vy)
-        .par_for_each(|o, &a, &b, &x, &y| *o = 2.0 * (a * x + b * y));
-    let u = &jv * &photo.a;
-    let w = &jv * &photo.b;
+        .and(curv)
+        .par_for_each(|ij, u, w, &a, &b, m| {
+            let (x, y) = (vx[ij], vy[ij]);
+            let jv = 2.0 * (a * x + b * y);
+            *u = jv * a + m[0] * x + m[1] * y;
+            *w = jv * b + m[1] * x + m[2] * y;
+        });
     ops::gradient_adjoint(u.view(), w.view(), eps)
 }
 
@@ -32,13 +42,18 @@ fn mean_sq(a: &Array2<f64>) -> f64 {
 fn newton_step(
     obj: &Objective,
     photo: &Photo,
+    curv: &Array2<[f64; 3]>,
     hq: &Array2<f64>,
     g: &Array2<f64>,
     params: &FusionParams,
 ) -> (Array2<f64>, usize) {
     let (ny, nx) = g.dim();
     let e2 = obj.problem.spacing * obj.problem.spacing;
-    let (ax, ay) = (2.0 * mean_sq(&photo.a), 2.0 * mean_sq(&photo.b));
+    let n = curv.len() as f64;
+    let (mx, my) = curv
+        .iter()
+        .fold((0.0, 0.0), |(x, y), m| (x + m[0] / n, y + m[2] / n));
+    let (ax, ay) = (2.0 * mean_sq(&photo.a) + mx, 2.0 * mean_sq(&photo.b) + my);
     let cx = spectral::central_symbol(nx);
     let cy = spectral::central_symbol(ny);
     let mut minv = spectral::separable(&cy, &cx, |sy, sx| (ax * sx + ay * sy) / e2);
@@ -47,7 +62,7 @@ fn newton_step(
     minv[(0, 0)] = 0.0; // the mean height is fixed by the DEM
     let apply = |d: &Array2<f64>| {
         let v = obj.dct.inverse(d);
-        let mut out = obj.dct.forward(&data_normal(obj, photo, &v));
+        let mut out = obj.dct.forward(&data_normal(obj, photo, curv, &v));
         Zip::from(&mut out)
             .and(hq)
             .and(d)
@@ -103,7 +118,8 @@ pub fn minimise(
     ) = super::start(obj, z, rho, observe);
     for iteration in 1..=params.max_iterations {
         let g = obj.gradient(&zh, &photo);
-        let (step, inner) = newton_step(obj, &photo, &hq, &g, params);
+        let curv = obj.curvature(z.view(), rho, &photo, params.curvature_residual);
+        let (step, inner) = newton_step(obj, &photo, &curv, &hq, &g, params);
         let slope = ops::dot(g.view(), step.view());
         if slope >= 0.0 {
             break;
@@ -128,14 +144,16 @@ pub fn minimise(
             break;
         };
         let gain = (energy.total - ne.total) / energy.total.max(f64::MIN_POSITIVE);
+        let moved = t * ops::max_abs(step.view());
         (*z, photo, zh, energy) = (nz, np, nh, ne);
         observe(&energy);
         log.push(IterationRecord {
             iteration,
             energy,
             inner,
+            max_step: moved,
         });
-        if gain < params.tolerance {
+        if gain < params.tolerance || moved < params.step_tolerance * obj.problem.spacing {
             break;
         }
     }

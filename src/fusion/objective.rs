@@ -1,9 +1,11 @@
 //! The fusion energy as a function of the surface z (slopes dimensionless, z in metres):
 //!
 //! E(z) = E_I + δ·E_DEM + η·E_reg, with
-//! * E_I   = Σ_lit (I/Ī − R(p, q, ρ)/Ī)², (p, q) = central-difference gradient of z, summed over
-//!   pixels that are valid, not image-shadowed (I/Ī ≥ threshold) and lit by the model
-//!   (μ0 > 0, μ > 0);
+//! * E_I   = Σ_obs (I/Ī − R(p, q, ρ)/Ī)², (p, q) = central-difference gradient of z, summed over
+//!   the pixels observed lit: valid, not image-shadowed (I/Ī ≥ threshold) and seen by the
+//!   camera (μ > 0). R is continued through μ0 = 0
+//!   ([`ReflectanceModel::shade_observed`](crate::photometry::ReflectanceModel::shade_observed)),
+//!   so a surface turned away from the Sun at an observed-lit pixel is penalised, not dropped;
 //! * E_DEM = Σ ‖f_σ(∇ B z) − f_σ(∇ z_DEM)‖², f_σ the Gaussian low-pass of width σ_DEM, B the
 //!   input DEM's own point-spread (identity for the seed's plain term);
 //! * E_reg = Σ ‖∇(z − z_DEM)‖², the membrane regulariser (ALGORITHM.md).
@@ -131,7 +133,7 @@ impl<'a, 'p> Objective<'a, 'p> {
                 if !self.observed[(i, j)] {
                     return;
                 }
-                let sh = model.shade(
+                let sh = model.shade_observed(
                     p[(i, j)],
                     q[(i, j)],
                     rho[(i, j)],
@@ -146,6 +148,44 @@ impl<'a, 'p> Objective<'a, 'p> {
                 }
             });
         Photo { res, a, b, used }
+    }
+
+    /// The residual part of E_I's Hessian in (p, q) per pixel, −2r·∇²R/Ī, projected onto the
+    /// positive semi-definite matrices, as (xx, xy, yy); zero where the pixel is not used or
+    /// where |r| ≤ `min_residual`. Gauss–Newton drops this term, which is right where
+    /// residuals are small but converges only linearly (halving the error each step) where
+    /// the image is brighter than any slope can make R — there R sits at its maximum over the
+    /// slopes, ∂R/∂(p, q) = 0, and only this term sees the curvature. ∇²R is the central
+    /// difference of the analytic gradient over ±1e-5 in p and q.
+    pub fn curvature(
+        &self,
+        z: ArrayView2<f64>,
+        rho: ArrayView2<f64>,
+        photo: &Photo,
+        min_residual: f64,
+    ) -> Array2<[f64; 3]> {
+        let pr = self.problem;
+        let model: &dyn ReflectanceModel = pr.model;
+        let (p, q) = ops::gradient(z, pr.spacing);
+        let mut out = Array2::from_elem(z.dim(), [0.0; 3]);
+        let s = self.scale;
+        Zip::indexed(&mut out).par_for_each(|(i, j), m| {
+            let r = photo.res[(i, j)];
+            if !photo.used[(i, j)] || r.abs() <= min_residual {
+                return;
+            }
+            let h = 1e-5;
+            let (pp, qq, w) = (p[(i, j)], q[(i, j)], rho[(i, j)]);
+            let (sun, view) = (pr.sun.at(i, j), pr.view.at(i, j));
+            let at = |dp: f64, dq: f64| model.shade_observed(pp + dp, qq + dq, w, sun, view);
+            let (xp, xm, yp, ym) = (at(h, 0.0), at(-h, 0.0), at(0.0, h), at(0.0, -h));
+            let rxx = (xp.dr_dp - xm.dr_dp) / (2.0 * h);
+            let ryy = (yp.dr_dq - ym.dr_dq) / (2.0 * h);
+            let rxy = 0.25 * (xp.dr_dq - xm.dr_dq + yp.dr_dp - ym.dr_dp) / h;
+            let k = -2.0 * r / s;
+            *m = psd_part([k * rxx, k * rxy, k * ryy]);
+        });
+        out
     }
 
     /// The quadratic terms (E_DEM, E_reg) from the DCT coefficients ẑ.
@@ -217,6 +257,30 @@ impl<'a, 'p> Objective<'a, 'p> {
     }
 }
 
+/// The positive semi-definite part of the symmetric 2 × 2 matrix (xx, xy, yy): its negative
+/// eigenvalues set to 0.
+pub fn psd_part([a, b, c]: [f64; 3]) -> [f64; 3] {
+    let mean = 0.5 * (a + c);
+    let rad = (0.25 * (a - c) * (a - c) + b * b).sqrt();
+    let (l1, l2) = (mean + rad, mean - rad);
+    if l2 >= 0.0 {
+        return [a, b, c];
+    }
+    if l1 <= 0.0 {
+        return [0.0; 3];
+    }
+    // Only l1 > 0: l1·e·eᵀ with e its unit eigenvector.
+    let (ex, ey) = if b.abs() > 1e-300 {
+        (l1 - c, b)
+    } else if a >= c {
+        (1.0, 0.0)
+    } else {
+        (0.0, 1.0)
+    };
+    let n2 = ex * ex + ey * ey;
+    [l1 * ex * ex / n2, l1 * ex * ey / n2, l1 * ey * ey / n2]
+}
+
 #[cfg(test)]
 mod tests {
     use super::*;
@@ -271,5 +335,78 @@ mod tests {
                 g[(i, j)]
             );
         }
+    }
+
+    #[test]
+    fn psd_part_drops_negative_eigenvalues() {
+        let close = |a: [f64; 3], b: [f64; 3]| a.iter().zip(&b).all(|(x, y)| (x - y).abs() < 1e-12);
+        assert_eq!(psd_part([2.0, 0.5, 1.0]), [2.0, 0.5, 1.0]);
+        assert_eq!(psd_part([-2.0, 0.5, -1.0]), [0.0; 3]);
+        assert!(close(psd_part([2.0, 0.0, -1.0]), [2.0, 0.0, 0.0]));
+        assert!(close(psd_part([-1.0, 0.0, 3.0]), [0.0, 0.0, 3.0]));
+        // Eigenvalues 3 and −1, eigenvector (1, 1)/√2 for 3.
+        assert!(close(psd_part([1.0, 2.0, 1.0]), [1.5, 1.5, 1.5]));
+    }
+
+    /// Where the image is brighter than R can get (r > 0 near R's maximum over the slopes),
+    /// 2aaᵀ + M is the exact Hessian of the pixel's (I − R)²/Ī² in (p, q).
+    #[test]
+    fn curvature_completes_the_gauss_newton_hessian() {
+        use crate::photometry::Lambert;
+        let (ny, nx) = (5, 5);
+        let sun = crate::synth::direction(40.0, 90.0);
+        // A plane tilted most of the way towards the Sun: near R's maximum.
+        let (p0, q0) = (-0.8 * sun[0] / sun[2], 0.3);
+        let eps = 10.0;
+        let z = Array2::from_shape_fn((ny, nx), |(i, j)| p0 * eps * j as f64 - q0 * eps * i as f64);
+        let image = Array2::from_elem((ny, nx), 0.9);
+        let model = Lambert;
+        let pr = Problem {
+            image: image.view(),
+            dem: z.view(),
+            spacing: eps,
+            dem_psf_sigma: 0.0,
+            sun: Directions::Uniform(sun),
+            view: Directions::Uniform([0.0, 0.0, 1.0]),
+            model: &model,
+            intensity_scale: None,
+        };
+        let s = 0.7;
+        let obj = Objective::new(
+            &pr,
+            1.0,
+            0.1,
+            1.0,
+            0.0,
+            s,
+            Array2::from_elem((ny, nx), true),
+        );
+        let rho = Array2::from_elem((ny, nx), 0.6);
+        let photo = obj.photo(z.view(), rho.view());
+        let m = obj.curvature(z.view(), rho.view(), &photo, 0.0)[(2, 2)];
+        let (a, b) = (photo.a[(2, 2)], photo.b[(2, 2)]);
+        assert!(photo.res[(2, 2)] > 0.1, "the pixel must be brighter than R");
+        let e = |p: f64, q: f64| {
+            let r = (0.9 - model.shade_observed(p, q, 0.6, &sun, &[0.0, 0.0, 1.0]).r) / s;
+            r * r
+        };
+        let h = 1e-4;
+        let hxx = (e(p0 + h, q0) - 2.0 * e(p0, q0) + e(p0 - h, q0)) / (h * h);
+        let hyy = (e(p0, q0 + h) - 2.0 * e(p0, q0) + e(p0, q0 - h)) / (h * h);
+        let hxy = (e(p0 + h, q0 + h) - e(p0 + h, q0 - h) - e(p0 - h, q0 + h) + e(p0 - h, q0 - h))
+            / (4.0 * h * h);
+        for (got, want) in [
+            (2.0 * a * a + m[0], hxx),
+            (2.0 * a * b + m[1], hxy),
+            (2.0 * b * b + m[2], hyy),
+        ] {
+            assert!(
+                (got - want).abs() < 1e-5 * want.abs().max(1.0),
+                "{got} vs {want}"
+            );
+        }
+        // Below the residual threshold the term is left out.
+        let none = obj.curvature(z.view(), rho.view(), &photo, 1e9);
+        assert!(none.iter().all(|m| *m == [0.0; 3]));
     }
 }

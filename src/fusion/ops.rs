@@ -142,6 +142,11 @@ pub fn gradient_adjoint(u: ArrayView2<f64>, v: ArrayView2<f64>, eps: f64) -> Arr
     out
 }
 
+/// max |aᵢ| (0 for an empty array).
+pub fn max_abs(a: ArrayView2<f64>) -> f64 {
+    a.iter().fold(0.0, |m, x| m.max(x.abs()))
+}
+
 /// Σ of all elements, summed row by row in parallel and then in row order: the result does not
 /// depend on the number of threads.
 pub fn sum(a: ArrayView2<f64>) -> f64 {

@@ -59,6 +59,7 @@ pub fn minimise(
             iteration,
             energy,
             inner: 0,
+            max_step: tau * ops::max_abs(g.view()),
         });
         if gain < params.tolerance {
             break;

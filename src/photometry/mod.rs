@@ -81,22 +81,29 @@ pub struct Incidence {
 
 /// μ0, μ, cos g and their derivatives for gradients (p, q); `None` when μ0 ≤ 0 or μ ≤ 0.
 pub fn incidence(p: f64, q: f64, sun: &Vec3, view: &Vec3) -> Option<Incidence> {
+    let g = geometry(p, q, sun, view);
+    (g.cos.mu0 > 0.0 && g.cos.mu > 0.0).then_some(g)
+}
+
+/// μ0, μ, cos g and their derivatives for gradients (p, q), whatever their signs.
+fn geometry(p: f64, q: f64, sun: &Vec3, view: &Vec3) -> Incidence {
     let n2 = 1.0 + p * p + q * q;
     let n = n2.sqrt();
     let mu0 = (-p * sun[0] - q * sun[1] + sun[2]) / n;
     let mu = (-p * view[0] - q * view[1] + view[2]) / n;
-    if mu0 <= 0.0 || mu <= 0.0 {
-        return None;
-    }
     let cos_g = sun[0] * view[0] + sun[1] * view[1] + sun[2] * view[2];
-    Some(Incidence {
+    Incidence {
         cos: Cosines { mu0, mu, cos_g },
         dmu0_dp: -sun[0] / n - p * mu0 / n2,
         dmu0_dq: -sun[1] / n - q * mu0 / n2,
         dmu_dp: -view[0] / n - p * mu / n2,
         dmu_dq: -view[1] / n - q * mu / n2,
-    })
+    }
 }
+
+/// The incidence cosine below which [`ReflectanceModel::shade_observed`] continues R linearly
+/// (incidence 89.4°).
+pub const MU0_FLOOR: f64 = 0.01;
 
 /// A photometric model: reflectance as a function of albedo and the cosines of i, e, g.
 pub trait ReflectanceModel: Send + Sync + std::fmt::Debug {
@@ -119,6 +126,43 @@ pub trait ReflectanceModel: Send + Sync + std::fmt::Debug {
                     lit: true,
                 }
             }
+        }
+    }
+
+    /// R, ∂R/∂p, ∂R/∂q at a pixel the camera saw lit. Where the surface would face away from
+    /// the Sun, R is not 0 but continues through μ0 = 0 as
+    /// R(μ0, μ) = R(μ0_f, μ)·μ0/μ0_f for μ0 < μ0_f = [`MU0_FLOOR`]
+    /// (exact for Lambert, to first order in μ0 for Hapke and the metallic lobes), so such a
+    /// surface contradicts the observation with a residual that grows as it turns further away
+    /// and a gradient that turns it back; dropping the pixel instead would let a solver park it
+    /// in self-shadow at no cost. `lit` is false only where μ ≤ 0 (unseen by the camera).
+    fn shade_observed(&self, p: f64, q: f64, albedo: f64, sun: &Vec3, view: &Vec3) -> Shade {
+        let g = geometry(p, q, sun, view);
+        if g.cos.mu <= 0.0 {
+            return Shade::DARK;
+        }
+        if g.cos.mu0 >= MU0_FLOOR {
+            let r = self.reflectance(albedo, &g.cos);
+            return Shade {
+                r: r.r,
+                dr_dp: r.dr_dmu0 * g.dmu0_dp + r.dr_dmu * g.dmu_dp,
+                dr_dq: r.dr_dmu0 * g.dmu0_dq + r.dr_dmu * g.dmu_dq,
+                lit: true,
+            };
+        }
+        let floor = Cosines {
+            mu0: MU0_FLOOR,
+            ..g.cos
+        };
+        let r = self.reflectance(albedo, &floor);
+        let t = g.cos.mu0 / MU0_FLOOR;
+        let dr_dmu0 = r.r / MU0_FLOOR;
+        let dr_dmu = r.dr_dmu * t;
+        Shade {
+            r: r.r * t,
+            dr_dp: dr_dmu0 * g.dmu0_dp + dr_dmu * g.dmu_dp,
+            dr_dq: dr_dmu0 * g.dmu0_dq + dr_dmu * g.dmu_dq,
+            lit: true,
         }
     }
 
@@ -252,6 +296,83 @@ mod tests {
                 assert!((a.dr_dq - nq).abs() < 1e-7, "{m:?} q {} {nq}", a.dr_dq);
             }
         }
+    }
+
+    /// `shade_observed` is `shade` where the Sun is above μ0_f; below it, its derivatives are
+    /// those of the value it returns, it is continuous at μ0_f, it keeps falling as the surface
+    /// turns away from the Sun (so I − R keeps growing), and for Lambert it is ρ·μ0 exactly.
+    #[test]
+    fn observed_shading_continues_through_the_terminator() {
+        let s = [60f64.to_radians().sin(), 0.0, 60f64.to_radians().cos()];
+        let v = [0.03, 0.01, (1.0f64 - 0.03 * 0.03 - 0.01 * 0.01).sqrt()];
+        let hapke = Hapke::moon();
+        let models: [&dyn ReflectanceModel; 3] = [&Lambert, &Metallic::cast_iron(), &hapke];
+        // μ0 = 0 at p = tan 30° ≈ 0.577.
+        let p_floor = |q: f64| {
+            // Solve μ0(p, q) = μ0_f for p by bisection on the Sun-facing side.
+            let (mut lo, mut hi) = (0.0, 1.0);
+            for _ in 0..200 {
+                let mid = 0.5 * (lo + hi);
+                if incidence(mid, q, &s, &v).is_some_and(|g| g.cos.mu0 > MU0_FLOOR) {
+                    lo = mid;
+                } else {
+                    hi = mid;
+                }
+            }
+            lo
+        };
+        for m in models {
+            let lit = m.shade(0.2, 0.1, 0.6, &s, &v);
+            assert_eq!(m.shade_observed(0.2, 0.1, 0.6, &s, &v), lit, "{m:?}");
+            let pf = p_floor(0.1);
+            let (below, above) = (
+                m.shade_observed(pf + 1e-9, 0.1, 0.6, &s, &v),
+                m.shade_observed(pf - 1e-9, 0.1, 0.6, &s, &v),
+            );
+            // A step of 2e-9 in p moves R by |∂R/∂p|·2e-9 < 1e-8: a jump would be far more.
+            assert!(
+                (below.r - above.r).abs() < 1e-8,
+                "{m:?}: {} vs {}",
+                below.r,
+                above.r
+            );
+            let mut last = f64::INFINITY;
+            for p in [0.5, 0.58, 0.7, 1.0, 1.5] {
+                let a = m.shade_observed(p, 0.1, 0.6, &s, &v);
+                assert!(
+                    a.lit && a.r < last,
+                    "{m:?} at p = {p}: {} after {last}",
+                    a.r
+                );
+                last = a.r;
+                let h = 1e-6;
+                let f = |p, q| m.shade_observed(p, q, 0.6, &s, &v).r;
+                let np = (f(p + h, 0.1) - f(p - h, 0.1)) / (2.0 * h);
+                let nq = (f(p, 0.1 + h) - f(p, 0.1 - h)) / (2.0 * h);
+                assert!(
+                    (a.dr_dp - np).abs() < 1e-6,
+                    "{m:?} p = {p}: {} {np}",
+                    a.dr_dp
+                );
+                assert!(
+                    (a.dr_dq - nq).abs() < 1e-6,
+                    "{m:?} p = {p}: {} {nq}",
+                    a.dr_dq
+                );
+            }
+            assert!(
+                last < 0.0,
+                "{m:?}: R = {last} on a slope facing away from the Sun"
+            );
+        }
+        for p in [0.7, 1.5] {
+            let n = (1.0f64 + p * p + 0.01).sqrt();
+            let mu0 = (-p * s[0] - 0.1 * s[1] + s[2]) / n;
+            let r = Lambert.shade_observed(p, 0.1, 0.6, &s, &v).r;
+            assert!((r - 0.6 * mu0).abs() < 1e-15, "{r} vs {}", 0.6 * mu0);
+        }
+        // Unseen by the camera: no information, as with `shade`.
+        assert!(!Lambert.shade_observed(40.0, 0.0, 0.6, &s, &v).lit);
     }
 
     #[test]
