@@ -1,6 +1,8 @@
-//! The fast z-solver: Gauss–Newton on E(z) with R linearised in (z_x, z_y), each step solved by
-//! conjugate gradients in the DCT basis, preconditioned by the DCT-diagonal operator
-//! (ALGORITHM.md route 3), with a backtracking line search on the true energy.
+//! The fast z-solver: Gauss–Newton on E(z) with R linearised in (z_x, z_y) — plus the residual
+//! curvature at pixels with large |I − R| — each step solved by conjugate gradients in the DCT
+//! basis, preconditioned by the DCT-diagonal operator (ALGORITHM.md route 3), with a
+//! backtracking line search on the true energy. A stage ends when no height moves by more than
+//! `step_tolerance` × ε in a step (or E stagnates, or `max_iterations`).
 
 use super::objective::{Energy, Iterate, Objective, Photo};
 use super::{ops, FusionParams, IterationRecord};
