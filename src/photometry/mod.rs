@@ -79,6 +79,18 @@ pub struct Incidence {
     pub dmu_dq: f64,
 }
 
+impl Incidence {
+    /// R and its μ0, μ partials at this geometry, chained to R, ∂R/∂p, ∂R/∂q.
+    fn shade(&self, r: ReflectanceCos) -> Shade {
+        Shade {
+            r: r.r,
+            dr_dp: r.dr_dmu0 * self.dmu0_dp + r.dr_dmu * self.dmu_dp,
+            dr_dq: r.dr_dmu0 * self.dmu0_dq + r.dr_dmu * self.dmu_dq,
+            lit: true,
+        }
+    }
+}
+
 /// μ0, μ, cos g and their derivatives for gradients (p, q); `None` when μ0 ≤ 0 or μ ≤ 0.
 pub fn incidence(p: f64, q: f64, sun: &Vec3, view: &Vec3) -> Option<Incidence> {
     let g = geometry(p, q, sun, view);
@@ -117,15 +129,7 @@ pub trait ReflectanceModel: Send + Sync + std::fmt::Debug {
     fn shade(&self, p: f64, q: f64, albedo: f64, sun: &Vec3, view: &Vec3) -> Shade {
         match incidence(p, q, sun, view) {
             None => Shade::DARK,
-            Some(g) => {
-                let r = self.reflectance(albedo, &g.cos);
-                Shade {
-                    r: r.r,
-                    dr_dp: r.dr_dmu0 * g.dmu0_dp + r.dr_dmu * g.dmu_dp,
-                    dr_dq: r.dr_dmu0 * g.dmu0_dq + r.dr_dmu * g.dmu_dq,
-                    lit: true,
-                }
-            }
+            Some(g) => g.shade(self.reflectance(albedo, &g.cos)),
         }
     }
 
@@ -142,13 +146,7 @@ pub trait ReflectanceModel: Send + Sync + std::fmt::Debug {
             return Shade::DARK;
         }
         if g.cos.mu0 >= MU0_FLOOR {
-            let r = self.reflectance(albedo, &g.cos);
-            return Shade {
-                r: r.r,
-                dr_dp: r.dr_dmu0 * g.dmu0_dp + r.dr_dmu * g.dmu_dp,
-                dr_dq: r.dr_dmu0 * g.dmu0_dq + r.dr_dmu * g.dmu_dq,
-                lit: true,
-            };
+            return g.shade(self.reflectance(albedo, &g.cos));
         }
         let floor = Cosines {
             mu0: MU0_FLOOR,
@@ -156,14 +154,11 @@ pub trait ReflectanceModel: Send + Sync + std::fmt::Debug {
         };
         let r = self.reflectance(albedo, &floor);
         let t = g.cos.mu0 / MU0_FLOOR;
-        let dr_dmu0 = r.r / MU0_FLOOR;
-        let dr_dmu = r.dr_dmu * t;
-        Shade {
+        g.shade(ReflectanceCos {
             r: r.r * t,
-            dr_dp: dr_dmu0 * g.dmu0_dp + dr_dmu * g.dmu_dp,
-            dr_dq: dr_dmu0 * g.dmu0_dq + dr_dmu * g.dmu_dq,
-            lit: true,
-        }
+            dr_dmu0: r.r / MU0_FLOOR,
+            dr_dmu: r.dr_dmu * t,
+        })
     }
 
     /// The pixel-wise albedo inversion for a surface of gradient (p, q).
