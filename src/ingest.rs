@@ -25,8 +25,8 @@ const SCAN_LINES: usize = 1024;
 /// An image with its illumination geometry on a grid.
 #[derive(Debug, Clone)]
 pub struct ImageOnGrid {
-    /// Bidirectional reflectance, sr⁻¹; NaN outside the swath or where the radiance is not
-    /// physical (≤ 0 or not finite).
+    /// Bidirectional reflectance, sr⁻¹; 0 where dark (radiance ≤ 0 within noise); NaN
+    /// outside the swath or where [`check_pixel`] refuses the pixel.
     pub reflectance: Array2<f64>,
     /// Unit vectors to the Sun and to the camera in the grid frame; NaN outside the swath.
     pub sun: Array2<Vec3>,
@@ -89,10 +89,145 @@ pub struct Survey {
     pub index: SwathIndex,
     pub sum: f64,
     pub count: usize,
+    /// Swath pixels that fall on the grid, usable or not.
+    pub on_grid: usize,
+    /// Of those, how many [`check_pixel`] refused, by cause.
+    pub refused: Refusals,
 }
 
+/// Why swath pixels were refused as photometric ([`check_pixel`]).
+#[derive(Debug, Clone, Copy, Default, PartialEq, Eq, serde::Serialize, serde::Deserialize)]
+pub struct Refusals {
+    /// Dark: radiance ≤ 0 but within noise of it (reflectance ≥ [`DARK_FLOOR`]); kept as 0,
+    /// part of the image's footprint (cast shadow) but not photometric.
+    pub dark: usize,
+    /// Radiance NaN, below [`DARK_FLOOR`] or above [`MAX_REFLECTANCE`] as reflectance.
+    pub radiance: usize,
+    /// OBS puts the Sun at or below the local horizon (to-Sun zenith ≥ 90°).
+    pub sun_below_horizon: usize,
+    /// OBS puts M3 at or below the local horizon (to-M3 zenith ≥ 90°).
+    pub view_below_horizon: usize,
+    /// OBS phase disagrees with the angle between the Sun and M3 vectors by more than
+    /// [`MAX_PHASE_MISMATCH_DEG`], or the geometry is not finite.
+    pub geometry: usize,
+}
+
+impl Refusals {
+    fn add(&mut self, c: Cause) {
+        match c {
+            Cause::Ok => {}
+            Cause::Dark => self.dark += 1,
+            Cause::Radiance => self.radiance += 1,
+            Cause::SunBelow => self.sun_below_horizon += 1,
+            Cause::ViewBelow => self.view_below_horizon += 1,
+            Cause::Geometry => self.geometry += 1,
+        }
+    }
+
+    pub fn total(&self) -> usize {
+        self.dark + self.radiance + self.sun_below_horizon + self.view_below_horizon + self.geometry
+    }
+
+    /// The causes with their counts, largest first, for messages.
+    pub fn describe(&self) -> String {
+        let mut v = [
+            (self.dark, "radiance ≤ 0 (dark, shadow)"),
+            (
+                self.radiance,
+                "radiance NaN, negative beyond noise, or above the physical bound",
+            ),
+            (
+                self.sun_below_horizon,
+                "Sun at or below the local horizon in OBS",
+            ),
+            (
+                self.view_below_horizon,
+                "M3 at or below the local horizon in OBS",
+            ),
+            (
+                self.geometry,
+                "OBS phase inconsistent with its Sun and M3 directions",
+            ),
+        ];
+        v.sort_by_key(|x| std::cmp::Reverse(x.0));
+        v.iter()
+            .filter(|(n, _)| *n > 0)
+            .map(|(n, why)| format!("{n} px: {why}"))
+            .collect::<Vec<_>>()
+            .join("; ")
+    }
+}
+
+/// Reflectance above which a radiance is not physical: r = 1.5/π sr⁻¹ (I/F = 1.5; the
+/// brightest lunar surfaces stay below I/F ≈ 0.6 at 1.2 µm, a perfect Lambertian reflector
+/// lit from the zenith has I/F = 1).
+pub const MAX_REFLECTANCE: f64 = 1.5 / std::f64::consts::PI;
+/// Reflectance (sr⁻¹) down to which a radiance ≤ 0 is read as dark (cast shadow plus noise and
+/// dark-level error: I/F ≥ −0.06, ten times M3's noise at 1.2 µm); below it the radiance is
+/// not a measurement (the `linerateNotConstant` crop has −368 W/(m² µm sr), I/F ≈ −2.4).
+pub const DARK_FLOOR: f64 = -0.02;
+/// Largest accepted difference between OBS phase (band 5) and the angle between OBS's Sun and
+/// M3 directions (bands 1–4), degrees. They agree to 1e-5° on real products.
+pub const MAX_PHASE_MISMATCH_DEG: f64 = 1.0;
+
+/// Why one swath pixel cannot be photometric.
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub enum Cause {
+    Ok,
+    Dark,
+    Radiance,
+    SunBelow,
+    ViewBelow,
+    Geometry,
+}
+
+/// The guard rails of one swath pixel: reflectance `r` (sr⁻¹, from the radiance), OBS to-Sun
+/// azimuth/zenith, to-M3 azimuth/zenith and phase, degrees. A pixel is photometric only
+/// where the radiance is finite, positive and below [`MAX_REFLECTANCE`], the Sun and M3 are
+/// above the local horizon, and the phase matches the two directions within
+/// [`MAX_PHASE_MISMATCH_DEG`]. With a sound geometry, a reflectance in
+/// [`DARK_FLOOR`], 0] is [`Cause::Dark`]: seen, but in shadow.
+pub fn check_pixel(
+    r: f64,
+    sun_az: f64,
+    sun_zen: f64,
+    view_az: f64,
+    view_zen: f64,
+    phase: f64,
+) -> Cause {
+    if !(r.is_finite() && (DARK_FLOOR..=MAX_REFLECTANCE).contains(&r)) {
+        return Cause::Radiance;
+    }
+    if ![sun_az, sun_zen, view_az, view_zen, phase]
+        .iter()
+        .all(|v| v.is_finite())
+    {
+        return Cause::Geometry;
+    }
+    if sun_zen >= 90.0 {
+        return Cause::SunBelow;
+    }
+    if view_zen >= 90.0 {
+        return Cause::ViewBelow;
+    }
+    let (s, v) = (direction(sun_zen, sun_az), direction(view_zen, view_az));
+    let cos = (s[0] * v[0] + s[1] * v[1] + s[2] * v[2]).clamp(-1.0, 1.0);
+    if (cos.acos().to_degrees() - phase).abs() > MAX_PHASE_MISMATCH_DEG {
+        return Cause::Geometry;
+    }
+    if r <= 0.0 {
+        return Cause::Dark;
+    }
+    Cause::Ok
+}
+
+/// What [`reflectance_lines`] returns: reflectance, the two bands blended, the irradiance
+/// used and each pixel's [`Cause`].
+type Lines = (Array2<f64>, (usize, usize), f64, Array2<Cause>);
+
 /// Reflectance at `nm` of lines `first..first + n`: r = L·d²/E, L blended linearly between the
-/// two bands around `nm`, d = SOLAR_DISTANCE + OBS band 6; NaN where L ≤ 0 or not finite.
+/// two bands around `nm`, d = SOLAR_DISTANCE + OBS band 6; NaN where [`check_pixel`] refuses
+/// the pixel, whose cause is returned per pixel too.
 fn reflectance_lines(
     obs: &Observation,
     obsr: &pds::raw::Raster,
@@ -100,7 +235,7 @@ fn reflectance_lines(
     nm: f64,
     first: usize,
     n: usize,
-) -> Result<(Array2<f64>, (usize, usize), f64)> {
+) -> Result<Lines> {
     let bracket = obs.bracket(nm)?;
     let (lo, up, w) = if bracket.weight_upper >= 1.0 {
         (bracket.upper, bracket.upper, 0.0)
@@ -121,18 +256,31 @@ fn reflectance_lines(
     })?;
     let d_off = read2(obsr, 5, first, n)?;
     let d0 = obs.solar_distance_au;
-    let refl = Zip::from(&l_lo)
-        .and(&l_up)
-        .and(&d_off)
-        .map_collect(|&a, &b, &dd| {
-            let l = (1.0 - w) * a + w * b;
-            if l.is_finite() && l > 0.0 && dd.is_finite() {
+    let geo: Vec<Array2<f64>> = (0..5)
+        .map(|b| read2(obsr, b, first, n))
+        .collect::<Result<_>>()?;
+    let mut refl = Array2::from_elem((n, obs.rdn.samples), f64::NAN);
+    let mut cause = Array2::from_elem((n, obs.rdn.samples), Cause::Ok);
+    Zip::indexed(&mut refl)
+        .and(&mut cause)
+        .for_each(|ij, r, c| {
+            let l = (1.0 - w) * l_lo[ij] + w * l_up[ij];
+            let dd = d_off[ij];
+            let v = if l.is_finite() && dd.is_finite() {
                 reflectance(l, d0 + dd, e)
             } else {
                 f64::NAN
+            };
+            *c = check_pixel(
+                v, geo[0][ij], geo[1][ij], geo[2][ij], geo[3][ij], geo[4][ij],
+            );
+            match *c {
+                Cause::Ok => *r = v,
+                Cause::Dark => *r = 0.0,
+                _ => {}
             }
         });
-    Ok((refl, (lo, up), e))
+    Ok((refl, (lo, up), e, cause))
 }
 
 /// The parts of an observation, checked to match the radiance cube.
@@ -161,14 +309,15 @@ pub fn survey(
     let (loc, obsr) = parts(obs)?;
     let mut boxes = Vec::with_capacity(loc.lines.div_ceil(INDEX_BLOCK));
     let (mut sum, mut count) = (0.0, 0usize);
+    let (mut on_grid_count, mut refused) = (0usize, Refusals::default());
     for start in (0..loc.lines).step_by(INDEX_BLOCK) {
         let n = INDEX_BLOCK.min(loc.lines - start);
         let lon = loc.read_band(0, start, n)?;
         let lat = loc.read_band(1, start, n)?;
-        let (refl, _, _) = reflectance_lines(obs, &obsr, solar, nm, start, n)?;
+        let (refl, _, _, cause) = reflectance_lines(obs, &obsr, solar, nm, start, n)?;
         let mut b = [f64::MAX, f64::MIN, f64::MAX, f64::MIN];
         let mut any = false;
-        for ((&lo, &la), &r) in lon.iter().zip(&lat).zip(refl.iter()) {
+        for (((&lo, &la), &r), &c) in lon.iter().zip(&lat).zip(refl.iter()).zip(cause.iter()) {
             let Some((x, y)) = pr.forward(lo, la) else {
                 continue;
             };
@@ -179,9 +328,13 @@ pub fn survey(
                 && gc >= -0.5
                 && gr < grid.rows as f64 - 0.5
                 && gc < grid.cols as f64 - 0.5;
-            if on_grid && r.is_finite() && r > 0.0 {
-                sum += r;
-                count += 1;
+            if on_grid {
+                on_grid_count += 1;
+                refused.add(c);
+                if c == Cause::Ok {
+                    sum += r;
+                    count += 1;
+                }
             }
         }
         boxes.push(any.then_some(b));
@@ -193,6 +346,8 @@ pub fn survey(
         },
         sum,
         count,
+        on_grid: on_grid_count,
+        refused,
     })
 }
 
@@ -222,7 +377,7 @@ pub fn m3_on_grid(
     let n = end - first;
     let lon = read2(&loc, 0, first, n)?;
     let lat = read2(&loc, 1, first, n)?;
-    let (refl, (lo, up), e) = reflectance_lines(obs, &obsr, solar, nm, first, n)?;
+    let (refl, (lo, up), e, _) = reflectance_lines(obs, &obsr, solar, nm, first, n)?;
     let enu = |az: &Array2<f64>, zen: &Array2<f64>| -> [Array2<f64>; 3] {
         let v = Zip::from(az).and(zen).map_collect(|&a, &z| direction(z, a));
         [v.map(|u| u[0]), v.map(|u| u[1]), v.map(|u| u[2])]

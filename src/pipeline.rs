@@ -64,20 +64,23 @@ impl Inputs {
             crate::fetch::fetch(&f.products, &f.directory, &f.sources, progress)?;
             progress.finish();
         }
+        let obs: Vec<Observation> = o
+            .inputs
+            .m3
+            .iter()
+            .map(|p| Observation::open(p))
+            .collect::<std::result::Result<_, _>>()?;
+        let solar = SolarSpectrum::read(&o.inputs.solar_spectrum)?;
+        check_solar_mode(&solar, &obs)?;
         Ok(Inputs {
-            obs: o
-                .inputs
-                .m3
-                .iter()
-                .map(|p| Observation::open(p))
-                .collect::<std::result::Result<_, _>>()?,
+            obs,
             lola: o
                 .inputs
                 .lola
                 .iter()
                 .map(|p| Dem::open(p))
                 .collect::<Result<_>>()?,
-            solar: SolarSpectrum::read(&o.inputs.solar_spectrum)?,
+            solar,
             model: o.photometry.build(),
         })
     }
@@ -102,6 +105,34 @@ impl Inputs {
         v.dedup();
         Ok(v)
     }
+}
+
+/// The solar table must follow the observations' band sampling: M3's GLOBAL and TARGET modes
+/// have different bands, and a table of the other mode gives the wrong irradiance for the
+/// band (its band passes differ) without any other sign.
+fn check_solar_mode(solar: &SolarSpectrum, obs: &[Observation]) -> Result<()> {
+    let Some(table) = solar.mode() else {
+        return Ok(());
+    };
+    let name = |m: pds::m3::Mode| match m {
+        pds::m3::Mode::Global => "GLOBAL",
+        pds::m3::Mode::Target => "TARGET",
+    };
+    for o in obs {
+        if o.mode != table {
+            return Err(Error::Usage(format!(
+                "{} is a {}-mode solar spectrum table ({} rows) but {} has INSTRUMENT_MODE_ID = {}: give [inputs] solar_spectrum the {} table (M3{}20110224_RFL_SOLAR_SPEC.TAB)",
+                solar.path.display(),
+                name(table),
+                solar.rows.len(),
+                o.label_path.display(),
+                name(o.mode),
+                name(o.mode),
+                if o.mode == pds::m3::Mode::Global { "G" } else { "T" }
+            )));
+        }
+    }
+    Ok(())
 }
 
 /// An input DEM: a LOLA GDR (PDS3 label) or a GeoTIFF on the Moon sphere.
@@ -143,7 +174,52 @@ impl Dem {
             Dem::GeoTiff(d) => d.pixel_m(),
         }
     }
+
+    /// The spacing of the independent heights behind the DEM at latitude `lat` (degrees), and
+    /// why. A LOLA-only GDR (`LDEM_*`) is gridded from altimeter tracks and interpolated
+    /// between them: where its pixels are finer than the gaps between tracks, MAP_SCALE
+    /// overstates its resolution. The gaps are about [`LOLA_TRACK_GAP_M`] at the equator and
+    /// shrink with cos(latitude) as the polar orbits converge. Other DEMs (SLDEM2015, merged
+    /// with stereo and not interpolated; GeoTIFFs) are taken at their pixel size.
+    fn effective_resolution(&self, lat: f64) -> (f64, String) {
+        let pixel = self.pixel_m();
+        let Dem::Pds(d) = self else {
+            return (pixel, "GeoTIFF pixel size".into());
+        };
+        let id = d
+            .label
+            .get("PRODUCT_ID")
+            .and_then(|v| v.as_str())
+            .map(str::to_string)
+            .or_else(|| {
+                d.label_path
+                    .file_stem()
+                    .map(|s| s.to_string_lossy().into_owned())
+            })
+            .unwrap_or_default()
+            .to_ascii_uppercase();
+        if !id.starts_with("LDEM") {
+            return (pixel, format!("{id}: MAP_SCALE"));
+        }
+        let gap = LOLA_TRACK_GAP_M * lat.to_radians().cos().abs();
+        if gap > pixel {
+            (
+                gap,
+                format!("{id}: LOLA track gap {LOLA_TRACK_GAP_M} m × cos(latitude {lat:.2}°), coarser than MAP_SCALE {pixel:.1} m"),
+            )
+        } else {
+            (
+                pixel,
+                format!("{id}: MAP_SCALE (coarser than the LOLA track gap {gap:.0} m)"),
+            )
+        }
+    }
 }
+
+/// Typical gap between LOLA ground tracks at the equator, metres: after years of polar orbits
+/// the tracks still leave kilometre-scale gaps at low latitudes that gridded products fill by
+/// interpolation (docs/science.md, "The DEM's effective resolution").
+pub const LOLA_TRACK_GAP_M: f64 = 1000.0;
 
 /// The plan of an orbital run (see the module documentation).
 #[derive(Debug, Clone, Serialize, Deserialize)]
@@ -161,6 +237,12 @@ pub struct Plan {
     pub intensity_pixels: usize,
     /// σ of the input DEM's point spread on the grid, pixels.
     pub dem_psf_sigma: f64,
+    /// The first DEM's effective resolution, metres, and where it came from.
+    pub dem_resolution_m: f64,
+    pub dem_resolution_source: String,
+    /// σ_DEM the tiles solve with, pixels (`[solver] sigma_dem`, or from the DEM's effective
+    /// resolution).
+    pub sigma_dem: f64,
     /// One per M3 observation, in input order.
     pub swaths: Vec<SwathIndex>,
 }
@@ -176,9 +258,185 @@ pub struct TileRecord {
     /// then keeps the input DEM).
     pub status: String,
     pub photometric_pixels: usize,
+    /// Sums behind the run's sanity figures, over the core's pixels.
+    #[serde(default)]
+    pub sanity: SanitySums,
     pub iterations: usize,
     pub seconds: f64,
     pub stages: Vec<StageReport>,
+}
+
+/// Sums over pixels behind [`Sanity`]; they add across tiles.
+#[derive(Debug, Clone, Default, PartialEq, Serialize, Deserialize)]
+pub struct SanitySums {
+    pub pixels: usize,
+    pub photometric: usize,
+    /// (count, Σ(dem − input)², max |dem − input|) on the image's footprint, in the
+    /// transition band around it (0 < s, off the footprint) and beyond (s = 0).
+    pub change: [(usize, f64, f64); 3],
+    /// Over photometric pixels: n, ΣI, ΣI², and for the image rendered from the input DEM and
+    /// from the fused DEM (same albedo) ΣR, ΣR², ΣIR.
+    pub corr: [f64; 9],
+}
+
+impl SanitySums {
+    /// Sums over the `core` window of a tile solved on its ext window.
+    fn of_tile(
+        problem: &Problem,
+        f: &fusion::Fusion,
+        fused: &Array2<f64>,
+        core: (usize, usize, usize, usize),
+    ) -> SanitySums {
+        let (r0, r1, c0, c1) = core;
+        fn win<'v>(
+            a: ndarray::ArrayView2<'v, f64>,
+            (r0, r1, c0, c1): (usize, usize, usize, usize),
+        ) -> ndarray::ArrayView2<'v, f64> {
+            a.slice_move(ndarray::s![r0..r1, c0..c1])
+        }
+        let r_in = fusion::render(problem, problem.dem, f.albedo.view());
+        let r_out = fusion::render(problem, fused.view(), f.albedo.view());
+        let mut s = SanitySums::default();
+        let image = win(problem.image, core);
+        let support = win(f.support.view(), core);
+        let dem = win(problem.dem, core);
+        let phot = f.photometric.slice(ndarray::s![r0..r1, c0..c1]);
+        for (((((&i, &sup), &d), &z), &ph), (&a, &b)) in image
+            .iter()
+            .zip(support.iter())
+            .zip(dem.iter())
+            .zip(win(fused.view(), core).iter())
+            .zip(phot.iter())
+            .zip(
+                win(r_in.view(), core)
+                    .iter()
+                    .zip(win(r_out.view(), core).iter()),
+            )
+        {
+            s.pixels += 1;
+            let class = if i.is_finite() {
+                0
+            } else if sup > 0.0 {
+                1
+            } else {
+                2
+            };
+            let dz = z - d;
+            let c = &mut s.change[class];
+            (c.0, c.1, c.2) = (c.0 + 1, c.1 + dz * dz, c.2.max(dz.abs()));
+            if ph {
+                s.photometric += 1;
+                for (k, v) in [1.0, i, i * i, a, a * a, i * a, b, b * b, i * b]
+                    .into_iter()
+                    .enumerate()
+                {
+                    s.corr[k] += v;
+                }
+            }
+        }
+        s
+    }
+
+    fn add(&mut self, o: &SanitySums) {
+        self.pixels += o.pixels;
+        self.photometric += o.photometric;
+        for (a, b) in self.change.iter_mut().zip(&o.change) {
+            *a = (a.0 + b.0, a.1 + b.1, a.2.max(b.2));
+        }
+        for (a, b) in self.corr.iter_mut().zip(&o.corr) {
+            *a += b;
+        }
+    }
+}
+
+/// How far to trust a run on real data: does the fused DEM explain the image better than the
+/// input DEM, and did the DEM change only where the image constrains it?
+#[derive(Debug, Clone, Serialize)]
+pub struct Sanity {
+    pub photometric_fraction: f64,
+    /// Pearson correlation of the observed image with the image rendered (final albedo) from
+    /// the input DEM and from the fused DEM, over photometric pixels.
+    pub correlation_input_dem: f64,
+    pub correlation_fused_dem: f64,
+    /// RMS and max of dem − input_dem, metres: on the image's footprint, in the transition
+    /// band around it, and beyond it (which must be 0).
+    pub change_footprint_rms_m: f64,
+    pub change_footprint_max_m: f64,
+    pub change_band_rms_m: f64,
+    pub change_band_max_m: f64,
+    pub change_beyond_rms_m: f64,
+    pub change_beyond_max_m: f64,
+    pub warnings: Vec<String>,
+}
+
+impl Sanity {
+    fn from_sums(s: &SanitySums) -> Sanity {
+        let c = &s.corr;
+        let pearson = |sy: f64, syy: f64, sxy: f64| {
+            let n = c[0];
+            let cov = sxy - c[1] * sy / n;
+            let vx = c[2] - c[1] * c[1] / n;
+            let vy = syy - sy * sy / n;
+            if n < 2.0 || vx <= 0.0 || vy <= 0.0 {
+                f64::NAN
+            } else {
+                cov / (vx * vy).sqrt()
+            }
+        };
+        let rms = |k: usize| {
+            let (n, ss, _) = s.change[k];
+            if n == 0 {
+                f64::NAN
+            } else {
+                (ss / n as f64).sqrt()
+            }
+        };
+        let mut out = Sanity {
+            photometric_fraction: s.photometric as f64 / s.pixels.max(1) as f64,
+            correlation_input_dem: pearson(c[3], c[4], c[5]),
+            correlation_fused_dem: pearson(c[6], c[7], c[8]),
+            change_footprint_rms_m: rms(0),
+            change_footprint_max_m: s.change[0].2,
+            change_band_rms_m: rms(1),
+            change_band_max_m: s.change[1].2,
+            change_beyond_rms_m: rms(2),
+            change_beyond_max_m: s.change[2].2,
+            warnings: Vec::new(),
+        };
+        if out.correlation_fused_dem < out.correlation_input_dem {
+            out.warnings.push(format!(
+                "the fused DEM explains the image worse than the input DEM (rendered-image correlation {:.3} < {:.3}): check the photometric model, the wavelength and the observation's geometry",
+                out.correlation_fused_dem, out.correlation_input_dem
+            ));
+        }
+        if s.change[2].0 > 0 && s.change[2].2 > 1e-3 {
+            out.warnings.push(format!(
+                "the DEM changed beyond the transition band around the image (max {:.3} m): it should be the input DEM there",
+                s.change[2].2
+            ));
+        }
+        out
+    }
+
+    /// Lines for the terminal.
+    pub fn table(&self) -> String {
+        let mut t = format!(
+            "photometric fraction {:.3}\nimage vs rendered: correlation {:.3} from the input DEM, {:.3} from the fused DEM\ndem − input_dem RMS / max: footprint {:.2} / {:.2} m, band {:.2} / {:.2} m, beyond {:.3} / {:.3} m\n",
+            self.photometric_fraction,
+            self.correlation_input_dem,
+            self.correlation_fused_dem,
+            self.change_footprint_rms_m,
+            self.change_footprint_max_m,
+            self.change_band_rms_m,
+            self.change_band_max_m,
+            self.change_beyond_rms_m,
+            self.change_beyond_max_m
+        );
+        for w in &self.warnings {
+            t.push_str(&format!("warning: {w}\n"));
+        }
+        t
+    }
 }
 
 /// Layers stored per tile, in file order.
@@ -203,6 +461,8 @@ pub struct RunSummary {
     pub mosaic: bool,
     pub outputs: Vec<PathBuf>,
     pub record: Option<PathBuf>,
+    /// The sanity figures of the whole run (when the mosaic was written).
+    pub sanity: Option<Sanity>,
 }
 
 impl RunSummary {
@@ -216,6 +476,9 @@ impl RunSummary {
         }
         if let Some(r) = &self.record {
             s.push_str(&format!("run record {}\n", r.display()));
+        }
+        if let Some(x) = &self.sanity {
+            s.push_str(&x.table());
         }
         if !self.mosaic {
             s.push_str("mosaic not written (run without --tile, or with --mosaic, when every tile is done)\n");
@@ -245,6 +508,9 @@ pub fn file_sha256(path: &Path) -> Result<String> {
 fn run_key(wf: &Workflow, files: &[PathBuf]) -> Result<String> {
     let mut text = format!("sfsfuse {}\n", env!("CARGO_PKG_VERSION"));
     text.push_str(&serde_json::to_string(wf).expect("workflows serialise"));
+    if let Workflow::Orbital(o) = wf {
+        text.push_str(&format!("\nsigma_dem_given={}", o.sigma_dem_given));
+    }
     for f in files {
         let m = std::fs::metadata(f).map_err(|e| Error::io(f, e))?;
         let mtime = m
@@ -368,24 +634,65 @@ fn plan(o: &Orbital, wf: &Workflow, inputs: &Inputs, progress: &Progress) -> Res
     let pr = projector(&grid.crs)?;
     let mut swaths = Vec::new();
     let (mut sum, mut count) = (0.0, 0usize);
+    let mut why = Vec::new();
     for obs in &inputs.obs {
         let s = ingest::survey(obs, &inputs.solar, o.inputs.wavelength_nm, &grid, &pr)?;
         sum += s.sum;
         count += s.count;
+        why.push(if s.on_grid == 0 {
+            format!(
+                "{}: no pixel of its swath falls on the grid (region)",
+                obs.label_path.display()
+            )
+        } else {
+            format!(
+                "{}: {} of its pixels fall on the grid, {} refused ({})",
+                obs.label_path.display(),
+                s.on_grid,
+                s.refused.total(),
+                s.refused.describe()
+            )
+        });
         swaths.push(s.index);
     }
     if count == 0 {
         return Err(Error::Usage(format!(
-            "no valid M3 pixel falls on the grid ({} × {} px): check [region] against the observations' coverage",
-            grid.rows, grid.cols
+            "no usable M3 pixel on the grid ({} × {} px at {} m): {}. Check [region] against the observations' coverage, and the observations' radiance and OBS geometry",
+            grid.rows,
+            grid.cols,
+            grid.spacing,
+            why.join("; ")
         )));
     }
+    let centre_lat = pr
+        .inverse(
+            grid.x0 + 0.5 * grid.cols as f64 * grid.spacing,
+            grid.y0 - 0.5 * grid.rows as f64 * grid.spacing,
+        )
+        .map_or(0.0, |(_, lat)| lat);
+    let (dem_resolution_m, dem_resolution_source) = match o.inputs.dem_resolution_m {
+        Some(r) => (r, "[inputs] dem_resolution_m".to_string()),
+        None => inputs.lola[0].effective_resolution(centre_lat),
+    };
+    let factor = dem_resolution_m / grid.spacing;
+    let dem_psf_sigma = o
+        .inputs
+        .dem_psf_sigma_px
+        .unwrap_or(fusion::dem_psf_sigma(factor));
+    let sigma_dem = if o.sigma_dem_given {
+        o.solver.sigma_dem
+    } else {
+        fusion::dem_sigma(factor)
+    };
+    let params = FusionParams {
+        sigma_dem,
+        ..o.solver.clone()
+    };
     let halo = o
         .tiling
         .halo
-        .unwrap_or_else(|| crate::workflow::auto_halo(&o.solver));
+        .unwrap_or_else(|| crate::workflow::auto_halo(&params, dem_psf_sigma));
     let tiles = tiling::layout(grid.rows, grid.cols, o.tiling.tile_size, halo);
-    let factor = inputs.lola[0].pixel_m() / grid.spacing;
     let blend = o.tiling.blend.unwrap_or(halo / 2).min(halo);
     let p = Plan {
         version: env!("CARGO_PKG_VERSION").into(),
@@ -396,10 +703,10 @@ fn plan(o: &Orbital, wf: &Workflow, inputs: &Inputs, progress: &Progress) -> Res
         tiles,
         intensity_scale: sum / count as f64,
         intensity_pixels: count,
-        dem_psf_sigma: o
-            .inputs
-            .dem_psf_sigma_px
-            .unwrap_or(fusion::dem_psf_sigma(factor)),
+        dem_psf_sigma,
+        dem_resolution_m,
+        dem_resolution_source,
+        sigma_dem,
         swaths,
     };
     std::fs::create_dir_all(out).map_err(|e| Error::io(out, e))?;
@@ -546,9 +853,26 @@ fn run_tile(o: &Orbital, inputs: &Inputs, plan: &Plan, tile: &Tile) -> Result<Ti
         model: inputs.model.as_ref(),
         intensity_scale: Some(plan.intensity_scale),
     };
-    let (status, layers, stages, photometric) = match fusion::fuse(&problem, &o.solver) {
+    let params = FusionParams {
+        sigma_dem: plan.sigma_dem,
+        ..o.solver.clone()
+    };
+    let core = (
+        tile.core.r0 - e.r0,
+        tile.core.r0 - e.r0 + tile.core.rows,
+        tile.core.c0 - e.c0,
+        tile.core.c0 - e.c0 + tile.core.cols,
+    );
+    let mut sanity = SanitySums::default();
+    let (status, layers, stages, photometric) = match fusion::fuse(&problem, &params) {
         Ok(mut f) => {
-            f.height = fusion::anchor(&f.height, dem.view(), plan.halo as f64 / 3.0);
+            f.height = fusion::anchor(
+                &f.height,
+                dem.view(),
+                f.support.view(),
+                plan.halo as f64 / 3.0,
+            );
+            sanity = SanitySums::of_tile(&problem, &f, &f.height, core);
             let n = f.photometric.iter().filter(|&&b| b).count();
             let mask = f.photometric.mapv(|b| if b { 0.0 } else { 1.0 });
             (
@@ -559,6 +883,8 @@ fn run_tile(o: &Orbital, inputs: &Inputs, plan: &Plan, tile: &Tile) -> Result<Ti
             )
         }
         Err(fusion::FusionError::NoObservations) => {
+            sanity.pixels = tile.core.rows * tile.core.cols;
+            sanity.change[2].0 = sanity.pixels;
             let nan = Array2::from_elem(dim, f64::NAN);
             (
                 "no_image",
@@ -582,6 +908,7 @@ fn run_tile(o: &Orbital, inputs: &Inputs, plan: &Plan, tile: &Tile) -> Result<Ti
         ext: e,
         status: status.into(),
         photometric_pixels: photometric,
+        sanity,
         iterations: stages
             .iter()
             .map(|s| s.iterations.len().saturating_sub(1))
@@ -750,12 +1077,14 @@ fn run_orbital(
         mosaic: false,
         outputs: Vec::new(),
         record: None,
+        sanity: None,
     };
     if req.tiles.is_none() {
-        let (outputs, record) = mosaic(o, wf, &inputs, &plan, progress)?;
+        let (outputs, record, sanity) = mosaic(o, wf, &inputs, &plan, progress)?;
         summary.mosaic = true;
         summary.outputs = outputs;
         summary.record = Some(record);
+        summary.sanity = Some(sanity);
     }
     Ok(summary)
 }
@@ -819,6 +1148,8 @@ struct RunRecord<'a> {
     threads: usize,
     tiles: Vec<TileRecord>,
     metrics: Metrics,
+    /// Sanity figures for real data (orbital runs).
+    sanity: Option<Sanity>,
     outputs: Vec<PathBuf>,
 }
 
@@ -907,7 +1238,7 @@ fn mosaic(
     inputs: &Inputs,
     plan: &Plan,
     progress: &Progress,
-) -> Result<(Vec<PathBuf>, PathBuf)> {
+) -> Result<(Vec<PathBuf>, PathBuf, Sanity)> {
     let out = &o.output.directory;
     let missing: Vec<usize> = plan
         .tiles
@@ -1019,6 +1350,9 @@ fn mosaic(
     }
     progress.finish();
     let records: Vec<TileRecord> = heads.into_iter().map(|(r, _)| r).collect();
+    let mut sums = SanitySums::default();
+    records.iter().for_each(|r| sums.add(&r.sanity));
+    let sanity = Sanity::from_sums(&sums);
     let record = RunRecord {
         tool: "sfsfuse",
         version: env!("CARGO_PKG_VERSION"),
@@ -1032,10 +1366,11 @@ fn mosaic(
         threads: rayon::current_num_threads(),
         tiles: records,
         metrics: stats.finish(),
+        sanity: Some(sanity.clone()),
         outputs: outputs.clone(),
     };
     let path = write_record(out, &record)?;
-    Ok((outputs, path))
+    Ok((outputs, path, sanity))
 }
 
 /// `0-3, 7, 9-10`: sorted tile ids as ranges joined by `sep` (", " for people, "," for a
@@ -1225,10 +1560,12 @@ fn run_lab(l: &Lab, wf: &Workflow, progress: &Progress) -> Result<RunSummary> {
             },
             status: "fused".into(),
             photometric_pixels: f.photometric.iter().filter(|&&b| b).count(),
+            sanity: SanitySums::default(),
             iterations: f.iterations(),
             seconds,
             stages: f.stages.clone(),
         }],
+        sanity: None,
         metrics: {
             let mut m = MetricsAcc::new();
             m.add(&layers);
@@ -1245,6 +1582,7 @@ fn run_lab(l: &Lab, wf: &Workflow, progress: &Progress) -> Result<RunSummary> {
         mosaic: true,
         outputs,
         record: Some(path),
+        sanity: None,
     })
 }
 

@@ -42,6 +42,10 @@ pub struct Orbital {
     /// Products to fetch from the PDS before the run (skipped when already present).
     #[serde(default)]
     pub fetch: Option<FetchSpec>,
+    /// Whether `[solver] sigma_dem` was given. Absent, the run sets σ_DEM from the input DEM's
+    /// effective resolution ([`crate::fusion::dem_sigma`]); the run key includes this flag.
+    #[serde(skip)]
+    pub sigma_dem_given: bool,
 }
 
 /// `[fetch]`: what `sfsfuse run` downloads first (docs/fetch.md).
@@ -76,10 +80,16 @@ pub struct OrbitalInputs {
     /// linearly to reach it).
     #[serde(default = "default_wavelength")]
     pub wavelength_nm: f64,
-    /// σ, in grid pixels, of the input DEM's point spread relative to the grid. Absent: from
-    /// the first DEM's pixel size, [`crate::fusion::dem_psf_sigma`]`(MAP_SCALE / resolution)`.
+    /// σ, in grid pixels, of the input DEM's point spread relative to the grid. Absent:
+    /// [`crate::fusion::dem_psf_sigma`] of the first DEM's effective resolution over the grid's
+    /// (docs/science.md, "The DEM's effective resolution").
     #[serde(default)]
     pub dem_psf_sigma_px: Option<f64>,
+    /// The first DEM's effective resolution, metres: the spacing of the independent heights
+    /// behind it. Absent: its pixel size, or for a LOLA-only GDR the larger of that and the
+    /// ground-track gap at the region's latitude (docs/science.md).
+    #[serde(default)]
+    pub dem_resolution_m: Option<f64>,
 }
 
 fn default_wavelength() -> f64 {
@@ -411,11 +421,23 @@ impl Workflow {
                         return Err(fail("a [region] in map metres needs [grid] center_lat and center_lon: the metres are in that projection".into()));
                     }
                 }
-                let halo = *o.tiling.halo.get_or_insert(auto_halo(&o.solver));
-                let blend = *o.tiling.blend.get_or_insert(halo / 2);
-                if blend > halo {
-                    return Err(fail(format!("[tiling] blend = {blend} must not exceed the halo ({halo} px): tiles have no data beyond it")));
+                if let (Some(halo), Some(blend)) = (o.tiling.halo, o.tiling.blend) {
+                    if blend > halo {
+                        return Err(fail(format!("[tiling] blend = {blend} must not exceed the halo ({halo} px): tiles have no data beyond it")));
+                    }
                 }
+                if let Some(r) = o.inputs.dem_resolution_m {
+                    if !(r.is_finite() && r > 0.0) {
+                        return Err(fail(format!(
+                            "[inputs] dem_resolution_m = {r} must be a positive number of metres"
+                        )));
+                    }
+                }
+                o.sigma_dem_given = text
+                    .parse::<toml::Table>()
+                    .ok()
+                    .and_then(|t| t.get("solver")?.get("sigma_dem").map(|_| ()))
+                    .is_some();
                 validate_layers(&o.output.layers).map_err(fail)?;
             }
             Workflow::Lab(l) => {
@@ -479,10 +501,14 @@ fn validate_layers(layers: &[Layer]) -> std::result::Result<(), String> {
     Ok(())
 }
 
-/// ⌈3 × the largest Gaussian σ the solver applies⌉ (albedo stages, final albedo, σ_DEM plus
-/// the DEM point spread of a DEM up to 4× coarser), at least 8 pixels.
-pub fn auto_halo(p: &FusionParams) -> usize {
-    let dem = p.sigma_dem.hypot(crate::fusion::dem_psf_sigma(4.0));
+/// ⌈3 × the largest Gaussian σ the solver applies⌉ (albedo stages, final albedo, σ_DEM
+/// combined with the DEM's point spread `dem_psf`), at least 8 pixels. It also covers the
+/// photometric support band (3 σ_DEM, [`crate::fusion::support::band`]).
+pub fn auto_halo(p: &FusionParams, dem_psf: f64) -> usize {
+    let dem = p
+        .sigma_dem
+        .hypot(dem_psf)
+        .max(crate::fusion::support::band(p.sigma_dem).1 / 3.0);
     let largest = p
         .albedo_sigmas
         .iter()
@@ -525,8 +551,18 @@ directory = "out"
             (o.grid.center_lat, o.grid.center_lon),
             (Some(-13.0), Some(357.0))
         );
-        // Largest σ is the first albedo stage, 100 px.
-        assert_eq!(o.tiling.halo, Some(300));
+        // The halo depends on the DEM (σ_DEM, its point spread): the plan sets it. With a DEM
+        // 4× coarser the largest σ is the first albedo stage, 100 px.
+        assert_eq!(o.tiling.halo, None);
+        assert!(!o.sigma_dem_given);
+        assert_eq!(auto_halo(&o.solver, crate::fusion::dem_psf_sigma(4.0)), 300);
+        let given = MINIMAL.replace("[output]", "[solver]\nsigma_dem = 5.0\n[output]");
+        let Workflow::Orbital(g) =
+            Workflow::parse(&given, Path::new("w.toml"), Path::new(".")).unwrap()
+        else {
+            panic!()
+        };
+        assert!(g.sigma_dem_given);
         assert_eq!(o.photometry, ModelSpec::Hapke(Hapke::moon()));
         assert_eq!(o.solver, FusionParams::default());
     }

@@ -4,7 +4,7 @@ use std::process::Command;
 
 #[path = "../pds/tests/common/mod.rs"]
 mod common;
-use common::shared_data;
+use common::test_data;
 
 fn sfsfuse() -> Command {
     Command::new(env!("CARGO_BIN_EXE_sfsfuse"))
@@ -125,7 +125,7 @@ fn bad_arguments_fail_with_a_clear_message() {
 
 #[test]
 fn inspect_describes_real_products() {
-    let Some(data) = shared_data() else { return };
+    let Some(data) = test_data() else { return };
     let o = sfsfuse()
         .args(["inspect", "--json"])
         .arg(data.join("lola_ldem4/LDEM_4.LBL"))

@@ -1,5 +1,5 @@
 //! `sfsfuse fetch` against a local HTTP server on 127.0.0.1, started by each test, serving the
-//! real files of ../shared/data in the PDS archive layout: complete downloads, resuming after a
+//! real files of tests/data in the PDS archive layout: complete downloads, resuming after a
 //! cut transfer, corruption, 404, time-outs, no partial file under a final name, and no path
 //! traversal from a label.
 
@@ -13,7 +13,7 @@ use std::time::Duration;
 
 #[path = "../pds/tests/common/mod.rs"]
 mod common;
-use common::shared_data;
+use common::test_data;
 
 /// What the server does for a path.
 #[derive(Clone, Copy, Debug, PartialEq)]
@@ -248,7 +248,7 @@ fn names(dir: &Path) -> Vec<String> {
 
 #[test]
 fn fetches_lola_and_m3_completely_and_then_from_the_cache() {
-    let Some(data) = shared_data() else { return };
+    let Some(data) = test_data() else { return };
     let mut files = lola_files(&data);
     files.extend(m3_files(&data));
     let server = Server::start(files);
@@ -287,7 +287,7 @@ fn fetches_lola_and_m3_completely_and_then_from_the_cache() {
 
 #[test]
 fn a_cut_transfer_is_resumed_with_a_range_request() {
-    let Some(data) = shared_data() else { return };
+    let Some(data) = test_data() else { return };
     let server = Server::start(lola_files(&data));
     let img = format!("{LOLA_DIR}/ldem_4.img");
     server.set(&img, Behaviour::CutOnce(700_000));
@@ -316,7 +316,7 @@ fn a_cut_transfer_is_resumed_with_a_range_request() {
 
 #[test]
 fn corrupt_missing_and_silent_servers_give_clear_errors_and_no_final_file() {
-    let Some(data) = shared_data() else { return };
+    let Some(data) = test_data() else { return };
     // Corrupt: a flipped byte, caught by the MD5 manifest; the file never gets its name.
     let mut files = lola_files(&data);
     let good = files[&format!("{LOLA_DIR}/ldem_4.img")].clone();
@@ -402,7 +402,7 @@ fn corrupt_missing_and_silent_servers_give_clear_errors_and_no_final_file() {
 
 #[test]
 fn names_in_a_label_cannot_leave_the_target_directory() {
-    let Some(data) = shared_data() else { return };
+    let Some(data) = test_data() else { return };
     let mut files = lola_files(&data);
     let label = String::from_utf8(files[&format!("{LOLA_DIR}/ldem_4.lbl")].clone()).unwrap();
     let evil = label.replace(
@@ -431,7 +431,7 @@ fn names_in_a_label_cannot_leave_the_target_directory() {
 /// `[fetch]` in a workflow: `sfsfuse run` downloads what is missing, then runs on it.
 #[test]
 fn run_fetches_missing_inputs_first() {
-    let Some(data) = shared_data() else { return };
+    let Some(data) = test_data() else { return };
     let server = Server::start(lola_files(&data));
     let dir = scratch("workflow");
     std::fs::create_dir_all(&dir).unwrap();

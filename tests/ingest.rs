@@ -1,4 +1,4 @@
-//! Real products onto grids: LOLA LDEM_4 and an M3 L1B crop from ../shared/data.
+//! Real products onto grids: LOLA LDEM_4 and an M3 L1B crop from tests/data (vendored).
 
 use pds::lola::LolaDem;
 use pds::m3::Observation;
@@ -8,13 +8,13 @@ use sfsfuse::ingest::{lola_on_grid, m3_on_grid};
 
 #[path = "../pds/tests/common/mod.rs"]
 mod common;
-use common::shared_data;
+use common::test_data;
 
 mod support;
 
 #[test]
 fn ldem4_on_its_own_grid_gives_its_own_heights() {
-    let Some(data) = shared_data() else { return };
+    let Some(data) = test_data() else { return };
     let dem = LolaDem::open(&data.join("lola_ldem4/LDEM_4.LBL")).unwrap();
     // FORMATS.md: GDAL georeferences LDEM_4 as equirectangular lon_0 = 180 on the 1737.4 km
     // sphere, upper-left corner (−5 458 203.08, 2 729 101.54), exact scale 2π·1737400/360/4.
@@ -65,7 +65,7 @@ fn antoniadi_grid() -> (Grid, Crs) {
 
 #[test]
 fn antoniadi_is_the_deepest_point_of_a_local_grid() {
-    let Some(data) = shared_data() else { return };
+    let Some(data) = test_data() else { return };
     let dem = LolaDem::open(&data.join("lola_ldem4/LDEM_4.LBL")).unwrap();
     let (g, crs) = antoniadi_grid();
     let pr = crs.projector().unwrap();
@@ -89,7 +89,7 @@ fn antoniadi_is_the_deepest_point_of_a_local_grid() {
 
 #[test]
 fn m3_global_crop_on_a_local_grid() {
-    let Some(data) = shared_data() else { return };
+    let Some(data) = test_data() else { return };
     let label = data.join("m3_l1b_crops/reverseDescending/M3G20090106T113423_V03_L1B_cropped.LBL");
     let label = if label.is_file() {
         label
@@ -203,7 +203,7 @@ fn m3_global_crop_on_a_local_grid() {
 
 #[test]
 fn a_grid_outside_the_product_is_refused_with_its_name() {
-    let Some(data) = shared_data() else { return };
+    let Some(data) = test_data() else { return };
     let label = std::fs::read_dir(data.join("m3_l1b_crops/reverseDescending"))
         .unwrap()
         .map(|e| e.unwrap().path())
@@ -253,7 +253,7 @@ fn a_grid_outside_the_product_is_refused_with_its_name() {
 /// product; a GeoTIFF on the Earth is refused.
 #[test]
 fn geotiff_dems_resample_like_the_pds_product() {
-    let Some(data) = shared_data() else { return };
+    let Some(data) = test_data() else { return };
     use sfsfuse::export::{write_geotiff, BandInfo};
     use sfsfuse::ingest::{geotiff_on_grid, GeoTiffDem};
     let dem = LolaDem::open(&data.join("lola_ldem4/LDEM_4.LBL")).unwrap();

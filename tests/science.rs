@@ -171,3 +171,130 @@ fn bad_problems_are_reported() {
         assert!(e.contains(name), "{e}");
     }
 }
+
+/// A DEM 14× coarser than the image (2 km posting under 140 m/px, today's noise model): with
+/// σ_B and σ_DEM following the DEM's resolution, the fused error is ≤ 0.4× the input's.
+#[test]
+fn a_dem_14_times_coarser_is_refined_below_0_4_of_its_error() {
+    let spec = SceneSpec {
+        size: 512,
+        seed: 1,
+        dem_factor: 14,
+        ..SceneSpec::default()
+    };
+    let scene = generate(&spec);
+    let params = FusionParams {
+        sigma_dem: sfsfuse::fusion::dem_sigma(14.0),
+        ..FusionParams::default()
+    };
+    let f = fuse(&scene.problem(), &params).unwrap();
+    let (e_in, e_out) = (
+        rmse(&scene.input_dem, &scene.truth_height),
+        rmse(&f.height, &scene.truth_height),
+    );
+    eprintln!(
+        "14× coarse DEM: {e_in:.2} m → {e_out:.2} m ({:.3}×)",
+        e_out / e_in
+    );
+    assert!(e_out <= 0.4 * e_in, "{e_out:.2} m > 0.4 × {e_in:.2} m");
+}
+
+/// A DEM as fine as the grid or finer (no point spread to undo): the result is no worse than
+/// the input.
+#[test]
+fn a_dem_as_fine_as_the_grid_is_not_made_worse() {
+    let spec = SceneSpec {
+        size: 256,
+        seed: 10,
+        dem_factor: 1,
+        ..SceneSpec::default()
+    };
+    let scene = generate(&spec);
+    // As fine as the grid, and SLDEM2015-like (59 m) under 140 m.
+    for factor in [1.0, 59.0 / 140.0] {
+        let params = FusionParams {
+            sigma_dem: sfsfuse::fusion::dem_sigma(factor),
+            ..FusionParams::default()
+        };
+        let mut pr = scene.problem();
+        pr.dem_psf_sigma = sfsfuse::fusion::dem_psf_sigma(factor);
+        let f = fuse(&pr, &params).unwrap();
+        let (e_in, e_out) = (
+            rmse(&scene.input_dem, &scene.truth_height),
+            rmse(&f.height, &scene.truth_height),
+        );
+        eprintln!("fine DEM (factor {factor:.2}): {e_in:.2} m → {e_out:.2} m");
+        assert!(e_out <= e_in, "{e_out:.2} m > the input's {e_in:.2} m");
+    }
+}
+
+/// Where the image does not reach, the result is the input DEM: an image covering only the
+/// middle half of the columns leaves the DEM untouched beyond the 3σ_DEM band, and the
+/// correction fades monotonically across the band (no step, no ring).
+#[test]
+fn no_relief_is_invented_where_the_image_does_not_reach() {
+    let spec = SceneSpec {
+        size: 256,
+        seed: 10,
+        ..SceneSpec::default()
+    };
+    let mut scene = generate(&spec);
+    let n = spec.size;
+    let (c0, c1) = (n / 4, 3 * n / 4);
+    for ((_, j), v) in scene.image.indexed_iter_mut() {
+        if j < c0 || j >= c1 {
+            *v = f64::NAN;
+        }
+    }
+    let params = FusionParams::default();
+    let f = fuse(&scene.problem(), &params).unwrap();
+    let band = sfsfuse::fusion::support::band(params.sigma_dem).1;
+    let col_rms = |j: usize| {
+        let s: f64 = (0..n)
+            .map(|i| (f.height[(i, j)] - scene.input_dem[(i, j)]).powi(2))
+            .sum();
+        (s / n as f64).sqrt()
+    };
+    let dist = |j: usize| {
+        if j < c0 {
+            (c0 - j) as f64
+        } else if j >= c1 {
+            (j + 1 - c1) as f64
+        } else {
+            0.0
+        }
+    };
+    let beyond: Vec<f64> = (0..n).filter(|&j| dist(j) > band).map(col_rms).collect();
+    let worst = beyond.iter().cloned().fold(0.0, f64::max);
+    assert!(worst <= 0.5, "change beyond the band {worst:.3} m RMS");
+    // Across the band, on both sides, the change only fades.
+    for side in [
+        (0..c0).rev().collect::<Vec<_>>(),
+        (c1..n).collect::<Vec<_>>(),
+    ] {
+        for w in side.windows(2) {
+            let (a, b) = (col_rms(w[0]), col_rms(w[1]));
+            assert!(
+                b <= a + 0.05,
+                "columns {} → {}: {a:.3} → {b:.3} m",
+                w[0],
+                w[1]
+            );
+        }
+    }
+    // On the image the fusion still works.
+    let (mut e_in, mut e_out, mut k) = (0.0, 0.0, 0.0);
+    for ((i, j), &z) in f.height.indexed_iter() {
+        if dist(j) == 0.0 {
+            e_in += (scene.input_dem[(i, j)] - scene.truth_height[(i, j)]).powi(2);
+            e_out += (z - scene.truth_height[(i, j)]).powi(2);
+            k += 1.0;
+        }
+    }
+    let (e_in, e_out) = ((e_in / k).sqrt(), (e_out / k).sqrt());
+    eprintln!("on the image: {e_in:.2} m → {e_out:.2} m; beyond the band ≤ {worst:.4} m");
+    assert!(
+        e_out <= 0.5 * e_in,
+        "on the image {e_out:.2} m vs input {e_in:.2} m"
+    );
+}

@@ -3,6 +3,7 @@
 //! (W/(m² µm)); CRLF or LF line ends.
 
 use crate::error::{Error, Result};
+use crate::m3::Mode;
 use std::path::{Path, PathBuf};
 
 #[derive(Debug, Clone)]
@@ -62,6 +63,29 @@ impl SolarSpectrum {
             path: path.into(),
             rows,
         })
+    }
+
+    /// The M3 instrument mode whose band sampling the table follows: one row per band, so 85
+    /// rows are GLOBAL and 256 TARGET; any other length is told by the file name
+    /// (`M3G…`/`M3T…`, any case); `None` when neither says.
+    pub fn mode(&self) -> Option<Mode> {
+        match self.rows.len() {
+            85 => return Some(Mode::Global),
+            256 => return Some(Mode::Target),
+            _ => {}
+        }
+        let name = self
+            .path
+            .file_name()?
+            .to_string_lossy()
+            .to_ascii_uppercase();
+        if name.starts_with("M3G") {
+            Some(Mode::Global)
+        } else if name.starts_with("M3T") {
+            Some(Mode::Target)
+        } else {
+            None
+        }
     }
 
     /// Irradiance at 1 AU interpolated linearly at `nm`; `None` outside the table.

@@ -1,10 +1,10 @@
-//! Every real label in ../shared/data parses, and the values the readers rely on are read right.
+//! Every real label in tests/data parses, and the values the readers rely on are read right.
 
 use pds::{parse_label, Pointer};
 use std::path::PathBuf;
 
 mod common;
-use common::shared_data;
+use common::test_data;
 
 fn labels(dir: &std::path::Path, out: &mut Vec<PathBuf>) {
     for e in std::fs::read_dir(dir).unwrap() {
@@ -18,8 +18,8 @@ fn labels(dir: &std::path::Path, out: &mut Vec<PathBuf>) {
 }
 
 #[test]
-fn every_shared_label_parses() {
-    let Some(data) = shared_data() else { return };
+fn every_vendored_label_parses() {
+    let Some(data) = test_data() else { return };
     let mut all = Vec::new();
     labels(&data, &mut all);
     assert!(all.len() >= 7, "found only {all:?}");
@@ -32,7 +32,7 @@ fn every_shared_label_parses() {
 
 #[test]
 fn lola_label_values() {
-    let Some(data) = shared_data() else { return };
+    let Some(data) = test_data() else { return };
     let l = parse_label(&std::fs::read(data.join("lola_ldem4/LDEM_4.LBL")).unwrap()).unwrap();
     let file = l.child("UNCOMPRESSED_FILE").unwrap();
     assert_eq!(
@@ -61,7 +61,7 @@ fn lola_label_values() {
 
 #[test]
 fn m3_label_values() {
-    let Some(data) = shared_data() else { return };
+    let Some(data) = test_data() else { return };
     let l = parse_label(
         &std::fs::read(
             data.join("m3_l1b_crops/reverseDescending/M3G20090106T113423_V03_L1B_cropped.LBL"),
@@ -101,7 +101,7 @@ fn m3_label_values() {
 
 #[test]
 fn torture_label_from_isis() {
-    let Some(data) = shared_data() else { return };
+    let Some(data) = test_data() else { return };
     let l = parse_label(&std::fs::read(data.join("pds3_syntax/BILtestData_cropped.LBL")).unwrap())
         .unwrap();
     // Multi-line strings are folded and objects nest.

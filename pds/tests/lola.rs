@@ -3,11 +3,11 @@
 use pds::lola::LolaDem;
 
 mod common;
-use common::shared_data;
+use common::test_data;
 
 #[test]
 fn ldem4_extremes_fall_where_the_manifest_says() {
-    let Some(data) = shared_data() else { return };
+    let Some(data) = test_data() else { return };
     let dem = LolaDem::open(&data.join("lola_ldem4/LDEM_4.LBL")).unwrap();
     assert_eq!((dem.lines(), dem.samples()), (720, 1440));
     assert!((dem.map_scale_m - 7580.84).abs() < 1e-9);
@@ -46,7 +46,7 @@ fn ldem4_extremes_fall_where_the_manifest_says() {
 
 #[test]
 fn truncated_and_mislabelled_products_are_reported() {
-    let Some(data) = shared_data() else { return };
+    let Some(data) = test_data() else { return };
     let dir = std::env::temp_dir().join(format!("pds-lola-bad-{}", std::process::id()));
     std::fs::create_dir_all(&dir).unwrap();
     let label = std::fs::read_to_string(data.join("lola_ldem4/LDEM_4.LBL")).unwrap();

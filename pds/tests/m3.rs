@@ -4,7 +4,7 @@ use pds::lola::LolaDem;
 use pds::m3::{band_centres, Mode, Observation};
 
 mod common;
-use common::shared_data;
+use common::test_data;
 
 const SETS: [(&str, &str); 3] = [
     ("forwardAscending", "M3T20090630T083407_V03_L1B_cropped.LBL"),
@@ -25,7 +25,7 @@ fn enu(zenith: f64, azimuth: f64) -> [f64; 3] {
 
 #[test]
 fn obs_phase_equals_the_angle_between_sun_and_view() {
-    let Some(data) = shared_data() else { return };
+    let Some(data) = test_data() else { return };
     for (dir, lbl) in SETS {
         let o = Observation::open(&data.join("m3_l1b_crops").join(dir).join(lbl)).unwrap();
         let obs = o.part("OBS").unwrap();
@@ -47,7 +47,7 @@ fn obs_phase_equals_the_angle_between_sun_and_view() {
 
 #[test]
 fn loc_radius_agrees_with_lola() {
-    let Some(data) = shared_data() else { return };
+    let Some(data) = test_data() else { return };
     let dem = LolaDem::open(&data.join("lola_ldem4/LDEM_4.LBL")).unwrap();
     let heights = dem.read_heights(0, dem.lines()).unwrap();
     let (n, m) = (dem.lines(), dem.samples());
@@ -85,7 +85,7 @@ fn loc_radius_agrees_with_lola() {
 
 #[test]
 fn band_selection_by_wavelength() {
-    let Some(data) = shared_data() else { return };
+    let Some(data) = test_data() else { return };
     let t = Observation::open(&data.join("m3_l1b_crops/forwardAscending").join(SETS[0].1)).unwrap();
     assert_eq!(t.mode, Mode::Target);
     assert_eq!(t.wavelengths, vec![446.02, 456.0, 465.98]);
@@ -114,7 +114,7 @@ fn band_selection_by_wavelength() {
 
 #[test]
 fn a_missing_or_truncated_part_is_named() {
-    let Some(data) = shared_data() else { return };
+    let Some(data) = test_data() else { return };
     // linerateNotConstant ships RDN and TIM only: RDN opens, LOC is reported missing.
     let o = Observation::open(
         &data.join("m3_l1b_crops/linerateNotConstant/M3G20081118T223204_V03_L1B_cropped.LBL"),
@@ -155,7 +155,7 @@ fn a_missing_or_truncated_part_is_named() {
 
 #[test]
 fn solar_spectrum_table() {
-    let Some(data) = shared_data() else { return };
+    let Some(data) = test_data() else { return };
     let s = pds::solar::SolarSpectrum::read(
         &data.join("m3_calibration/m3t20110224_rfl_solar_spec.tab"),
     )
@@ -182,7 +182,7 @@ fn solar_spectrum_table() {
 /// gives lunar I/F values (π·r) in the range real highland/mare surfaces have at 446 nm.
 #[test]
 fn radiance_to_reflectance_on_the_target_crop() {
-    let Some(data) = shared_data() else { return };
+    let Some(data) = test_data() else { return };
     let o = Observation::open(&data.join("m3_l1b_crops/forwardAscending").join(SETS[0].1)).unwrap();
     let s = pds::solar::SolarSpectrum::read(
         &data.join("m3_calibration/m3t20110224_rfl_solar_spec.tab"),

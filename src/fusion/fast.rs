@@ -32,7 +32,14 @@ fn data_normal(
             *u = jv * a + m[0] * x + m[1] * y;
             *w = jv * b + m[1] * x + m[2] * y;
         });
-    ops::gradient_adjoint(u.view(), w.view(), eps)
+    let mut out = ops::gradient_adjoint(u.view(), w.view(), eps);
+    if let Some(k) = &obj.tie {
+        Zip::from(&mut out)
+            .and(k)
+            .and(v)
+            .par_for_each(|o, &k, &v| *o += 2.0 * k * v);
+    }
+    out
 }
 
 /// Mean of x² over the grid.
@@ -40,7 +47,9 @@ fn mean_sq(a: &Array2<f64>) -> f64 {
     ops::dot(a.view(), a.view()) / a.len() as f64
 }
 
-/// Preconditioned CG for (2JᵀJ + H_Q)Δ = −g in DCT coefficients; returns (Δ, iterations).
+/// Preconditioned CG for (2JᵀJ + DᵀMD + 2K + H_Q)Δ = −g in DCT coefficients (K the tie's
+/// per-pixel weight); returns (Δ, iterations). Without a tie no term sees the mean height, which
+/// stays the DEM's; with one, the mean is solved for too.
 fn newton_step(
     obj: &Objective,
     photo: &Photo,
@@ -58,10 +67,15 @@ fn newton_step(
     let (ax, ay) = (2.0 * mean_sq(&photo.a) + mx, 2.0 * mean_sq(&photo.b) + my);
     let cx = spectral::central_symbol(nx);
     let cy = spectral::central_symbol(ny);
+    let tie = obj.tie.as_ref().map(|k| 2.0 * ops::sum(k.view()) / n);
     let mut minv = spectral::separable(&cy, &cx, |sy, sx| (ax * sx + ay * sy) / e2);
     minv += hq;
+    minv += tie.unwrap_or(0.0);
     minv.mapv_inplace(|m| if m > 0.0 { 1.0 / m } else { 0.0 });
-    minv[(0, 0)] = 0.0; // the mean height is fixed by the DEM
+    let fixed_mean = tie.is_none();
+    if fixed_mean {
+        minv[(0, 0)] = 0.0; // the mean height is fixed by the DEM
+    }
     let apply = |d: &Array2<f64>| {
         let v = obj.dct.inverse(d);
         let mut out = obj.dct.forward(&data_normal(obj, photo, curv, &v));
@@ -69,11 +83,15 @@ fn newton_step(
             .and(hq)
             .and(d)
             .par_for_each(|o, &h, &x| *o += h * x);
-        out[(0, 0)] = 0.0;
+        if fixed_mean {
+            out[(0, 0)] = 0.0;
+        }
         out
     };
     let mut r = obj.dct.forward(g).mapv(|x| -x);
-    r[(0, 0)] = 0.0;
+    if fixed_mean {
+        r[(0, 0)] = 0.0;
+    }
     let mut y = Array2::zeros(r.dim());
     let mut s = &r * &minv;
     let mut d = s.clone();
@@ -119,7 +137,7 @@ pub fn minimise(
         mut log,
     ) = super::start(obj, z, rho, observe);
     for iteration in 1..=params.max_iterations {
-        let g = obj.gradient(&zh, &photo);
+        let g = obj.gradient(z.view(), &zh, &photo);
         let curv = obj.curvature(z.view(), rho, &photo, params.curvature_residual);
         let (step, inner) = newton_step(obj, &photo, &curv, &hq, &g, params);
         let slope = ops::dot(g.view(), step.view());

@@ -10,6 +10,7 @@ mod fast;
 pub mod objective;
 pub mod ops;
 mod paper;
+pub mod support;
 
 pub use objective::Energy;
 
@@ -67,6 +68,21 @@ pub fn dem_psf_sigma(factor: f64) -> f64 {
         0.0
     } else {
         factor / std::f64::consts::SQRT_2
+    }
+}
+
+/// Default σ_DEM, in grid pixels, for a DEM whose independent heights are `factor` grid pixels
+/// apart: 0.75 × factor (at least 1 px) up to 4× coarser, where it reaches the 3 px tuned on
+/// the demo scene, then max(3, 0.35 × factor). What matters most for a coarse DEM is its point
+/// spread B ([`dem_psf_sigma`], from the *effective* resolution); σ_DEM low-passes the
+/// comparison: wide enough to keep the DEM's noise and interpolation ramps out of E_DEM,
+/// narrow enough to keep the slopes a fine DEM does resolve (docs/science.md, "The DEM's
+/// resolution").
+pub fn dem_sigma(factor: f64) -> f64 {
+    if factor <= 4.0 {
+        (0.75 * factor).max(1.0)
+    } else {
+        (0.35 * factor).max(3.0)
     }
 }
 
@@ -214,6 +230,9 @@ pub struct Fusion {
     pub residual: Array2<f64>,
     /// True where the pixel carried photometric information at the solution.
     pub photometric: Array2<bool>,
+    /// s ∈ [0, 1], the photometric support ([`support`]): the result is
+    /// z_DEM + s·(z − z_DEM), so it is the input DEM wherever s = 0.
+    pub support: Array2<f64>,
     pub stages: Vec<StageReport>,
 }
 
@@ -350,6 +369,26 @@ pub fn invert_albedo(
     (rho, ok)
 }
 
+/// The image the model renders from surface `z` with albedo `rho`: R(p, q, ρ; s, v) at every
+/// pixel (0 where the surface faces away from the Sun or the camera).
+pub fn render(pr: &Problem, z: ArrayView2<f64>, rho: ArrayView2<f64>) -> Array2<f64> {
+    let (p, q) = ops::gradient(z, pr.spacing);
+    let mut out = Array2::zeros(z.dim());
+    Zip::indexed(&mut out).par_for_each(|(i, j), r| {
+        *r = pr
+            .model
+            .shade(
+                p[(i, j)],
+                q[(i, j)],
+                rho[(i, j)],
+                pr.sun.at(i, j),
+                pr.view.at(i, j),
+            )
+            .r;
+    });
+    out
+}
+
 /// Masked Gaussian of the per-pixel albedo on surface `z`.
 fn albedo_map(
     pr: &Problem,
@@ -450,6 +489,11 @@ pub fn fuse(pr: &Problem, params: &FusionParams) -> Result<Fusion, FusionError> 
             seconds: t0.elapsed().as_secs_f64(),
         });
     }
+    // Beyond the support band the result is the input DEM; within it the correction fades.
+    Zip::from(&mut z)
+        .and(&obj.support)
+        .and(pr.dem)
+        .par_for_each(|z, &s, &d| *z = d + s * (*z - d));
     let albedo = final_albedo(pr, &obj.dct, z.view(), &obj.observed, params)?;
     let photo = obj.photo(z.view(), albedo.view());
     let residual = Zip::from(&photo.res)
@@ -460,6 +504,7 @@ pub fn fuse(pr: &Problem, params: &FusionParams) -> Result<Fusion, FusionError> 
         albedo,
         residual,
         photometric: photo.used,
+        support: obj.support,
         stages,
     })
 }
@@ -520,15 +565,25 @@ pub fn solve_fixed_albedo(
     Ok(minimise(&obj, z, rho, params, observe))
 }
 
-/// Anchor a fused surface to the input DEM at large scales: z − G_σ ∗ (z − z_DEM), a Gaussian
-/// of `sigma` pixels with mirror boundaries. Every term of E constrains gradients only, so the
-/// level of z (the mean of z − z_DEM) is otherwise fixed by the domain the solver ran on; this
-/// makes it the DEM's, locally, whatever the domain — the same on a tile with a halo ≥ 3σ as
-/// on the whole region.
-pub fn anchor(z: &Array2<f64>, dem: ArrayView2<f64>, sigma: f64) -> Array2<f64> {
+/// Anchor a fused surface to the input DEM at large scales: z − s·G_σ ∗ (z − z_DEM), a
+/// Gaussian of `sigma` pixels with mirror boundaries, weighted by the photometric support s
+/// ([`Fusion::support`]) so that where the result is the input DEM it stays so. Where the
+/// image covers the domain every term of E constrains gradients only, so the level of z (the
+/// mean of z − z_DEM) is otherwise fixed by the domain the solver ran on; this makes it the
+/// DEM's, locally, whatever the domain — the same on a tile with a halo ≥ 3σ as on the whole
+/// region.
+pub fn anchor(
+    z: &Array2<f64>,
+    dem: ArrayView2<f64>,
+    support: ArrayView2<f64>,
+    sigma: f64,
+) -> Array2<f64> {
     let (ny, nx) = z.dim();
     let dct = Dct2d::new(ny, nx);
     let diff = Zip::from(z).and(dem).map_collect(|&a, &b| a - b);
     let low = spectral::gaussian_filter(&dct, &diff, sigma);
-    Zip::from(z).and(&low).map_collect(|&a, &l| a - l)
+    Zip::from(z)
+        .and(&low)
+        .and(support)
+        .map_collect(|&a, &l, &s| a - s * l)
 }

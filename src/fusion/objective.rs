@@ -8,11 +8,22 @@
 //!   so a surface turned away from the Sun at an observed-lit pixel is penalised, not dropped;
 //! * E_DEM = Σ ‖f_σ(∇ B z) − f_σ(∇ z_DEM)‖², f_σ the Gaussian low-pass of width σ_DEM, B the
 //!   input DEM's own point-spread (identity for the seed's plain term);
-//! * E_reg = Σ ‖∇(z − z_DEM)‖², the membrane regulariser (ALGORITHM.md).
+//! * E_reg = Σ ‖∇(z − z_DEM)‖², the membrane regulariser;
+//! * E_tie = Σ κ(x)·((z − z_DEM)/ε)², κ = κ₀·(1 − min(s, c)), which holds the surface to the
+//!   input DEM where no image constrains it: s the photometric support of [`super::support`]
+//!   (1 within σ_s of the image's footprint, 0 beyond 3σ_s), c below; κ₀ = (δ + η)/σ_s², so the
+//!   tie takes over from the DEM-gradient term within about σ_s.
+//!
+//! Where the image covers B's whole neighbourhood, E_DEM compares the solution *blurred by the
+//! DEM's own point spread* with the DEM, so the image may supply the detail the DEM lost. Away
+//! from the image there is no such detail, and matching B z to z_DEM would deconvolve the
+//! DEM; there the target is B z_DEM instead, whose minimiser is z = z_DEM itself. Between, the
+//! target is T = c·z_DEM + (1 − c)·B z_DEM with c = G_σB ∗ [image covers the pixel], the
+//! share of B's neighbourhood the image sees: a fixed field, so E_DEM stays DCT-diagonal.
 //!
 //! ∇ in the last two is the forward difference with Neumann boundaries and the Gaussians act on
 //! gradient fields through their antisymmetric extension, so f_σ∇ = ∇f_σ and both terms are
-//! diagonal in the DCT-II basis: E_DEM = Σ_kl (λ_kl/ε²)(ĝ_s ẑ − ĝ_σ ẑ_DEM)², ĝ_s = ĝ_σ·ĝ_B,
+//! diagonal in the DCT-II basis: E_DEM = Σ_kl (λ_kl/ε²)(ĝ_s ẑ − ĝ_σ T̂)², ĝ_s = ĝ_σ·ĝ_B,
 //! E_reg = Σ_kl (λ_kl/ε²)(ẑ − ẑ_DEM)².
 //!
 //! The seed's integrability term γ·E_int couples auxiliary gradients (p, q) to z. Its Eq. 2
@@ -20,6 +31,7 @@
 //! E(z) above, where E_int = 0.
 
 use super::ops;
+use super::support;
 use super::Problem;
 use crate::photometry::ReflectanceModel;
 use crate::spectral::{self, Dct2d};
@@ -37,7 +49,10 @@ pub struct Energy {
     pub dem: f64,
     /// E_reg (unweighted).
     pub membrane: f64,
-    /// E_I + δ·E_DEM + η·E_reg.
+    /// E_tie (its weight κ(x) is inside).
+    #[serde(default)]
+    pub tie: f64,
+    /// E_I + δ·E_DEM + η·E_reg + E_tie.
     pub total: f64,
 }
 
@@ -66,7 +81,7 @@ pub struct Objective<'a, 'p> {
     pub lam: Array2<f64>,
     /// ĝ_s = ĝ_σDEM·ĝ_B (solution side).
     pub gs: Array2<f64>,
-    /// ĝ_σDEM·ẑ_DEM (DEM side, constant).
+    /// ĝ_σDEM·T̂, T = s·z_DEM + (1 − s)·B z_DEM (DEM side, constant).
     pub dem_target: Array2<f64>,
     /// ẑ_DEM.
     pub dem_hat: Array2<f64>,
@@ -76,6 +91,11 @@ pub struct Objective<'a, 'p> {
     pub scale: f64,
     /// Pixels whose observation is usable: valid and not image-shadowed.
     pub observed: Array2<bool>,
+    /// s: photometric support, 1 on and near the image's footprint (finite I, shadow
+    /// included), 0 beyond the band.
+    pub support: Array2<f64>,
+    /// κ(x)/ε², the tie's per-pixel weight; `None` where s = 1 everywhere.
+    pub tie: Option<Array2<f64>>,
 }
 
 impl<'a, 'p> Objective<'a, 'p> {
@@ -97,9 +117,41 @@ impl<'a, 'p> Objective<'a, 'p> {
             |a, b| (a + b) / e2,
         );
         let gd = spectral::gaussian_table(ny, nx, sigma_dem);
-        let gs = &gd * &spectral::gaussian_table(ny, nx, psf);
+        let gb = spectral::gaussian_table(ny, nx, psf);
+        let gs = &gd * &gb;
         let dem_hat = dct.forward(&problem.dem.to_owned());
-        let dem_target = &gd * &dem_hat;
+        let (r0, r1) = support::band(sigma_dem);
+        // The footprint is where the image has a value at all: cast shadow is part of it (the
+        // image does see the surface there; E_I just has no gradient to give).
+        let covered = problem.image.mapv(f64::is_finite);
+        let support = support::support(&covered, r0, r1);
+        let (dem_target, tie) = if covered.iter().all(|&c| c) {
+            (&gd * &dem_hat, None)
+        } else {
+            // How much of B's neighbourhood the image covers: the share of the DEM's blur that
+            // the image can undo.
+            let cover = spectral::gaussian_filter(
+                &dct,
+                &covered.mapv(|c| if c { 1.0 } else { 0.0 }),
+                psf.max(1.0),
+            );
+            let blurred = dct.inverse(&(&gb * &dem_hat));
+            let target = Zip::from(&cover)
+                .and(problem.dem)
+                .and(&blurred)
+                .map_collect(|&t, &d, &b| {
+                    let t = t.clamp(0.0, 1.0);
+                    t * d + (1.0 - t) * b
+                });
+            // Held to the DEM off the footprint (1 − s) and where the image sees too little of
+            // B's neighbourhood to undo its blur (1 − c): a five-line swath under LDEM_4
+            // (σ_B = 38 px) otherwise drifts by kilometres along the strip.
+            let kappa0 = (delta + eta) / (r0 * r0);
+            let tie = Zip::from(&support)
+                .and(&cover)
+                .map_collect(|&s, &c| kappa0 * (1.0 - s.min(c.clamp(0.0, 1.0))) / e2);
+            (&gd * &dct.forward(&target), Some(tie))
+        };
         Self {
             problem,
             dct,
@@ -111,7 +163,19 @@ impl<'a, 'p> Objective<'a, 'p> {
             eta,
             scale,
             observed,
+            support,
+            tie,
         }
+    }
+
+    /// E_tie at `z`.
+    pub fn tie_energy(&self, z: ArrayView2<f64>) -> f64 {
+        let Some(k) = &self.tie else { return 0.0 };
+        let t = Zip::from(k)
+            .and(z)
+            .and(self.problem.dem)
+            .map_collect(|&k, &z, &d| k * (z - d) * (z - d));
+        ops::sum(t.view())
     }
 
     /// Photometric residuals and derivatives at surface `z` with albedo `rho`.
@@ -209,30 +273,33 @@ impl<'a, 'p> Objective<'a, 'p> {
     pub fn evaluate(&self, z: &Array2<f64>, rho: ArrayView2<f64>) -> Iterate {
         let photo = self.photo(z.view(), rho);
         let zh = self.dct.forward(z);
-        let energy = self.energy_with(&zh, &photo);
+        let energy = self.energy_with(z.view(), &zh, &photo);
         Iterate { photo, zh, energy }
     }
 
     /// Energy at `z` given its photometric state.
     pub fn energy(&self, z: ArrayView2<f64>, photo: &Photo) -> Energy {
         let zh = self.dct.forward(&z.to_owned());
-        self.energy_with(&zh, photo)
+        self.energy_with(z, &zh, photo)
     }
 
-    pub fn energy_with(&self, zh: &Array2<f64>, photo: &Photo) -> Energy {
+    /// Energy at `z` given ẑ and the photometric state.
+    pub fn energy_with(&self, z: ArrayView2<f64>, zh: &Array2<f64>, photo: &Photo) -> Energy {
         let intensity = ops::dot(photo.res.view(), photo.res.view());
         let (dem, membrane) = self.quadratic(zh);
+        let tie = self.tie_energy(z);
         Energy {
             intensity,
             integrability: 0.0,
             dem,
             membrane,
-            total: intensity + self.delta * dem + self.eta * membrane,
+            tie,
+            total: intensity + self.delta * dem + self.eta * membrane + tie,
         }
     }
 
     /// ∂E/∂z (spatial) at `z`, given ẑ and the photometric state.
-    pub fn gradient(&self, zh: &Array2<f64>, photo: &Photo) -> Array2<f64> {
+    pub fn gradient(&self, z: ArrayView2<f64>, zh: &Array2<f64>, photo: &Photo) -> Array2<f64> {
         let ra = &photo.res * &photo.a;
         let rb = &photo.res * &photo.b;
         let data = ops::gradient_adjoint(ra.view(), rb.view(), self.problem.spacing) * -2.0;
@@ -246,7 +313,15 @@ impl<'a, 'p> Objective<'a, 'p> {
             .and(zh)
             .and(&self.dem_hat)
             .for_each(|o, &l, &z, &d| *o += 2.0 * l * self.eta * (z - d));
-        data + self.dct.inverse(&quad_hat)
+        let mut g = data + self.dct.inverse(&quad_hat);
+        if let Some(k) = &self.tie {
+            Zip::from(&mut g)
+                .and(k)
+                .and(z)
+                .and(self.problem.dem)
+                .par_for_each(|g, &k, &z, &d| *g += 2.0 * k * (z - d));
+        }
+        g
     }
 
     /// Diagonal of the quadratic terms' Hessian in the DCT basis: 2(λ/ε²)(δĝ_s² + η).
@@ -321,7 +396,11 @@ mod tests {
         );
         let rho = Array2::from_elem((ny, nx), 0.4);
         let e = |z: &Array2<f64>| obj.energy(z.view(), &obj.photo(z.view(), rho.view())).total;
-        let g = obj.gradient(&obj.dct.forward(&z), &obj.photo(z.view(), rho.view()));
+        let g = obj.gradient(
+            z.view(),
+            &obj.dct.forward(&z),
+            &obj.photo(z.view(), rho.view()),
+        );
         for &(i, j) in &[(0, 0), (3, 4), (11, 9), (6, 0), (0, 7)] {
             let h = 1e-3;
             let mut zp = z.clone();

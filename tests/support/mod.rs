@@ -94,3 +94,55 @@ pub fn rmse(a: &ndarray::Array2<f64>, b: &ndarray::Array2<f64>) -> f64 {
     let s: f64 = a.iter().zip(b).map(|(x, y)| (x - y) * (x - y)).sum();
     (s / a.len() as f64).sqrt()
 }
+
+/// A copy of `p`'s files in `dir`, with the copy's paths.
+pub fn copy_products(p: &products::Products, dir: &Path) -> products::Products {
+    let src = p.m3_label.parent().unwrap();
+    std::fs::create_dir_all(dir).unwrap();
+    for e in std::fs::read_dir(src).unwrap() {
+        let e = e.unwrap();
+        std::fs::copy(e.path(), dir.join(e.file_name())).unwrap();
+    }
+    let mv = |f: &Path| dir.join(f.file_name().unwrap());
+    products::Products {
+        m3_label: mv(&p.m3_label),
+        lola_label: mv(&p.lola_label),
+        solar_table: mv(&p.solar_table),
+        truth_dem: mv(&p.truth_dem),
+        truth_albedo: mv(&p.truth_albedo),
+        grid: p.grid,
+        spec: p.spec.clone(),
+    }
+}
+
+/// Rewrite the float32 samples of a band-interleaved-by-line cube in place:
+/// `f(line, band, sample, value)`.
+pub fn edit_bil(
+    path: &Path,
+    bands: usize,
+    samples: usize,
+    f: impl Fn(usize, usize, usize, f32) -> f32,
+) {
+    let mut b = std::fs::read(path).unwrap();
+    for (k, c) in b.chunks_exact_mut(4).enumerate() {
+        let (line, rest) = (k / (bands * samples), k % (bands * samples));
+        let (band, sample) = (rest / samples, rest % samples);
+        let v = f(
+            line,
+            band,
+            sample,
+            f32::from_le_bytes([c[0], c[1], c[2], c[3]]),
+        );
+        c.copy_from_slice(&v.to_le_bytes());
+    }
+    std::fs::write(path, b).unwrap();
+}
+
+/// An M3 solar spectrum table for `mode`'s band centres: a 5778 K black body at 1 AU.
+pub fn blackbody_table(path: &Path, mode: pds::m3::Mode) {
+    let rows: String = pds::m3::band_centres(mode)
+        .iter()
+        .map(|&w| format!("{w:.2} {:.4}\n", products::blackbody_irradiance(w)))
+        .collect();
+    std::fs::write(path, rows).unwrap();
+}

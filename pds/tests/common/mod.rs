@@ -1,12 +1,13 @@
 //! Shared by the real-file tests of both crates (the root crate's tests include this file with
-//! `#[path]`), so there is one rule for finding ../shared and external tools.
+//! `#[path]`), so there is one rule for finding the vendored mission samples and external tools.
 
 use std::path::PathBuf;
 
-/// ../shared/data beside the project root; `None` (skip, with a message) outside that layout,
-/// but a failure when CI is set, so that a missing checkout can never hide a failure there.
+/// `tests/data` of the project root: the real mission samples vendored with the repository
+/// (tests/data/MANIFEST.md gives their provenance). Always present in a checkout, so these
+/// tests never skip.
 #[allow(dead_code)]
-pub fn shared_data() -> Option<PathBuf> {
+pub fn test_data() -> Option<PathBuf> {
     // The project root is this crate's manifest directory or its parent (for `pds/`).
     let manifest = PathBuf::from(env!("CARGO_MANIFEST_DIR"));
     let root = if manifest.join("pds").is_dir() {
@@ -14,20 +15,13 @@ pub fn shared_data() -> Option<PathBuf> {
     } else {
         manifest.join("..")
     };
-    let p = root.join("../shared/data");
-    if p.is_dir() {
-        return Some(p);
-    }
+    let p = root.join("tests/data");
     assert!(
-        std::env::var_os("CI").is_none(),
-        "CI is set but {} is missing: the real-file tests cannot be skipped in CI",
+        p.join("MANIFEST.md").is_file(),
+        "{} is missing: the vendored samples are part of the repository",
         p.display()
     );
-    eprintln!(
-        "skipping: {} not found (run from the project checkout beside shared/)",
-        p.display()
-    );
-    None
+    Some(p)
 }
 
 /// The path of an external tool (PROJ's `proj`, GDAL's `gdalinfo`) the test needs to compare
