@@ -95,12 +95,7 @@ pub fn band(sigma_dem: f64) -> (f64, f64) {
 
 /// s for every pixel, given the photometric mask.
 pub fn support(mask: &Array2<bool>, r0: f64, r1: f64) -> Array2<f64> {
-    let d = distance(mask);
-    let mut s = Array2::zeros(d.dim());
-    Zip::from(&mut s)
-        .and(&d)
-        .par_for_each(|s, &d| *s = weight(d, r0, r1));
-    s
+    Zip::from(&distance(mask)).par_map_collect(|&d| weight(d, r0, r1))
 }
 
 #[cfg(test)]
