@@ -2,7 +2,7 @@
 //! `grid` geometry.
 //!
 //! * [`m3_on_grid`]: an M3 L1B observation → bidirectional reflectance r = L·d²/E₁AU(λ) at one
-//!   wavelength (FORMATS.md; d = SOLAR_DISTANCE + OBS band 6), and per-pixel unit vectors to
+//!   wavelength (docs/formats.md; d = SOLAR_DISTANCE + OBS band 6), and per-pixel unit vectors to
 //!   the Sun and to M3 (OBS bands 1–4, east-north-up, rotated into the grid frame), resampled
 //!   from the swath by [`grid::swath_positions`] and bilinear interpolation.
 //! * [`lola_on_grid`]: a LOLA GDR → heights (m above the 1737.4 km sphere) at every grid

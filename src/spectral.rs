@@ -1,6 +1,6 @@
 //! Orthonormal 2-D DCT-II with reflective (Neumann) boundaries, and the operators that are
-//! diagonal in its basis: the 5-point Laplacian and Gaussian low-pass filters (ALGORITHM.md,
-//! "Making it fast").
+//! diagonal in its basis: the 5-point Laplacian and Gaussian low-pass filters (docs/science.md,
+//! "Solvers").
 //!
 //! Basis: φ_k(i) = c_k·cos(πk(i+½)/N), c_0 = √(1/N), c_k = √(2/N). It diagonalises
 //! * the Neumann forward-difference Laplacian DᵀD with eigenvalues λ_k = 2 − 2cos(πk/N);

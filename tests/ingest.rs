@@ -16,7 +16,7 @@ mod support;
 fn ldem4_on_its_own_grid_gives_its_own_heights() {
     let Some(data) = test_data() else { return };
     let dem = LolaDem::open(&data.join("lola_ldem4/LDEM_4.LBL")).unwrap();
-    // FORMATS.md: GDAL georeferences LDEM_4 as equirectangular lon_0 = 180 on the 1737.4 km
+    // docs/formats.md: GDAL georeferences LDEM_4 as equirectangular lon_0 = 180 on the 1737.4 km
     // sphere, upper-left corner (−5 458 203.08, 2 729 101.54), exact scale 2π·1737400/360/4.
     let s = 2.0 * std::f64::consts::PI * 1_737_400.0 / 360.0 / 4.0;
     let (x0, y0) = (-720.0 * s, 360.0 * s);

@@ -1,5 +1,5 @@
 //! `sfsfuse run` end to end on the synthetic scene written as mission-format products (an
-//! M3-like L1B observation and a LOLA-like GDR, FORMATS.md): the accuracy bar, seams between
+//! M3-like L1B observation and a LOLA-like GDR, docs/formats.md): the accuracy bar, seams between
 //! tiles, determinism across thread counts, resuming after kill -9, and refused inputs.
 
 use sfsfuse::export::read_tiff;

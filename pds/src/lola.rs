@@ -1,5 +1,5 @@
 //! LRO LOLA GDR DEMs (LRO-L-LOLA-4-GDR): `LDEM_*` labels with an `^IMAGE` pointer, an `IMAGE`
-//! object and an `IMAGE_MAP_PROJECTION` (FORMATS.md).
+//! object and an `IMAGE_MAP_PROJECTION` (docs/formats.md).
 //!
 //! Height above the 1737.4 km sphere = DN × SCALING_FACTOR (in the IMAGE's UNIT, converted to
 //! metres); radius = that + OFFSET.

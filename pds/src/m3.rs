@@ -1,4 +1,4 @@
-//! Chandrayaan-1 M3 Level 1B observations (CH1M3_0003; FORMATS.md): one detached label for
+//! Chandrayaan-1 M3 Level 1B observations (CH1M3_0003; docs/formats.md): one detached label for
 //! the radiance (RDN), location (LOC) and geometry (OBS) images, each in an `X_FILE` object
 //! holding `^X_IMAGE`, `RECORD_BYTES` (one line of all bands), `FILE_RECORDS` (lines) and an
 //! inner `X_IMAGE` object; all band-interleaved by line, little-endian.

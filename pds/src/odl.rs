@@ -1,4 +1,4 @@
-//! The PDS3 Object Description Language (ODL) as real labels write it (FORMATS.md):
+//! The PDS3 Object Description Language (ODL) as real labels write it (docs/formats.md):
 //!
 //! * `KEY = VALUE` statements, keywords case-insensitive, namespaced keys (`CH1:SWATH_WIDTH`),
 //!   pointer keys (`^IMAGE`);

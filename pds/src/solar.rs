@@ -101,7 +101,7 @@ impl SolarSpectrum {
 
 /// Bidirectional reflectance r = L·d²/E₁AU (sr⁻¹) from radiance L (W/(m² µm sr)), the Sun
 /// distance d in AU (for M3: SOLAR_DISTANCE + OBS band 6) and the irradiance at 1 AU
-/// (W/(m² µm)) at the band's wavelength. I/F = π·r (FORMATS.md).
+/// (W/(m² µm)) at the band's wavelength. I/F = π·r (docs/formats.md).
 pub fn reflectance(radiance: f64, sun_distance_au: f64, irradiance_1au: f64) -> f64 {
     radiance * sun_distance_au * sun_distance_au / irradiance_1au
 }

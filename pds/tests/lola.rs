@@ -133,7 +133,7 @@ fn truncated_and_mislabelled_products_are_reported() {
     std::fs::remove_dir_all(&dir).unwrap();
 }
 
-/// A polar stereographic LDEM label of N × N int16 pixels (FORMATS.md, DSMAP_POLAR.CAT).
+/// A polar stereographic LDEM label of N × N int16 pixels (docs/formats.md, DSMAP_POLAR.CAT).
 fn polar_product(dir: &std::path::Path, north: bool, n: usize, scale_m: f64) -> std::path::PathBuf {
     std::fs::create_dir_all(dir).unwrap();
     let lat = if north { 90 } else { -90 };

@@ -162,7 +162,7 @@ fn solar_spectrum_table() {
     .unwrap();
     assert_eq!(s.rows.len(), 256);
     assert_eq!(s.rows[0], (446.019989, 1915.545166));
-    // FORMATS.md: the target table interpolated at 1209.57 nm gives ≈ 478.3 W/(m² µm).
+    // docs/formats.md: the target table interpolated at 1209.57 nm gives ≈ 478.3 W/(m² µm).
     let e = s.at(1209.57).unwrap();
     assert!((e - 478.3).abs() < 0.5, "{e}");
     assert!(s.at(100.0).is_none());

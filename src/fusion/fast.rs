@@ -1,6 +1,6 @@
 //! The fast z-solver: Gauss–Newton on E(z) with R linearised in (z_x, z_y) — plus the residual
 //! curvature at pixels with large |I − R| — each step solved by conjugate gradients in the DCT
-//! basis, preconditioned by the DCT-diagonal operator (ALGORITHM.md route 3), with a
+//! basis, preconditioned by the DCT-diagonal operator of the quadratic terms (docs/science.md), with a
 //! backtracking line search on the true energy. A stage ends when no height moves by more than
 //! `step_tolerance` × ε in a step (or E stagnates, or `max_iterations`).
 

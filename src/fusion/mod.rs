@@ -1,4 +1,4 @@
-//! Fusion of shape from shading with an absolute DEM (Herbort, Grumpe & Wöhler; ALGORITHM.md).
+//! Fusion of shape from shading with an absolute DEM (Herbort, Grumpe & Wöhler; docs/science.md).
 //!
 //! [`fuse`] runs the albedo outer loop: at each stage m it inverts R(ρ; μ0, μ, g) = I pixel by
 //! pixel on the current surface, low-passes ρ with a masked Gaussian of width σ_ρ⁽ᵐ⁾, and then
@@ -62,7 +62,7 @@ pub struct Problem<'a> {
 /// Effective Gaussian point-spread, in grid pixels, of a DEM sampled `factor` times coarser than
 /// the grid and resampled to it bilinearly: an anti-alias low-pass of σ = factor/2 plus the box
 /// of one coarse pixel (variance factor²/12) plus the bilinear tent (variance factor²/6) give
-/// σ² = factor²/4 + factor²/4, σ = factor/√2 (≈ 2.8 px at 4× coarser, ALGORITHM.md's ≈ 2.9).
+/// σ² = factor²/4 + factor²/4, σ = factor/√2 (≈ 2.8 px at 4× coarser).
 pub fn dem_psf_sigma(factor: f64) -> f64 {
     if factor <= 1.0 {
         0.0

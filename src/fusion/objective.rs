@@ -27,7 +27,7 @@
 //! E_reg = Σ_kl (λ_kl/ε²)(ẑ − ẑ_DEM)².
 //!
 //! The seed's integrability term γ·E_int couples auxiliary gradients (p, q) to z. Its Eq. 2
-//! evaluates R at z_x, z_y, which makes γ a step size (ALGORITHM.md): both solvers minimise the
+//! evaluates R at z_x, z_y, which makes γ a step size (docs/science.md): both solvers minimise the
 //! E(z) above, where E_int = 0.
 
 use super::ops;

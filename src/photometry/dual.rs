@@ -1,6 +1,6 @@
 //! Forward-mode dual numbers: a value with `N` first partial derivatives.
 //!
-//! Used to differentiate the Hapke roughness correction through μ0 and μ (PHOTOMETRY.md:
+//! Used to differentiate the Hapke roughness correction through μ0 and μ (docs/photometry.md:
 //! "forward-mode dual numbers are the least error-prone way") and the H function through w.
 
 use std::ops::{Add, Div, Mul, Neg, Sub};

@@ -1,4 +1,4 @@
-//! Hapke IMSA with opposition effect and macroscopic roughness (PHOTOMETRY.md):
+//! Hapke IMSA with opposition effect and macroscopic roughness (docs/photometry.md):
 //!
 //! r(i,e,g) = (w/4π) · μ0e/(μ0e+μe) · [(1+B(g))·P(g) + H(μ0e)·H(μe) − 1] · S(i,e,ψ)   [sr⁻¹]
 //!
@@ -197,7 +197,7 @@ fn neg_exp<const N: usize>(a: Dual<N>) -> Dual<N> {
     }
 }
 
-/// The roughness correction (μ0e, μe, S) of Hapke 1984 as PHOTOMETRY.md states it.
+/// The roughness correction (μ0e, μe, S) of Hapke 1984 as docs/photometry.md states it.
 fn roughness<const N: usize>(
     mu0: Dual<N>,
     mu: Dual<N>,
@@ -258,7 +258,7 @@ impl ReflectanceModel for Hapke {
         }
     }
 
-    /// Newton on w with a bisection fallback; r(w) is strictly increasing (PHOTOMETRY.md).
+    /// Newton on w with a bisection fallback; r(w) is strictly increasing (docs/photometry.md).
     fn invert_cosines(&self, observed: f64, c: &Cosines) -> Albedo {
         if observed <= 0.0 {
             return Albedo::Value(0.0);
@@ -300,7 +300,7 @@ mod tests {
     use super::*;
     use crate::photometry::{incidence, Vec3};
 
-    /// s = (sin i, 0, cos i) and v at emission e with s·v = cos g (PHOTOMETRY.md's test layout).
+    /// s = (sin i, 0, cos i) and v at emission e with s·v = cos g (docs/photometry.md's reference layout).
     fn geometry(i: f64, e: f64, g: f64) -> (Vec3, Vec3) {
         let (i, e, g) = (i.to_radians(), e.to_radians(), g.to_radians());
         let s = [i.sin(), 0.0, i.cos()];
@@ -324,7 +324,7 @@ mod tests {
         }
     }
 
-    /// PHOTOMETRY.md check table: i, e, g, then per w ∈ {0.2, 0.44, 0.8} the columns
+    /// docs/photometry.md reference table: i, e, g, then per w ∈ {0.2, 0.44, 0.8} the columns
     /// θ̄=0/H81, θ̄=11°/H81, θ̄=11°/H02.
     const TABLE: [[f64; 12]; 9] = [
         [

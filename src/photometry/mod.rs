@@ -1,4 +1,4 @@
-//! Reflectance models for shape from shading (PHOTOMETRY.md).
+//! Reflectance models for shape from shading (docs/photometry.md).
 //!
 //! Frame: x east, y north, z up. A surface with gradients p = ∂z/∂x, q = ∂z/∂y has the unit
 //! normal n = (−p, −q, 1)/N, N = √(1+p²+q²). With s the unit vector to the Sun and v the unit

@@ -89,7 +89,7 @@ pub struct Scene {
     pub model: Hapke,
 }
 
-/// Unit vector in east-north-up from zenith and azimuth (clockwise from north), degrees: FORMATS.md's
+/// Unit vector in east-north-up from zenith and azimuth (clockwise from north), degrees: docs/formats.md's
 /// (sin z·sin az, sin z·cos az, cos z).
 pub fn direction(zenith_deg: f64, azimuth_deg: f64) -> Vec3 {
     let (z, a) = (zenith_deg.to_radians(), azimuth_deg.to_radians());

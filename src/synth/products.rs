@@ -1,4 +1,4 @@
-//! The synthetic scene written out as mission-format products (FORMATS.md), so the whole
+//! The synthetic scene written out as mission-format products (docs/formats.md), so the whole
 //! pipeline — PDS3 labels, M3 L1B and LOLA GDR readers, swath and DEM resampling, tiling,
 //! export — runs on data whose truth is known:
 //!
@@ -314,7 +314,7 @@ mod tests {
 
     #[test]
     fn black_body_sun_is_near_the_measured_irradiance() {
-        // The measured target-mode table gives ≈ 478 W/(m² µm) at 1209.6 nm (FORMATS.md); a
+        // The measured target-mode table gives ≈ 478 W/(m² µm) at 1209.6 nm (docs/formats.md); a
         // 5778 K black body is within a few per cent of it in the near infrared.
         let e = blackbody_irradiance(1209.57);
         assert!((e - 478.3).abs() / 478.3 < 0.05, "{e}");
