@@ -19,6 +19,52 @@ use pds::lola::{LolaDem, Projection};
 use pds::m3::Observation;
 use pds::solar::{reflectance, SolarSpectrum};
 
+/// Lines of LOC read to measure a swath's ground sample distance (from its middle).
+const GSD_LINES: usize = 256;
+
+/// The ground sample distance of an observation, metres: the geometric mean of the median
+/// distances between neighbouring samples of a line and between neighbouring lines, over up
+/// to [`GSD_LINES`] lines from the middle of LOC (great circles at the LOC radius) — the side
+/// of a square pixel with the area of the swath's. M3 global mode gives ≈ 140–150 m from the
+/// 100 km orbit (the real crops: 143 m across, 157 m along track → 150 m) and about twice that
+/// from 200 km.
+pub fn ground_sample_distance(obs: &Observation) -> Result<f64> {
+    let loc = obs.part("LOC")?;
+    let n = GSD_LINES.min(loc.lines);
+    let first = (loc.lines - n) / 2;
+    let [lon, lat, rad] = [0, 1, 2].map(|b| read2(&loc, b, first, n));
+    let (lon, lat, rad) = (lon?, lat?, rad?);
+    let dist = |a: (usize, usize), b: (usize, usize)| {
+        let (la1, la2) = (lat[a].to_radians(), lat[b].to_radians());
+        let dl = (lon[b] - lon[a]).to_radians();
+        let h =
+            ((la2 - la1) / 2.0).sin().powi(2) + la1.cos() * la2.cos() * (dl / 2.0).sin().powi(2);
+        let d = 2.0 * 0.5 * (rad[a] + rad[b]) * h.sqrt().min(1.0).asin();
+        d.is_finite().then_some(d)
+    };
+    let median = |mut v: Vec<f64>| {
+        v.sort_by(f64::total_cmp);
+        (!v.is_empty()).then(|| v[v.len() / 2])
+    };
+    let (lines, samples) = lon.dim();
+    let across = (0..lines)
+        .flat_map(|l| (1..samples).filter_map(move |m| dist((l, m - 1), (l, m))))
+        .filter(|d| *d > 0.0)
+        .collect();
+    let along = (1..lines)
+        .flat_map(|l| (0..samples).filter_map(move |m| dist((l - 1, m), (l, m))))
+        .filter(|d| *d > 0.0)
+        .collect();
+    match (median(across), median(along)) {
+        (Some(a), Some(b)) => Ok((a * b).sqrt()),
+        (Some(d), None) | (None, Some(d)) => Ok(d),
+        (None, None) => Err(Error::Usage(format!(
+            "{}: LOC has no two neighbouring valid positions to measure the ground sample distance from: give [grid] resolution_m",
+            obs.label_path.display()
+        ))),
+    }
+}
+
 /// Lines of LOC scanned at a time when looking for the part of a swath over the grid.
 const SCAN_LINES: usize = 1024;
 

@@ -237,6 +237,9 @@ pub struct Plan {
     pub intensity_pixels: usize,
     /// σ of the input DEM's point spread on the grid, pixels.
     pub dem_psf_sigma: f64,
+    /// Where the grid spacing came from (`[grid] resolution_m` or the observation's ground
+    /// sample distance).
+    pub resolution_source: String,
     /// The first DEM's effective resolution, metres, and where it came from.
     pub dem_resolution_m: f64,
     pub dem_resolution_source: String,
@@ -523,10 +526,27 @@ fn run_key(wf: &Workflow, files: &[PathBuf]) -> Result<String> {
     Ok(sha256_hex(text.as_bytes()))
 }
 
-/// The grid of an orbital workflow.
-fn make_grid(o: &Orbital, inputs: &Inputs) -> Result<Grid> {
+/// The grid spacing of an orbital workflow and where it came from.
+fn resolution(o: &Orbital, inputs: &Inputs) -> Result<(f64, String)> {
+    if let Some(r) = o.grid.resolution_m {
+        return Ok((r, "[grid] resolution_m".into()));
+    }
+    let obs = &inputs.obs[0];
+    let gsd = ingest::ground_sample_distance(obs)?;
+    // Whole decimetres: a tidy grid that does not move with the last digits of LOC.
+    let res = (gsd * 10.0).round() / 10.0;
+    Ok((
+        res,
+        format!(
+            "ground sample distance of {} (LOC), {gsd:.2} m",
+            obs.label_path.display()
+        ),
+    ))
+}
+
+/// The grid of an orbital workflow with spacing `res`.
+fn make_grid(o: &Orbital, inputs: &Inputs, res: f64) -> Result<Grid> {
     let usage = |e: crate::grid::GridError| Error::Usage(format!("[grid]/[region]: {e}"));
-    let res = o.grid.resolution_m;
     match o.region.map(|r| r.kind()).transpose()? {
         Some(RegionKind::LonLat(b)) => {
             let (lon, lat) = b.centre();
@@ -630,7 +650,8 @@ fn plan(o: &Orbital, wf: &Workflow, inputs: &Inputs, progress: &Progress) -> Res
         ));
     }
     progress.stage("planning: grid, swath index, intensity scale");
-    let grid = make_grid(o, inputs)?;
+    let (res, resolution_source) = resolution(o, inputs)?;
+    let grid = make_grid(o, inputs, res)?;
     let pr = projector(&grid.crs)?;
     let mut swaths = Vec::new();
     let (mut sum, mut count) = (0.0, 0usize);
@@ -704,6 +725,7 @@ fn plan(o: &Orbital, wf: &Workflow, inputs: &Inputs, progress: &Progress) -> Res
         intensity_scale: sum / count as f64,
         intensity_pixels: count,
         dem_psf_sigma,
+        resolution_source,
         dem_resolution_m,
         dem_resolution_source,
         sigma_dem,
@@ -718,16 +740,21 @@ fn plan(o: &Orbital, wf: &Workflow, inputs: &Inputs, progress: &Progress) -> Res
     )?;
     progress.finish();
     progress.note(&format!(
-        "plan: {} × {} px at {} m ({}), {} tiles of {} px + {} px halo, Ī = {:.5} sr⁻¹ over {} px",
+        "plan: {} × {} px at {} m ({}; {}), {} tiles of {} px + {} px halo, Ī = {:.5} sr⁻¹ over {} px; DEM resolution {:.0} m ({}), σ_B {:.2} px, σ_DEM {:.2} px",
         p.grid.rows,
         p.grid.cols,
         p.grid.spacing,
+        p.resolution_source,
         p.grid.crs.name(),
         p.tiles.len(),
         o.tiling.tile_size,
         p.halo,
         p.intensity_scale,
-        p.intensity_pixels
+        p.intensity_pixels,
+        p.dem_resolution_m,
+        p.dem_resolution_source,
+        p.dem_psf_sigma,
+        p.sigma_dem
     ));
     Ok(p)
 }
@@ -1145,6 +1172,12 @@ struct RunRecord<'a> {
     halo: Option<usize>,
     intensity_scale: Option<f64>,
     dem_psf_sigma: Option<f64>,
+    /// Where the grid spacing came from; the DEM's effective resolution, its source, and the
+    /// σ_DEM the tiles used (orbital runs).
+    resolution_source: Option<String>,
+    dem_resolution_m: Option<f64>,
+    dem_resolution_source: Option<String>,
+    sigma_dem: Option<f64>,
     threads: usize,
     tiles: Vec<TileRecord>,
     metrics: Metrics,
@@ -1363,6 +1396,10 @@ fn mosaic(
         halo: Some(plan.halo),
         intensity_scale: Some(plan.intensity_scale),
         dem_psf_sigma: Some(plan.dem_psf_sigma),
+        resolution_source: Some(plan.resolution_source.clone()),
+        dem_resolution_m: Some(plan.dem_resolution_m),
+        dem_resolution_source: Some(plan.dem_resolution_source.clone()),
+        sigma_dem: Some(plan.sigma_dem),
         threads: rayon::current_num_threads(),
         tiles: records,
         metrics: stats.finish(),
@@ -1542,6 +1579,10 @@ fn run_lab(l: &Lab, wf: &Workflow, progress: &Progress) -> Result<RunSummary> {
         halo: None,
         intensity_scale: None,
         dem_psf_sigma: None,
+        resolution_source: None,
+        dem_resolution_m: None,
+        dem_resolution_source: None,
+        sigma_dem: None,
         threads: rayon::current_num_threads(),
         tiles: vec![TileRecord {
             id: 0,

@@ -173,8 +173,10 @@ pub struct GridSpec {
     /// the region is a longitude/latitude box, else by the run from the swath).
     pub center_lat: Option<f64>,
     pub center_lon: Option<f64>,
-    /// Pixel size, metres.
-    pub resolution_m: f64,
+    /// Pixel size, metres. Absent: the first observation's ground sample distance from its
+    /// LOC backplane ([`crate::ingest::ground_sample_distance`]; ≈ 140 m for M3 global mode
+    /// from the 100 km orbit, ≈ 280 m from 200 km); the plan records which.
+    pub resolution_m: Option<f64>,
     /// How the DEM is resampled to the grid.
     pub dem_interpolation: Interpolation,
 }
@@ -185,7 +187,7 @@ impl Default for GridSpec {
             projection: ProjectionKind::Stereographic,
             center_lat: None,
             center_lon: None,
-            resolution_m: 140.0,
+            resolution_m: None,
             dem_interpolation: Interpolation::Bicubic,
         }
     }
@@ -397,11 +399,8 @@ impl Workflow {
                         o.inputs.wavelength_nm
                     )));
                 }
-                if !(o.grid.resolution_m.is_finite() && o.grid.resolution_m > 0.0) {
-                    return Err(fail(format!(
-                        "[grid] resolution_m = {} must be positive",
-                        o.grid.resolution_m
-                    )));
+                if let Some(r) = o.grid.resolution_m.filter(|r| !(r.is_finite() && *r > 0.0)) {
+                    return Err(fail(format!("[grid] resolution_m = {r} must be positive")));
                 }
                 if o.tiling.tile_size < 16 {
                     return Err(fail(format!(
@@ -547,6 +546,8 @@ directory = "out"
         assert_eq!(o.inputs.lola[0], Path::new("/abs/LDEM_64.LBL"));
         assert_eq!(o.output.directory, Path::new("/data/run/out"));
         assert_eq!(o.inputs.wavelength_nm, 1209.6);
+        // The grid spacing comes from the observation unless given.
+        assert_eq!(o.grid.resolution_m, None);
         assert_eq!(
             (o.grid.center_lat, o.grid.center_lon),
             (Some(-13.0), Some(357.0))

@@ -663,7 +663,7 @@ fn a_solar_table_of_the_other_mode_is_refused() {
     std::fs::remove_dir_all(&dir).unwrap();
 }
 
-/// A real five-line M3 crop with LOLA LDEM_4 (σ_B ≈ 38 px at 140 m) on a region far wider
+/// A real five-line M3 crop with LOLA LDEM_4 (σ_B ≈ 35 px at 150 m) on a region far wider
 /// than the swath: the DEM changes only along the swath, by tens of metres at most, and not
 /// at all beyond the band; the fused DEM explains the image better than LDEM_4.
 #[test]
@@ -713,5 +713,13 @@ directory = "{out}"
         "{s}"
     );
     assert!(s["warnings"].as_array().unwrap().is_empty(), "{s}");
+    // No [grid] resolution_m: the grid takes the observation's ground sample distance (M3
+    // global mode from the 100 km orbit: 140–160 m).
+    let spacing = rec["grid"]["spacing"].as_f64().unwrap();
+    assert!((140.0..=160.0).contains(&spacing), "{spacing}");
+    assert!(rec["resolution_source"]
+        .as_str()
+        .unwrap()
+        .contains("ground sample distance of"));
     std::fs::remove_dir_all(&dir).unwrap();
 }
