@@ -17,6 +17,7 @@ pub mod progress;
 pub mod quicklook;
 pub mod raster;
 pub mod rng;
+pub mod sanity;
 pub mod spectral;
 pub mod synth;
 pub mod tiling;

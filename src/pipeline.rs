@@ -26,6 +26,7 @@ use crate::ingest::{self, SwathIndex};
 use crate::photometry::{ModelSpec, ReflectanceModel};
 use crate::progress::Progress;
 use crate::raster::write_atomic;
+use crate::sanity::{Sanity, TileSums};
 use crate::tiling::{self, Tile, Window};
 use crate::workflow::{Lab, Layer, Orbital, RegionKind, Workflow};
 use ndarray::{s, Array2, Zip};
@@ -263,183 +264,10 @@ pub struct TileRecord {
     pub photometric_pixels: usize,
     /// Sums behind the run's sanity figures, over the core's pixels.
     #[serde(default)]
-    pub sanity: SanitySums,
+    pub sanity: TileSums,
     pub iterations: usize,
     pub seconds: f64,
     pub stages: Vec<StageReport>,
-}
-
-/// Sums over pixels behind [`Sanity`]; they add across tiles.
-#[derive(Debug, Clone, Default, PartialEq, Serialize, Deserialize)]
-pub struct SanitySums {
-    pub pixels: usize,
-    pub photometric: usize,
-    /// (count, Σ(dem − input)², max |dem − input|) on the image's footprint, in the
-    /// transition band around it (0 < s, off the footprint) and beyond (s = 0).
-    pub change: [(usize, f64, f64); 3],
-    /// Over photometric pixels: n, ΣI, ΣI², and for the image rendered from the input DEM and
-    /// from the fused DEM (same albedo) ΣR, ΣR², ΣIR.
-    pub corr: [f64; 9],
-}
-
-impl SanitySums {
-    /// Sums over the `core` window of a tile solved on its ext window.
-    fn of_tile(
-        problem: &Problem,
-        f: &fusion::Fusion,
-        fused: &Array2<f64>,
-        core: (usize, usize, usize, usize),
-    ) -> SanitySums {
-        let (r0, r1, c0, c1) = core;
-        fn win<'v>(
-            a: ndarray::ArrayView2<'v, f64>,
-            (r0, r1, c0, c1): (usize, usize, usize, usize),
-        ) -> ndarray::ArrayView2<'v, f64> {
-            a.slice_move(ndarray::s![r0..r1, c0..c1])
-        }
-        let r_in = fusion::render(problem, problem.dem, f.albedo.view());
-        let r_out = fusion::render(problem, fused.view(), f.albedo.view());
-        let mut s = SanitySums::default();
-        let image = win(problem.image, core);
-        let support = win(f.support.view(), core);
-        let dem = win(problem.dem, core);
-        let phot = f.photometric.slice(ndarray::s![r0..r1, c0..c1]);
-        for (((((&i, &sup), &d), &z), &ph), (&a, &b)) in image
-            .iter()
-            .zip(support.iter())
-            .zip(dem.iter())
-            .zip(win(fused.view(), core).iter())
-            .zip(phot.iter())
-            .zip(
-                win(r_in.view(), core)
-                    .iter()
-                    .zip(win(r_out.view(), core).iter()),
-            )
-        {
-            s.pixels += 1;
-            let class = if i.is_finite() {
-                0
-            } else if sup > 0.0 {
-                1
-            } else {
-                2
-            };
-            let dz = z - d;
-            let c = &mut s.change[class];
-            (c.0, c.1, c.2) = (c.0 + 1, c.1 + dz * dz, c.2.max(dz.abs()));
-            if ph {
-                s.photometric += 1;
-                for (k, v) in [1.0, i, i * i, a, a * a, i * a, b, b * b, i * b]
-                    .into_iter()
-                    .enumerate()
-                {
-                    s.corr[k] += v;
-                }
-            }
-        }
-        s
-    }
-
-    fn add(&mut self, o: &SanitySums) {
-        self.pixels += o.pixels;
-        self.photometric += o.photometric;
-        for (a, b) in self.change.iter_mut().zip(&o.change) {
-            *a = (a.0 + b.0, a.1 + b.1, a.2.max(b.2));
-        }
-        for (a, b) in self.corr.iter_mut().zip(&o.corr) {
-            *a += b;
-        }
-    }
-}
-
-/// How far to trust a run on real data: does the fused DEM explain the image better than the
-/// input DEM, and did the DEM change only where the image constrains it?
-#[derive(Debug, Clone, Serialize)]
-pub struct Sanity {
-    pub photometric_fraction: f64,
-    /// Pearson correlation of the observed image with the image rendered (final albedo) from
-    /// the input DEM and from the fused DEM, over photometric pixels.
-    pub correlation_input_dem: f64,
-    pub correlation_fused_dem: f64,
-    /// RMS and max of dem − input_dem, metres: on the image's footprint, in the transition
-    /// band around it, and beyond it (which must be 0).
-    pub change_footprint_rms_m: f64,
-    pub change_footprint_max_m: f64,
-    pub change_band_rms_m: f64,
-    pub change_band_max_m: f64,
-    pub change_beyond_rms_m: f64,
-    pub change_beyond_max_m: f64,
-    pub warnings: Vec<String>,
-}
-
-impl Sanity {
-    fn from_sums(s: &SanitySums) -> Sanity {
-        let c = &s.corr;
-        let pearson = |sy: f64, syy: f64, sxy: f64| {
-            let n = c[0];
-            let cov = sxy - c[1] * sy / n;
-            let vx = c[2] - c[1] * c[1] / n;
-            let vy = syy - sy * sy / n;
-            if n < 2.0 || vx <= 0.0 || vy <= 0.0 {
-                f64::NAN
-            } else {
-                cov / (vx * vy).sqrt()
-            }
-        };
-        let rms = |k: usize| {
-            let (n, ss, _) = s.change[k];
-            if n == 0 {
-                f64::NAN
-            } else {
-                (ss / n as f64).sqrt()
-            }
-        };
-        let mut out = Sanity {
-            photometric_fraction: s.photometric as f64 / s.pixels.max(1) as f64,
-            correlation_input_dem: pearson(c[3], c[4], c[5]),
-            correlation_fused_dem: pearson(c[6], c[7], c[8]),
-            change_footprint_rms_m: rms(0),
-            change_footprint_max_m: s.change[0].2,
-            change_band_rms_m: rms(1),
-            change_band_max_m: s.change[1].2,
-            change_beyond_rms_m: rms(2),
-            change_beyond_max_m: s.change[2].2,
-            warnings: Vec::new(),
-        };
-        if out.correlation_fused_dem < out.correlation_input_dem {
-            out.warnings.push(format!(
-                "the fused DEM explains the image worse than the input DEM (rendered-image correlation {:.3} < {:.3}): check the photometric model, the wavelength and the observation's geometry",
-                out.correlation_fused_dem, out.correlation_input_dem
-            ));
-        }
-        if s.change[2].0 > 0 && s.change[2].2 > 1e-3 {
-            out.warnings.push(format!(
-                "the DEM changed beyond the transition band around the image (max {:.3} m): it should be the input DEM there",
-                s.change[2].2
-            ));
-        }
-        out
-    }
-
-    /// Lines for the terminal.
-    pub fn table(&self) -> String {
-        let mut t = format!(
-            "photometric fraction {:.3}\nimage vs rendered: correlation {:.3} from the input DEM, {:.3} from the fused DEM\ndem − input_dem RMS / max: footprint {:.2} / {:.2} m, band {:.2} / {:.2} m, beyond {:.3} / {:.3} m\n",
-            self.photometric_fraction,
-            self.correlation_input_dem,
-            self.correlation_fused_dem,
-            self.change_footprint_rms_m,
-            self.change_footprint_max_m,
-            self.change_band_rms_m,
-            self.change_band_max_m,
-            self.change_beyond_rms_m,
-            self.change_beyond_max_m
-        );
-        for w in &self.warnings {
-            t.push_str(&format!("warning: {w}\n"));
-        }
-        t
-    }
 }
 
 /// Layers stored per tile, in file order.
@@ -824,7 +652,8 @@ fn run_tile(o: &Orbital, inputs: &Inputs, plan: &Plan, tile: &Tile) -> Result<Ti
     let mut image = Array2::from_elem(dim, f64::NAN);
     let mut sun = Array2::from_elem(dim, [0.0, 0.0, 1.0]);
     let mut view = Array2::from_elem(dim, [0.0, 0.0, 1.0]);
-    for (obs, index) in inputs.obs.iter().zip(&plan.swaths) {
+    let mut source: Array2<Option<usize>> = Array2::from_elem(dim, None);
+    for (k, (obs, index)) in inputs.obs.iter().zip(&plan.swaths).enumerate() {
         if index.lines_for(&grid).is_none() {
             continue;
         }
@@ -837,15 +666,14 @@ fn run_tile(o: &Orbital, inputs: &Inputs, plan: &Plan, tile: &Tile) -> Result<Ti
             &geo,
             Some(index),
         )?;
-        Zip::from(&mut image)
+        Zip::indexed(&mut image)
             .and(&mut sun)
             .and(&mut view)
-            .and(&img.reflectance)
-            .and(&img.sun)
-            .and(&img.view)
-            .for_each(|i, s, v, &ri, &si, &vi| {
+            .and(&mut source)
+            .for_each(|ij, i, s, v, src| {
+                let (ri, si, vi) = (img.reflectance[ij], img.sun[ij], img.view[ij]);
                 if i.is_nan() && ri.is_finite() && si[2].is_finite() && vi[2].is_finite() {
-                    (*i, *s, *v) = (ri, si, vi);
+                    (*i, *s, *v, *src) = (ri, si, vi, Some(k));
                 }
             });
     }
@@ -890,8 +718,8 @@ fn run_tile(o: &Orbital, inputs: &Inputs, plan: &Plan, tile: &Tile) -> Result<Ti
         tile.core.c0 - e.c0,
         tile.core.c0 - e.c0 + tile.core.cols,
     );
-    let mut sanity = SanitySums::default();
-    let (status, layers, stages, photometric) = match fusion::fuse(&problem, &params) {
+    let n_obs = inputs.obs.len();
+    let (status, layers, stages, photometric, sanity) = match fusion::fuse(&problem, &params) {
         Ok(mut f) => {
             f.height = fusion::anchor(
                 &f.height,
@@ -899,7 +727,7 @@ fn run_tile(o: &Orbital, inputs: &Inputs, plan: &Plan, tile: &Tile) -> Result<Ti
                 f.support.view(),
                 plan.halo as f64 / 3.0,
             );
-            sanity = SanitySums::of_tile(&problem, &f, &f.height, core);
+            let sanity = TileSums::of_tile(&problem, &f, &f.height, &source, n_obs, core);
             let n = f.photometric.iter().filter(|&&b| b).count();
             let mask = f.photometric.mapv(|b| if b { 0.0 } else { 1.0 });
             (
@@ -907,11 +735,10 @@ fn run_tile(o: &Orbital, inputs: &Inputs, plan: &Plan, tile: &Tile) -> Result<Ti
                 [f.height, f.albedo, f.residual, mask, dem.clone()],
                 f.stages,
                 n,
+                sanity,
             )
         }
         Err(fusion::FusionError::NoObservations) => {
-            sanity.pixels = tile.core.rows * tile.core.cols;
-            sanity.change[2].0 = sanity.pixels;
             let nan = Array2::from_elem(dim, f64::NAN);
             (
                 "no_image",
@@ -924,6 +751,7 @@ fn run_tile(o: &Orbital, inputs: &Inputs, plan: &Plan, tile: &Tile) -> Result<Ti
                 ],
                 Vec::new(),
                 0,
+                TileSums::no_image(tile.core.rows * tile.core.cols, n_obs),
             )
         }
         Err(err) => return Err(Error::Usage(format!("tile {}: {err}", tile.id))),
@@ -1383,9 +1211,14 @@ fn mosaic(
     }
     progress.finish();
     let records: Vec<TileRecord> = heads.into_iter().map(|(r, _)| r).collect();
-    let mut sums = SanitySums::default();
+    let mut sums = TileSums::default();
     records.iter().for_each(|r| sums.add(&r.sanity));
-    let sanity = Sanity::from_sums(&sums);
+    let labels: Vec<String> = inputs
+        .obs
+        .iter()
+        .map(|o| o.label_path.display().to_string())
+        .collect();
+    let sanity = Sanity::from_sums(&sums, &labels);
     let record = RunRecord {
         tool: "sfsfuse",
         version: env!("CARGO_PKG_VERSION"),
@@ -1601,7 +1434,7 @@ fn run_lab(l: &Lab, wf: &Workflow, progress: &Progress) -> Result<RunSummary> {
             },
             status: "fused".into(),
             photometric_pixels: f.photometric.iter().filter(|&&b| b).count(),
-            sanity: SanitySums::default(),
+            sanity: TileSums::default(),
             iterations: f.iterations(),
             seconds,
             stages: f.stages.clone(),

@@ -585,6 +585,16 @@ fn a_region_wider_than_the_swath_keeps_the_input_dem_off_the_image() {
     let s = &rec["sanity"];
     assert_eq!(s["change_beyond_max_m"], 0.0, "{s}");
     assert!(s["correlation_fused_dem"].as_f64() > s["correlation_input_dem"].as_f64());
+    // Per observation: its footprint is the middle half of the columns (the bilinear edge
+    // costs a column on each side).
+    let o = &s["observations"][0];
+    let fp = o["footprint_pixels"].as_u64().unwrap() as usize;
+    assert!(
+        (c1 - c0 - 2) * p.grid.rows <= fp && fp <= (c1 - c0) * p.grid.rows,
+        "{o}"
+    );
+    assert!(o["label"].as_str().unwrap().ends_with("_L1B.LBL"));
+    assert!(o["correlation_fused_dem"].as_f64() > o["correlation_input_dem"].as_f64());
     std::fs::remove_dir_all(&dir).unwrap();
 }
 

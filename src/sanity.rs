@@ -1,0 +1,336 @@
+//! Sanity figures for runs on real data, where no truth is known: does the fused DEM explain
+//! the image better than the input DEM did, and did the DEM change only where the image
+//! constrains it? Sums are gathered per tile over its core ([`TileSums::of_tile`]), added over
+//! the tiles, and turned into [`Sanity`] once per run. Pure: no I/O.
+//!
+//! * Correlation: Pearson's r between the observed image I and the image R rendered with the
+//!   final albedo from the input DEM and from the fused DEM, over photometric pixels.
+//! * Change: RMS and max of dem − input_dem on the image's footprint (I has a value), in the
+//!   transition band around it (off the footprint, support s > 0) and beyond it (s = 0, where
+//!   the product must be the input DEM).
+
+use crate::fusion::{self, Fusion, Problem};
+use ndarray::{s, Array2, ArrayView2};
+use serde::{Deserialize, Serialize};
+
+/// Additive sums over a set of pixels.
+#[derive(Debug, Clone, Default, PartialEq, Serialize, Deserialize)]
+pub struct Sums {
+    pub pixels: usize,
+    pub photometric: usize,
+    /// (count, Σ(dem − input)², max |dem − input|) on the footprint, in the band, beyond.
+    pub change: [(usize, f64, f64); 3],
+    /// Over photometric pixels: n, ΣI, ΣI², then ΣR, ΣR², ΣIR for the rendering from the input
+    /// DEM and from the fused DEM.
+    pub corr: [f64; 9],
+}
+
+impl Sums {
+    /// One pixel: `class` 0 footprint, 1 band, 2 beyond; `dz` = dem − input; the observed and
+    /// both rendered values where the pixel is photometric.
+    fn pixel(&mut self, class: usize, dz: f64, photometric: Option<(f64, f64, f64)>) {
+        self.pixels += 1;
+        let c = &mut self.change[class];
+        *c = (c.0 + 1, c.1 + dz * dz, c.2.max(dz.abs()));
+        if let Some((i, a, b)) = photometric {
+            self.photometric += 1;
+            for (acc, v) in
+                self.corr
+                    .iter_mut()
+                    .zip([1.0, i, i * i, a, a * a, i * a, b, b * b, i * b])
+            {
+                *acc += v;
+            }
+        }
+    }
+
+    pub fn add(&mut self, o: &Sums) {
+        self.pixels += o.pixels;
+        self.photometric += o.photometric;
+        for (a, b) in self.change.iter_mut().zip(&o.change) {
+            *a = (a.0 + b.0, a.1 + b.1, a.2.max(b.2));
+        }
+        for (a, b) in self.corr.iter_mut().zip(&o.corr) {
+            *a += b;
+        }
+    }
+
+    /// Pearson's r of I with the rendering from the input DEM (`k` = 0) or the fused DEM (1).
+    fn correlation(&self, k: usize) -> f64 {
+        let c = &self.corr;
+        let (n, sx, sxx) = (c[0], c[1], c[2]);
+        let (sy, syy, sxy) = (c[3 + 3 * k], c[4 + 3 * k], c[5 + 3 * k]);
+        let vx = sxx - sx * sx / n;
+        let vy = syy - sy * sy / n;
+        if n < 2.0 || vx <= 0.0 || vy <= 0.0 {
+            f64::NAN
+        } else {
+            (sxy - sx * sy / n) / (vx * vy).sqrt()
+        }
+    }
+
+    /// (RMS, max) of the change in `class`; NaN RMS without pixels.
+    fn change(&self, class: usize) -> (f64, f64) {
+        let (n, ss, max) = self.change[class];
+        let rms = if n == 0 {
+            f64::NAN
+        } else {
+            (ss / n as f64).sqrt()
+        };
+        (rms, max)
+    }
+}
+
+/// A tile's sums: over every core pixel, and per observation over the pixels whose image it
+/// supplied.
+#[derive(Debug, Clone, Default, PartialEq, Serialize, Deserialize)]
+pub struct TileSums {
+    pub all: Sums,
+    pub observations: Vec<Sums>,
+}
+
+impl TileSums {
+    /// A tile without any image: every core pixel is beyond the band and unchanged.
+    pub fn no_image(pixels: usize, observations: usize) -> TileSums {
+        let mut all = Sums {
+            pixels,
+            ..Sums::default()
+        };
+        all.change[2].0 = pixels;
+        TileSums {
+            all,
+            observations: vec![Sums::default(); observations],
+        }
+    }
+
+    /// Sums over the window `core` = (r0, r1, c0, c1) of a tile solved on its whole extent:
+    /// `fused` the heights written, `source[(i, j)]` the observation that supplied the image
+    /// there (`None` where none did).
+    pub fn of_tile(
+        problem: &Problem,
+        f: &Fusion,
+        fused: &Array2<f64>,
+        source: &Array2<Option<usize>>,
+        observations: usize,
+        core: (usize, usize, usize, usize),
+    ) -> TileSums {
+        let (r0, r1, c0, c1) = core;
+        let win = |a: ArrayView2<'_, f64>| a.slice_move(s![r0..r1, c0..c1]).to_owned();
+        let rendered_in = win(fusion::render(problem, problem.dem, f.albedo.view()).view());
+        let rendered_out = win(fusion::render(problem, fused.view(), f.albedo.view()).view());
+        let (image, support, dem, z) = (
+            win(problem.image),
+            win(f.support.view()),
+            win(problem.dem),
+            win(fused.view()),
+        );
+        let photometric = f.photometric.slice(s![r0..r1, c0..c1]);
+        let source = source.slice(s![r0..r1, c0..c1]);
+        let mut out = TileSums {
+            all: Sums::default(),
+            observations: vec![Sums::default(); observations],
+        };
+        for ((i, j), &obs) in source.indexed_iter() {
+            let v = image[(i, j)];
+            let class = if v.is_finite() {
+                0
+            } else if support[(i, j)] > 0.0 {
+                1
+            } else {
+                2
+            };
+            let dz = z[(i, j)] - dem[(i, j)];
+            let ph = photometric[(i, j)].then(|| (v, rendered_in[(i, j)], rendered_out[(i, j)]));
+            out.all.pixel(class, dz, ph);
+            if let Some(k) = obs.filter(|&k| k < observations) {
+                out.observations[k].pixel(class, dz, ph);
+            }
+        }
+        out
+    }
+
+    pub fn add(&mut self, o: &TileSums) {
+        self.all.add(&o.all);
+        if self.observations.len() < o.observations.len() {
+            self.observations
+                .resize(o.observations.len(), Sums::default());
+        }
+        for (a, b) in self.observations.iter_mut().zip(&o.observations) {
+            a.add(b);
+        }
+    }
+}
+
+/// One observation's figures, over the pixels whose image it supplied.
+#[derive(Debug, Clone, Serialize)]
+pub struct ObservationSanity {
+    pub label: String,
+    pub footprint_pixels: usize,
+    /// Photometric pixels over the observation's footprint.
+    pub photometric_fraction: f64,
+    pub correlation_input_dem: f64,
+    pub correlation_fused_dem: f64,
+    pub change_footprint_rms_m: f64,
+    pub change_footprint_max_m: f64,
+}
+
+/// The run's figures (see the module documentation).
+#[derive(Debug, Clone, Serialize)]
+pub struct Sanity {
+    /// Photometric pixels over all pixels of the region.
+    pub photometric_fraction: f64,
+    pub correlation_input_dem: f64,
+    pub correlation_fused_dem: f64,
+    pub change_footprint_rms_m: f64,
+    pub change_footprint_max_m: f64,
+    pub change_band_rms_m: f64,
+    pub change_band_max_m: f64,
+    pub change_beyond_rms_m: f64,
+    pub change_beyond_max_m: f64,
+    pub observations: Vec<ObservationSanity>,
+    pub warnings: Vec<String>,
+}
+
+/// How much lower the fused rendering's correlation may be before it is called worse (a
+/// rounding-level difference is not a finding).
+pub const CORRELATION_TOLERANCE: f64 = 1e-3;
+
+/// A rendering that correlates worse with the image after fusion than before.
+fn worse(label: &str, before: f64, after: f64) -> Option<String> {
+    (after < before - CORRELATION_TOLERANCE).then(|| format!(
+        "{label}: the fused DEM explains the image worse than the input DEM (rendered-image correlation {after:.3} < {before:.3}): check the photometric model, the wavelength and the observation's geometry"
+    ))
+}
+
+impl Sanity {
+    /// The figures from the run's sums; `labels` names the observations in input order.
+    pub fn from_sums(s: &TileSums, labels: &[String]) -> Sanity {
+        let a = &s.all;
+        let ((f_rms, f_max), (b_rms, b_max), (o_rms, o_max)) =
+            (a.change(0), a.change(1), a.change(2));
+        let observations: Vec<ObservationSanity> = labels
+            .iter()
+            .zip(
+                s.observations
+                    .iter()
+                    .chain(std::iter::repeat(&Sums::default())),
+            )
+            .map(|(label, o)| {
+                let (rms, max) = o.change(0);
+                ObservationSanity {
+                    label: label.clone(),
+                    footprint_pixels: o.change[0].0,
+                    photometric_fraction: o.photometric as f64 / o.change[0].0.max(1) as f64,
+                    correlation_input_dem: o.correlation(0),
+                    correlation_fused_dem: o.correlation(1),
+                    change_footprint_rms_m: rms,
+                    change_footprint_max_m: max,
+                }
+            })
+            .collect();
+        let mut warnings: Vec<String> = std::iter::once(worse(
+            "all observations",
+            a.correlation(0),
+            a.correlation(1),
+        ))
+        .chain(
+            observations
+                .iter()
+                .map(|o| worse(&o.label, o.correlation_input_dem, o.correlation_fused_dem)),
+        )
+        .flatten()
+        .collect();
+        if a.change[2].0 > 0 && o_max > 1e-3 {
+            warnings.push(format!(
+                "the DEM changed beyond the transition band around the image (max {o_max:.3} m): it should be the input DEM there"
+            ));
+        }
+        Sanity {
+            photometric_fraction: a.photometric as f64 / a.pixels.max(1) as f64,
+            correlation_input_dem: a.correlation(0),
+            correlation_fused_dem: a.correlation(1),
+            change_footprint_rms_m: f_rms,
+            change_footprint_max_m: f_max,
+            change_band_rms_m: b_rms,
+            change_band_max_m: b_max,
+            change_beyond_rms_m: o_rms,
+            change_beyond_max_m: o_max,
+            observations,
+            warnings,
+        }
+    }
+
+    /// Lines for the terminal.
+    pub fn table(&self) -> String {
+        let mut t = format!(
+            "photometric fraction {:.3}\nimage vs rendered: correlation {:.3} from the input DEM, {:.3} from the fused DEM\ndem − input_dem RMS / max: footprint {:.2} / {:.2} m, band {:.2} / {:.2} m, beyond {:.3} / {:.3} m\n",
+            self.photometric_fraction,
+            self.correlation_input_dem,
+            self.correlation_fused_dem,
+            self.change_footprint_rms_m,
+            self.change_footprint_max_m,
+            self.change_band_rms_m,
+            self.change_band_max_m,
+            self.change_beyond_rms_m,
+            self.change_beyond_max_m
+        );
+        if self.observations.len() > 1 {
+            for o in &self.observations {
+                t.push_str(&format!(
+                    "  {}: {} px, photometric {:.3}, correlation {:.3} → {:.3}, change {:.2} / {:.2} m\n",
+                    o.label,
+                    o.footprint_pixels,
+                    o.photometric_fraction,
+                    o.correlation_input_dem,
+                    o.correlation_fused_dem,
+                    o.change_footprint_rms_m,
+                    o.change_footprint_max_m
+                ));
+            }
+        }
+        for w in &self.warnings {
+            t.push_str(&format!("warning: {w}\n"));
+        }
+        t
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    /// Pearson's r on hand-made pixels: a rendering proportional to the image correlates 1,
+    /// its mirror −1; changes land in their classes.
+    #[test]
+    fn correlation_and_change_by_class() {
+        let mut s = Sums::default();
+        for (k, i) in [0.1, 0.2, 0.4, 0.3].into_iter().enumerate() {
+            s.pixel(k % 2, 3.0 * k as f64, Some((i, 2.0 * i + 1.0, 1.0 - i)));
+        }
+        s.pixel(2, 0.0, None);
+        assert!((s.correlation(0) - 1.0).abs() < 1e-12);
+        assert!((s.correlation(1) + 1.0).abs() < 1e-12);
+        // Class 0 got changes 0 and 6, class 1 got 3 and 9.
+        assert_eq!(s.change(0), ((18.0f64).sqrt(), 6.0));
+        assert_eq!(s.change(1), ((45.0f64).sqrt(), 9.0));
+        assert_eq!(s.change[2], (1, 0.0, 0.0));
+        // One observation with three footprint pixels, two of them photometric.
+        let mut o = Sums::default();
+        o.pixel(0, 1.0, Some((0.1, 0.3, 0.1)));
+        o.pixel(0, -2.0, Some((0.2, 0.5, 0.3)));
+        o.pixel(0, 0.5, None);
+        let mut t = TileSums {
+            all: s.clone(),
+            observations: vec![o],
+        };
+        t.add(&TileSums::no_image(10, 1));
+        assert_eq!(t.all.pixels, 15);
+        assert_eq!(t.all.change[2].0, 11);
+        let out = Sanity::from_sums(&t, &["A".into()]);
+        let a = &out.observations[0];
+        assert_eq!((a.footprint_pixels, a.change_footprint_max_m), (3, 2.0));
+        assert!((a.photometric_fraction - 2.0 / 3.0).abs() < 1e-15);
+        // Two points correlate perfectly either way: only the run-wide −1 warns.
+        assert_eq!(out.warnings.len(), 1, "{:?}", out.warnings);
+    }
+}
