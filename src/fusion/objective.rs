@@ -9,10 +9,11 @@
 //! * E_DEM = Σ ‖f_σ(∇ B z) − f_σ(∇ z_DEM)‖², f_σ the Gaussian low-pass of width σ_DEM, B the
 //!   input DEM's own point-spread (identity for the seed's plain term);
 //! * E_reg = Σ ‖∇(z − z_DEM)‖², the membrane regulariser;
-//! * E_tie = Σ κ(x)·((z − z_DEM)/ε)², κ = κ₀·(1 − min(s, c)), which holds the surface to the
-//!   input DEM where no image constrains it: s the photometric support of [`super::support`]
-//!   (1 within σ_s of the image's footprint, 0 beyond 3σ_s), c below; κ₀ = (δ + η)/σ_s², so the
-//!   tie takes over from the DEM-gradient term within about σ_s.
+//! * E_tie = Σ κ(x)·((z − z_DEM)/ε)², κ = κ₀·max(1 − s, 1 − 2c, 0), which holds the surface to
+//!   the input DEM where no image constrains it: s the photometric support of
+//!   [`super::support`] (1 within σ_s of the image's footprint, 0 beyond 3σ_s), c below (a
+//!   swath's edge has c ≈ ½ and is left free; a strip narrower than ≈ 1.25 σ_B is held);
+//!   κ₀ = (δ + η)/σ_s², so the tie takes over from the DEM-gradient term within about σ_s.
 //!
 //! Where the image covers B's whole neighbourhood, E_DEM compares the solution *blurred by the
 //! DEM's own point spread* with the DEM, so the image may supply the detail the DEM lost. Away
@@ -142,13 +143,14 @@ impl<'a, 'p> Objective<'a, 'p> {
                 .and(problem.dem)
                 .and(&blurred)
                 .map_collect(|&c, &d, &b| c * d + (1.0 - c) * b);
-            // Held to the DEM off the footprint (1 − s) and where the image sees too little of
-            // B's neighbourhood to undo its blur (1 − c): a five-line swath under LDEM_4
-            // (σ_B = 38 px) otherwise drifts by kilometres along the strip.
+            // Held to the DEM off the footprint (1 − s) and where the image sees less than half
+            // of B's neighbourhood (1 − 2c): a five-line swath under LDEM_4 (σ_B = 35 px)
+            // otherwise drifts by kilometres along the strip, while the edge of a wide swath
+            // (c ≈ ½) keeps its correction.
             let kappa0 = (delta + eta) / (r0 * r0);
             let tie = Zip::from(&support)
                 .and(&cover)
-                .map_collect(|&s, &c| kappa0 * (1.0 - s.min(c)) / e2);
+                .map_collect(|&s, &c| kappa0 * (1.0 - s).max(1.0 - 2.0 * c) / e2);
             (&gd * &dct.forward(&target), Some(tie))
         };
         Self {
