@@ -64,10 +64,56 @@ pub struct LolaDem {
 }
 
 fn number(path: &Path, obj: &Object, key: &str) -> Result<f64> {
-    let v = obj.get(key).ok_or_else(|| Error::missing(path, key))?;
-    v.as_f64()
-        .ok_or_else(|| Error::invalid(path, key, format!("{v:?} is not a number")))
+    optional_number(path, obj, key)?.ok_or_else(|| Error::missing(path, key))
 }
+
+/// `key (line N)` for messages, where the keyword is in `obj`.
+fn at(obj: &Object, key: &str) -> String {
+    match obj.attribute(key) {
+        Some(a) => format!("{key} (line {})", a.line),
+        None => key.to_string(),
+    }
+}
+
+/// A numeric keyword that may be absent; present, it must be a finite number.
+fn optional_number(path: &Path, obj: &Object, key: &str) -> Result<Option<f64>> {
+    let Some(v) = obj.get(key) else {
+        return Ok(None);
+    };
+    match v.as_f64() {
+        Some(x) if x.is_finite() => Ok(Some(x)),
+        _ => Err(Error::invalid(
+            path,
+            &at(obj, key),
+            format!("{v:?} is not a finite number"),
+        )),
+    }
+}
+
+/// `value` of `key` in `obj` must lie within `lo..=hi` (`what` says why).
+fn within(
+    path: &Path,
+    obj: &Object,
+    key: &str,
+    value: f64,
+    lo: f64,
+    hi: f64,
+    what: &str,
+) -> Result<f64> {
+    if (lo..=hi).contains(&value) {
+        Ok(value)
+    } else {
+        Err(Error::invalid(
+            path,
+            &at(obj, key),
+            format!("{value} is outside {lo}..{hi}: {what}"),
+        ))
+    }
+}
+
+/// Largest |LINE/SAMPLE_PROJECTION_OFFSET| accepted, pixels: a global 1024 px/deg product is
+/// 368 640 samples wide; offsets beyond a few million pixels describe no lunar product.
+const MAX_PROJECTION_OFFSET: f64 = 1e7;
 
 /// `value` must be a positive, finite number; the error names the keyword and the value.
 fn positive(path: &Path, key: &str, value: f64, unit: &str) -> Result<()> {
@@ -112,17 +158,33 @@ pub(crate) fn resolve(
         .ok_or_else(|| Error::missing(label_path, &format!("^{name}")))?;
     let p = p.map_err(|why| Error::invalid(label_path, &format!("^{name}"), why))?;
     let rec = |n: u64| -> Result<u64> {
+        if n == 0 {
+            return Err(Error::invalid(
+                label_path,
+                &format!("^{name}"),
+                "record 0: records count from 1",
+            ));
+        }
         let rb = record_bytes.ok_or_else(|| {
             Error::missing(label_path, "RECORD_BYTES (needed by a record pointer)")
         })?;
-        Ok(n.saturating_sub(1).saturating_mul(rb))
+        Ok((n - 1).saturating_mul(rb))
+    };
+    let byte = |n: u64| -> Result<u64> {
+        n.checked_sub(1).ok_or_else(|| {
+            Error::invalid(
+                label_path,
+                &format!("^{name}"),
+                "byte 0: byte offsets count from 1",
+            )
+        })
     };
     Ok(match p {
         Pointer::File(f) => (locate(label_path, &f)?, 0),
         Pointer::FileRecord(f, n) => (locate(label_path, &f)?, rec(n)?),
-        Pointer::FileBytes(f, n) => (locate(label_path, &f)?, n.saturating_sub(1)),
+        Pointer::FileBytes(f, n) => (locate(label_path, &f)?, byte(n)?),
         Pointer::Record(n) => (label_path.to_path_buf(), rec(n)?),
-        Pointer::Bytes(n) => (label_path.to_path_buf(), n.saturating_sub(1)),
+        Pointer::Bytes(n) => (label_path.to_path_buf(), byte(n)?),
     })
 }
 
@@ -142,19 +204,32 @@ impl LolaDem {
     pub fn open(path: &Path) -> Result<Self> {
         let label = read_label(path)?;
         let holder = label.child("UNCOMPRESSED_FILE").unwrap_or(&label.root);
-        let record_bytes = holder
-            .get("RECORD_BYTES")
-            .and_then(|v| v.as_i64())
-            .map(|v| v.max(0) as u64);
+        let record_bytes = match optional_number(path, holder, "RECORD_BYTES")? {
+            None => None,
+            Some(r) if r >= 1.0 && r.fract() == 0.0 => Some(r as u64),
+            Some(r) => {
+                return Err(Error::invalid(
+                    path,
+                    &at(holder, "RECORD_BYTES"),
+                    format!("{r} must be a whole number of bytes ≥ 1"),
+                ))
+            }
+        };
         let (data, offset) = resolve(path, holder, "IMAGE", record_bytes)?;
         let image = holder
             .child("IMAGE")
             .ok_or_else(|| Error::missing(path, "OBJECT = IMAGE"))?;
         let raster = Raster::from_object(path, image, data, offset)?;
-        let scaling_factor = image
-            .get("SCALING_FACTOR")
-            .and_then(|v| v.as_f64())
-            .unwrap_or(1.0);
+        // Absent means DN are heights; present, it must be a usable factor (a silent default
+        // would scale every height wrongly).
+        let scaling_factor = optional_number(path, image, "SCALING_FACTOR")?.unwrap_or(1.0);
+        if scaling_factor == 0.0 {
+            return Err(Error::invalid(
+                path,
+                &at(image, "SCALING_FACTOR"),
+                "0 would make every height 0",
+            ));
+        }
         // The `*_FLOAT` products are in kilometres, the integer ones in metres.
         let unit = image
             .get("UNIT")
@@ -172,7 +247,7 @@ impl LolaDem {
             }
         };
         let scaling_factor = scaling_factor * unit_m;
-        let ref_offset = image.get("OFFSET").and_then(|v| v.as_f64()).unwrap_or(0.0) * unit_m;
+        let ref_offset = optional_number(path, image, "OFFSET")?.unwrap_or(0.0) * unit_m;
         let map = label
             .find("IMAGE_MAP_PROJECTION")
             .ok_or_else(|| Error::missing(path, "OBJECT = IMAGE_MAP_PROJECTION"))?;
@@ -187,12 +262,47 @@ impl LolaDem {
         {
             let resolution = number(path, map, "MAP_RESOLUTION")?;
             positive(path, "MAP_RESOLUTION", resolution, "")?;
+            positive(path, "MAP_SCALE", map_scale_m, " m/pix")?;
+            let offset = |key| {
+                let v = number(path, map, key)?;
+                within(
+                    path,
+                    map,
+                    key,
+                    v,
+                    -MAX_PROJECTION_OFFSET,
+                    MAX_PROJECTION_OFFSET,
+                    "no lunar product is that large",
+                )
+            };
             Projection::SimpleCylindrical {
                 resolution,
-                center_lat: number(path, map, "CENTER_LATITUDE")?,
-                center_lon: number(path, map, "CENTER_LONGITUDE")?,
-                line_offset: number(path, map, "LINE_PROJECTION_OFFSET")?,
-                sample_offset: number(path, map, "SAMPLE_PROJECTION_OFFSET")?,
+                center_lat: {
+                    let v = number(path, map, "CENTER_LATITUDE")?;
+                    within(
+                        path,
+                        map,
+                        "CENTER_LATITUDE",
+                        v,
+                        -89.999,
+                        89.999,
+                        "a simple cylindrical projection's standard parallel cannot be a pole",
+                    )?
+                },
+                center_lon: {
+                    let v = number(path, map, "CENTER_LONGITUDE")?;
+                    within(
+                        path,
+                        map,
+                        "CENTER_LONGITUDE",
+                        v,
+                        -360.0,
+                        360.0,
+                        "longitudes are degrees",
+                    )?
+                },
+                line_offset: offset("LINE_PROJECTION_OFFSET")?,
+                sample_offset: offset("SAMPLE_PROJECTION_OFFSET")?,
             }
         } else if kind.eq_ignore_ascii_case("POLAR STEREOGRAPHIC") {
             let center_lat = number(path, map, "CENTER_LATITUDE")?;
@@ -216,11 +326,23 @@ impl LolaDem {
                 ));
             }
             positive(path, "MAP_SCALE", map_scale_m, " m/pix")?;
+            let offset = |key| {
+                let v = number(path, map, key)?;
+                within(
+                    path,
+                    map,
+                    key,
+                    v,
+                    -MAX_PROJECTION_OFFSET,
+                    MAX_PROJECTION_OFFSET,
+                    "no lunar product is that large",
+                )
+            };
             Projection::PolarStereographic {
                 north,
                 scale_m: map_scale_m,
-                line_offset: number(path, map, "LINE_PROJECTION_OFFSET")?,
-                sample_offset: number(path, map, "SAMPLE_PROJECTION_OFFSET")?,
+                line_offset: offset("LINE_PROJECTION_OFFSET")?,
+                sample_offset: offset("SAMPLE_PROJECTION_OFFSET")?,
                 radius_m,
             }
         } else {

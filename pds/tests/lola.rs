@@ -237,3 +237,79 @@ fn polar_stereographic_matches_proj() {
     }
     std::fs::remove_dir_all(&dir).unwrap();
 }
+
+/// LDEM_4's label with one value replaced: every value the reader uses is refused by keyword
+/// and line when it cannot be right (none of these used to be: `SCALING_FACTOR = abc` read as
+/// 1 doubled every height).
+#[test]
+fn impossible_label_values_are_refused_with_keyword_and_line() {
+    let Some(data) = test_data() else { return };
+    let text = std::fs::read_to_string(data.join("lola_ldem4/LDEM_4.LBL")).unwrap();
+    let dir = std::env::temp_dir().join(format!("pds-bad-lola-{}", std::process::id()));
+    std::fs::create_dir_all(&dir).unwrap();
+    let img = dir.join("LDEM_4.IMG");
+    if !img.exists() {
+        std::os::unix::fs::symlink(data.join("lola_ldem4/LDEM_4.IMG"), &img).unwrap();
+    }
+    let cases = [
+        (
+            "SCALING_FACTOR        = 0.5",
+            "SCALING_FACTOR        = abc",
+            "SCALING_FACTOR (line 64)",
+        ),
+        (
+            "SCALING_FACTOR        = 0.5",
+            "SCALING_FACTOR        = 0",
+            "SCALING_FACTOR (line 64)",
+        ),
+        (
+            "OFFSET                = 1737400.",
+            "OFFSET                = x",
+            "OFFSET (line 65)",
+        ),
+        (
+            "MAP_SCALE                    = 7580.84 <m/pix>",
+            "MAP_SCALE                    = 0 <m/pix>",
+            "MAP_SCALE",
+        ),
+        (
+            "CENTER_LONGITUDE             = 180 <deg>",
+            "CENTER_LONGITUDE             = 1e308 <deg>",
+            "CENTER_LONGITUDE (line 90)",
+        ),
+        (
+            "CENTER_LATITUDE              = 0 <deg>",
+            "CENTER_LATITUDE              = 90 <deg>",
+            "CENTER_LATITUDE (line 89)",
+        ),
+        (
+            "LINE_PROJECTION_OFFSET       = 359.5 <pix>",
+            "LINE_PROJECTION_OFFSET       = 1e300 <pix>",
+            "LINE_PROJECTION_OFFSET (line 103)",
+        ),
+        (
+            "RECORD_BYTES              = 2880",
+            "RECORD_BYTES              = -98",
+            "RECORD_BYTES (line 48)",
+        ),
+        (
+            "^IMAGE                    = \"LDEM_4.IMG\"",
+            "^IMAGE                    = (\"LDEM_4.IMG\", 0)",
+            "^IMAGE",
+        ),
+    ];
+    for (from, to, want) in cases {
+        assert!(text.contains(from), "{from}");
+        let lbl = dir.join("LDEM_4.LBL");
+        std::fs::write(&lbl, text.replace(from, to)).unwrap();
+        let err = LolaDem::open(&lbl).unwrap_err().to_string();
+        assert!(
+            err.contains(want) && err.contains("LDEM_4.LBL"),
+            "{to}: {err}"
+        );
+    }
+    // The untouched label still opens from there.
+    std::fs::write(dir.join("LDEM_4.LBL"), &text).unwrap();
+    LolaDem::open(&dir.join("LDEM_4.LBL")).unwrap();
+    std::fs::remove_dir_all(&dir).unwrap();
+}
