@@ -24,24 +24,22 @@ pub fn test_data() -> Option<PathBuf> {
     Some(p)
 }
 
-/// The path of an external tool (PROJ's `proj`, GDAL's `gdalinfo`) the test needs to compare
-/// against: `None` (skip, with a message) where it is not installed, a failure when CI is set,
-/// because `.ci/run` installs it.
+/// The path of an external tool (PROJ's `proj`, GDAL's `gdalinfo`) a test compares against.
+/// Such tests are `#[ignore]`d, so that a machine without the tools reports them as ignored in
+/// the summary instead of passing them quietly; `.ci/run` installs the tools and runs
+/// `cargo test -- --include-ignored`. Asked for and missing, the tool is a failure that says
+/// what to install.
 #[allow(dead_code)]
-pub fn external_tool(name: &str) -> Option<PathBuf> {
-    let found = std::env::var_os("PATH").and_then(|paths| {
-        std::env::split_paths(&paths)
-            .map(|d| d.join(name))
-            .find(|p| p.is_file())
-    });
-    if found.is_none() {
-        assert!(
-            std::env::var_os("CI").is_none(),
-            "CI is set but `{name}` is not installed: .ci/run must install it"
-        );
-        eprintln!("skipping: `{name}` not installed");
-    }
-    found
+pub fn external_tool(name: &str, package: &str) -> PathBuf {
+    std::env::var_os("PATH")
+        .and_then(|paths| {
+            std::env::split_paths(&paths)
+                .map(|d| d.join(name))
+                .find(|p| p.is_file())
+        })
+        .unwrap_or_else(|| {
+            panic!("this test needs `{name}`: install it (Debian: {package}), or leave out --include-ignored")
+        })
 }
 
 /// Run PROJ's `proj` with the PROJ string `def` on "lon lat" lines; its "x y" lines, with
