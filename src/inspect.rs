@@ -46,6 +46,15 @@ pub enum Inspection {
         loc_problem: Option<String>,
         /// Radiance range of the first band, W/(m² µm sr).
         radiance_band0: Option<Range>,
+        /// Illumination from OBS, degrees, when the OBS file is present: incidence (to-Sun
+        /// zenith), emission (to-M3 zenith), phase, and the Sun's azimuth (clockwise from
+        /// north).
+        incidence_deg: Option<Range>,
+        emission_deg: Option<Range>,
+        phase_deg: Option<Range>,
+        sun_azimuth_deg: Option<Range>,
+        /// Why OBS could not be read, if it could not.
+        obs_problem: Option<String>,
     },
     #[serde(rename = "LOLA GDR")]
     Lola {
@@ -60,6 +69,98 @@ pub enum Inspection {
         /// Heights above the reference sphere (DN × SCALING_FACTOR), metres.
         height_m: Option<Range>,
     },
+    #[serde(rename = "GeoTIFF")]
+    GeoTiff {
+        path: String,
+        width: usize,
+        height: usize,
+        crs: String,
+        /// Pixel size, metres (on the Moon sphere for a geographic file).
+        pixel_m: f64,
+        /// GDAL geotransform: x0, dx, 0, y0, 0, −dy.
+        geotransform: [f64; 6],
+        nodata: Option<f64>,
+        /// The GDAL metadata items (tag 42112), name and value.
+        metadata: Vec<(String, String)>,
+    },
+}
+
+/// The bytes that open a TIFF or BigTIFF file, either byte order.
+fn is_tiff(head: &[u8]) -> bool {
+    head.starts_with(b"II*\0")
+        || head.starts_with(b"MM\0*")
+        || head.starts_with(b"II+\0")
+        || head.starts_with(b"MM\0+")
+}
+
+/// The label beside the data file `path` that points at it (case-insensitively), if any.
+fn label_of(path: &Path) -> Option<std::path::PathBuf> {
+    let name = path.file_name()?.to_string_lossy().to_ascii_uppercase();
+    let dir = match path.parent() {
+        Some(d) if !d.as_os_str().is_empty() => d,
+        _ => Path::new("."),
+    };
+    let mut labels: Vec<_> = std::fs::read_dir(dir)
+        .ok()?
+        .flatten()
+        .map(|e| e.path())
+        .filter(|p| p.extension().is_some_and(|e| e.eq_ignore_ascii_case("lbl")))
+        .collect();
+    labels.sort();
+    labels.into_iter().find(|l| {
+        pds::read_label_bytes(l).is_ok_and(|b| {
+            String::from_utf8_lossy(&b)
+                .to_ascii_uppercase()
+                .contains(&name)
+        })
+    })
+}
+
+/// The items of GDAL's metadata XML (`<Item name="N" …>V</Item>`), in order.
+fn gdal_items(xml: &str) -> Vec<(String, String)> {
+    xml.split("<Item ")
+        .skip(1)
+        .filter_map(|item| {
+            let name = item.split("name=\"").nth(1)?.split('"').next()?;
+            let value = item.split_once('>')?.1.split("</Item>").next()?;
+            let band = item
+                .split("sample=\"")
+                .nth(1)
+                .and_then(|v| v.split('"').next())
+                .map(|b| format!(" (band {})", b.parse::<usize>().map_or(0, |b| b + 1)))
+                .unwrap_or_default();
+            Some((format!("{name}{band}"), value.to_string()))
+        })
+        .collect()
+}
+
+fn inspect_geotiff(path: &Path) -> Result<Inspection> {
+    use tiff::decoder::Decoder;
+    use tiff::tags::Tag;
+    let dem = crate::ingest::GeoTiffDem::open(path)?;
+    let f = std::fs::File::open(path).map_err(|e| Error::io(path, e))?;
+    let metadata = Decoder::new(std::io::BufReader::new(f))
+        .ok()
+        .and_then(|mut d| d.get_tag_ascii_string(Tag::Unknown(42112)).ok())
+        .map(|x| gdal_items(&x))
+        .unwrap_or_default();
+    Ok(Inspection::GeoTiff {
+        path: path.display().to_string(),
+        width: dem.width,
+        height: dem.height,
+        crs: match &dem.crs {
+            crate::export::GeoTiffCrs::Projected(c) => {
+                format!("{} ({})", c.name(), c.proj_string())
+            }
+            crate::export::GeoTiffCrs::Geographic => {
+                "longitude/latitude on the Moon sphere (+proj=longlat +R=1737400)".into()
+            }
+        },
+        pixel_m: dem.pixel_m(),
+        geotransform: dem.geotransform,
+        nodata: dem.nodata,
+        metadata,
+    })
 }
 
 /// Lines read per window when scanning a product for its value range.
@@ -83,14 +184,37 @@ fn scan(
     Ok(acc)
 }
 
+/// Describe the product at `path`: an M3 L1B or LOLA GDR label, or a GeoTIFF. A data file
+/// (`.IMG`, …) is refused with the label to give instead. Only a label's bytes are read, however
+/// large the file.
 pub fn inspect(path: &Path) -> Result<Inspection> {
-    let bytes = std::fs::read(path).map_err(|e| Error::io(path, e))?;
-    let label = pds::parse_label(&bytes).map_err(|e| {
-        Error::Pds(pds::Error::Label {
-            path: path.into(),
-            source: e,
-        })
-    })?;
+    let bytes = pds::read_label_bytes(path)?;
+    if is_tiff(&bytes) {
+        return inspect_geotiff(path);
+    }
+    let label = match pds::parse_label(&bytes) {
+        Ok(l) => l,
+        Err(e) => {
+            if let Some(l) = label_of(path) {
+                return Err(Error::Usage(format!(
+                    "{} is a data file, not a label: inspect its label {} instead",
+                    path.display(),
+                    l.display()
+                )));
+            }
+            let binary = bytes.iter().take(4096).any(|&b| b == 0);
+            if binary {
+                return Err(Error::Usage(format!(
+                    "{} is neither a PDS3 label nor a GeoTIFF (binary data, and no label beside it points to it): give the product's label (.LBL) or a GeoTIFF",
+                    path.display()
+                )));
+            }
+            return Err(Error::Pds(pds::Error::Label {
+                path: path.into(),
+                source: e,
+            }));
+        }
+    };
     let label_s = path.display().to_string();
     if label.child("RDN_FILE").is_some() {
         let o = Observation::open(path)?;
@@ -103,6 +227,18 @@ pub fn inspect(path: &Path) -> Result<Inspection> {
             Err(e) => problem = Some(e.to_string()),
         }
         let rad = scan(o.rdn.lines, |f, n| o.rdn.read_band(0, f, n))?;
+        let mut ill = [None, None, None, None];
+        let mut obs_problem = None;
+        match o.part("OBS") {
+            Ok(obs) => {
+                // OBS bands: 0 Sun azimuth, 1 Sun zenith, 3 M3 zenith, 4 phase.
+                for (k, band) in [1, 3, 4, 0].into_iter().enumerate() {
+                    ill[k] = scan(obs.lines, |f, n| obs.read_band(band, f, n))?;
+                }
+            }
+            Err(e) => obs_problem = Some(e.to_string()),
+        }
+        let [incidence_deg, emission_deg, phase_deg, sun_azimuth_deg] = ill;
         return Ok(Inspection::M3 {
             label: label_s,
             mode: match o.mode {
@@ -119,6 +255,11 @@ pub fn inspect(path: &Path) -> Result<Inspection> {
             latitude_deg: lat,
             loc_problem: problem,
             radiance_band0: rad,
+            incidence_deg,
+            emission_deg,
+            phase_deg,
+            sun_azimuth_deg,
+            obs_problem,
         });
     }
     if label.find("IMAGE_MAP_PROJECTION").is_some() {
@@ -191,7 +332,7 @@ impl Inspection {
                 .unwrap_or_else(|| "—".into())
         };
         match self {
-            Inspection::M3 { label, mode, lines, samples, bands, wavelengths_nm, wavelength_source, solar_distance_au, longitude_deg, latitude_deg, loc_problem, radiance_band0 } => {
+            Inspection::M3 { label, mode, lines, samples, bands, wavelengths_nm, wavelength_source, solar_distance_au, longitude_deg, latitude_deg, loc_problem, radiance_band0, incidence_deg, emission_deg, phase_deg, sun_azimuth_deg, obs_problem } => {
                 let mut s = format!("{label}\n  kind           M3 Level 1B, {mode} mode\n  size           {lines} lines × {samples} samples × {bands} bands\n");
                 let wl = if wavelengths_nm.len() > 6 {
                     format!("{:.2} … {:.2} nm", wavelengths_nm[0], wavelengths_nm[wavelengths_nm.len() - 1])
@@ -204,6 +345,28 @@ impl Inspection {
                     s += &format!("  LOC            {p}\n");
                 }
                 s += &format!("  radiance b0    {} W/(m² µm sr)\n", r(radiance_band0));
+                s += &format!(
+                    "  incidence      {}°\n  emission       {}°\n  phase          {}°\n  Sun azimuth    {}° (clockwise from north)\n",
+                    r(incidence_deg),
+                    r(emission_deg),
+                    r(phase_deg),
+                    r(sun_azimuth_deg)
+                );
+                if let Some(p) = obs_problem {
+                    s += &format!("  OBS            {p}\n");
+                }
+                s
+            }
+            Inspection::GeoTiff { path, width, height, crs, pixel_m, geotransform, nodata, metadata } => {
+                let mut s = format!(
+                    "{path}\n  kind           GeoTIFF\n  size           {width} × {height} px\n  CRS            {crs}\n  pixel          {pixel_m:.3} m\n  origin         ({}, {}) (upper-left corner)\n  no-data        {}\n",
+                    geotransform[0],
+                    geotransform[3],
+                    nodata.map_or("—".into(), |v| v.to_string())
+                );
+                for (k, v) in metadata {
+                    s += &format!("  {k:<14} {v}\n");
+                }
                 s
             }
             Inspection::Lola { label, lines, samples, projection, map_scale_m, radius_m, longitude_deg, latitude_deg, height_m } => format!(

@@ -180,5 +180,90 @@ fn inspect_describes_real_products() {
         .unwrap();
     assert!(!o.status.success());
     let e = String::from_utf8_lossy(&o.stderr);
-    assert!(e.contains("LDEM_4.IMG") && e.contains("line"), "{e}");
+    assert!(
+        e.contains("LDEM_4.IMG is a data file") && e.contains("LDEM_4.LBL instead"),
+        "{e}"
+    );
+}
+
+/// `inspect` shows an observation's illumination: the incidence range equals the range of
+/// OBS band 2 read straight from the file's bytes (LINE_INTERLEAVED float32, 10 bands).
+#[test]
+fn inspect_shows_the_illumination_and_describes_geotiffs() {
+    let data = test_data().unwrap();
+    let dir = data.join("m3_l1b_crops/reverseDescending");
+    let o = sfsfuse()
+        .args(["inspect", "--json"])
+        .arg(dir.join("M3G20090106T113423_V03_L1B_cropped.LBL"))
+        .output()
+        .unwrap();
+    assert!(o.status.success(), "{}", String::from_utf8_lossy(&o.stderr));
+    let r: serde_json::Value = serde_json::from_slice(&o.stdout).unwrap();
+    let bytes = std::fs::read(dir.join("M3G20090106T113423_V03_OBS_cropped.IMG")).unwrap();
+    let samples = 304;
+    let zen: Vec<f64> = bytes
+        .chunks_exact(4)
+        .enumerate()
+        .filter(|(k, _)| (k / samples) % 10 == 1)
+        .map(|(_, c)| f32::from_le_bytes([c[0], c[1], c[2], c[3]]) as f64)
+        .collect();
+    let (lo, hi) = zen
+        .iter()
+        .fold((f64::MAX, f64::MIN), |m, &v| (m.0.min(v), m.1.max(v)));
+    assert_eq!(r["incidence_deg"]["min"].as_f64().unwrap(), lo);
+    assert_eq!(r["incidence_deg"]["max"].as_f64().unwrap(), hi);
+    for k in ["emission_deg", "phase_deg", "sun_azimuth_deg"] {
+        assert!(
+            r[k]["min"].as_f64().unwrap() <= r[k]["max"].as_f64().unwrap(),
+            "{k}"
+        );
+    }
+
+    // A GeoTIFF we write is described: size, CRS, pixel, band metadata.
+    let tmp = std::env::temp_dir().join(format!("sfsfuse-inspect-{}", std::process::id()));
+    std::fs::create_dir_all(&tmp).unwrap();
+    let tif = tmp.join("h.tif");
+    let grid = sfsfuse::grid::Grid::new(
+        sfsfuse::grid::Crs::Stereographic {
+            lat_0: -13.4,
+            lon_0: 357.2,
+        },
+        20,
+        30,
+        -2100.0,
+        1400.0,
+        140.0,
+    )
+    .unwrap();
+    let a = ndarray::Array2::from_shape_fn((20, 30), |(i, j)| (i * 30 + j) as f64);
+    sfsfuse::export::write_geotiff(
+        &tif,
+        &grid,
+        a.view(),
+        &sfsfuse::export::BandInfo {
+            description: "test heights",
+            unit: "m",
+            metadata: &[],
+        },
+    )
+    .unwrap();
+    let o = sfsfuse()
+        .args(["inspect", "--json"])
+        .arg(&tif)
+        .output()
+        .unwrap();
+    assert!(o.status.success(), "{}", String::from_utf8_lossy(&o.stderr));
+    let r: serde_json::Value = serde_json::from_slice(&o.stdout).unwrap();
+    assert_eq!(r["kind"], "GeoTIFF");
+    assert_eq!(
+        (r["width"].as_u64(), r["height"].as_u64()),
+        (Some(30), Some(20))
+    );
+    assert_eq!(r["pixel_m"], 140.0);
+    assert!(r["crs"]
+        .as_str()
+        .unwrap()
+        .contains("+proj=stere +lat_0=-13.4"));
+    assert!(r["metadata"].to_string().contains("test heights"), "{r}");
+    std::fs::remove_dir_all(&tmp).unwrap();
 }

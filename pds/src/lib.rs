@@ -11,4 +11,5 @@ pub mod raw;
 pub mod solar;
 
 pub use error::{Error, Result};
+pub use lola::{read_label, read_label_bytes};
 pub use odl::{parse_label, Label, Object, ParseError, Pointer, Value};

@@ -188,11 +188,26 @@ pub(crate) fn resolve(
     })
 }
 
-pub(crate) fn read_label(path: &Path) -> Result<Label> {
-    let bytes = std::fs::read(path).map_err(|e| Error::Io {
+/// The head of the file at `path` where a PDS3 label can be: at most
+/// [`crate::odl::MAX_LABEL_BYTES`] + 1 bytes, so that reading the label attached to a
+/// multi-gigabyte product costs only the label.
+pub fn read_label_bytes(path: &Path) -> Result<Vec<u8>> {
+    use std::io::Read;
+    let io = |e| Error::Io {
         path: path.into(),
         source: e,
-    })?;
+    };
+    let f = std::fs::File::open(path).map_err(io)?;
+    let mut bytes = Vec::new();
+    f.take(crate::odl::MAX_LABEL_BYTES as u64 + 1)
+        .read_to_end(&mut bytes)
+        .map_err(io)?;
+    Ok(bytes)
+}
+
+/// Read and parse the PDS3 label at `path` (detached, or attached at the head of a product).
+pub fn read_label(path: &Path) -> Result<Label> {
+    let bytes = read_label_bytes(path)?;
     parse_label(&bytes).map_err(|e| Error::Label {
         path: path.into(),
         source: e,
