@@ -193,6 +193,15 @@ fn progress_of(p: ProgressArg) -> sfsfuse::progress::Progress {
 
 fn run(cli: Cli) -> Result<(), sfsfuse::Error> {
     if let Some(n) = cli.threads {
+        // Each worker holds a tile's arrays: far more threads than cores only multiplies
+        // memory (100 000 threads never finished starting). Refuse rather than guess.
+        let cores = std::thread::available_parallelism().map_or(1, |c| c.get());
+        let cap = (16 * cores).max(64);
+        if n == 0 || n > cap {
+            return Err(sfsfuse::Error::Usage(format!(
+                "--threads {n}: give 1 to {cap} (16 × the {cores} cores here, at least 64); without --threads every core is used"
+            )));
+        }
         rayon::ThreadPoolBuilder::new()
             .num_threads(n)
             .build_global()

@@ -265,6 +265,10 @@ pub struct TileRecord {
     /// Sums behind the run's sanity figures, over the core's pixels.
     #[serde(default)]
     pub sanity: TileSums,
+    /// SHA-256 of the layer bytes that follow the header: a tile whose layers do not match
+    /// is damaged and is recomputed, never mosaicked.
+    #[serde(default)]
+    pub layers_sha256: String,
     pub iterations: usize,
     pub seconds: f64,
     pub stages: Vec<StageReport>,
@@ -616,6 +620,33 @@ fn tile_header(path: &Path, key: &str) -> Option<(TileRecord, u64)> {
     (r.key == key && len == want).then_some((r, 16 + n as u64))
 }
 
+/// A finished tile of this plan whose layers match their checksum: its header and where its
+/// layers start. `None` when absent, of another plan, or damaged — a damaged tile is reported
+/// through `progress` when one is given, so that its recomputation does not go unexplained.
+fn done_tile(path: &Path, key: &str, progress: Option<&Progress>) -> Option<(TileRecord, u64)> {
+    let (r, data) = tile_header(path, key)?;
+    let digest = (|| -> std::io::Result<String> {
+        use std::io::{Seek, SeekFrom};
+        let mut f = std::fs::File::open(path)?;
+        f.seek(SeekFrom::Start(data))?;
+        let mut h = Sha256::new();
+        std::io::copy(&mut f, &mut h)?;
+        Ok(h.finalize().iter().map(|b| format!("{b:02x}")).collect())
+    })();
+    match digest {
+        Ok(d) if d == r.layers_sha256 => Some((r, data)),
+        _ => {
+            if let Some(p) = progress {
+                p.note(&format!(
+                    "{}: its layers do not match the checksum in its header (a damaged file): recomputing it",
+                    path.display()
+                ));
+            }
+            None
+        }
+    }
+}
+
 /// Rows `r0..r1` (of the tile's ext window) of layer `k` of a tile file whose layers start at
 /// byte `data`.
 fn read_tile_rows(
@@ -756,7 +787,14 @@ fn run_tile(o: &Orbital, inputs: &Inputs, plan: &Plan, tile: &Tile) -> Result<Ti
         }
         Err(err) => return Err(Error::Usage(format!("tile {}: {err}", tile.id))),
     };
+    let mut data = Vec::with_capacity(layers.len() * e.len() * 4);
+    for l in &layers {
+        for &v in l.iter() {
+            data.extend_from_slice(&(v as f32).to_le_bytes());
+        }
+    }
     let record = TileRecord {
+        layers_sha256: sha256_hex(&data),
         id: tile.id,
         key: plan.key.clone(),
         core: tile.core,
@@ -772,15 +810,11 @@ fn run_tile(o: &Orbital, inputs: &Inputs, plan: &Plan, tile: &Tile) -> Result<Ti
         stages,
     };
     let json = serde_json::to_vec(&record).expect("records serialise");
-    let mut bytes = Vec::with_capacity(16 + json.len() + layers.len() * e.len() * 4);
+    let mut bytes = Vec::with_capacity(16 + json.len() + data.len());
     bytes.extend_from_slice(TILE_MAGIC);
     bytes.extend_from_slice(&(json.len() as u64).to_le_bytes());
     bytes.extend_from_slice(&json);
-    for l in &layers {
-        for &v in l.iter() {
-            bytes.extend_from_slice(&(v as f32).to_le_bytes());
-        }
-    }
+    bytes.extend_from_slice(&data);
     let path = tile_path(&o.output.directory, tile.id);
     write_atomic(&path, &bytes)?;
     Ok(record)
@@ -842,7 +876,7 @@ pub fn list_tiles(wf: &Workflow, progress: &Progress) -> Result<Vec<TileStatus>>
             id: t.id,
             core: t.core,
             ext: t.ext,
-            done: tile_header(&tile_path(&o.output.directory, t.id), &plan.key).is_some(),
+            done: done_tile(&tile_path(&o.output.directory, t.id), &plan.key, None).is_some(),
         })
         .collect())
 }
@@ -889,7 +923,7 @@ fn run_orbital(
     let pending: Vec<&Tile> = wanted
         .iter()
         .map(|&i| &plan.tiles[i])
-        .filter(|t| tile_header(&tile_path(out, t.id), &plan.key).is_none())
+        .filter(|t| done_tile(&tile_path(out, t.id), &plan.key, Some(progress)).is_none())
         .collect();
     let skipped = wanted.len() - pending.len();
     if skipped > 0 {
@@ -1101,26 +1135,28 @@ fn mosaic(
     progress: &Progress,
 ) -> Result<(Vec<PathBuf>, PathBuf, Sanity)> {
     let out = &o.output.directory;
+    let found: Vec<Option<(TileRecord, u64)>> = plan
+        .tiles
+        .iter()
+        .map(|t| done_tile(&tile_path(out, t.id), &plan.key, Some(progress)))
+        .collect();
     let missing: Vec<usize> = plan
         .tiles
         .iter()
-        .filter(|t| tile_header(&tile_path(out, t.id), &plan.key).is_none())
-        .map(|t| t.id)
+        .zip(&found)
+        .filter(|(_, f)| f.is_none())
+        .map(|(t, _)| t.id)
         .collect();
     if !missing.is_empty() {
         return Err(Error::Usage(format!(
-            "cannot mosaic: {} of {} tiles are missing or failed: {} (run them with --tile, then --mosaic)",
+            "cannot mosaic: {} of {} tiles are missing, failed or damaged: {} (run them with --tile, then --mosaic)",
             missing.len(),
             plan.tiles.len(),
             tile_spec(&missing, ", ")
         )));
     }
     let (rows, cols) = (plan.grid.rows, plan.grid.cols);
-    let heads: Vec<(TileRecord, u64)> = plan
-        .tiles
-        .iter()
-        .map(|t| tile_header(&tile_path(out, t.id), &plan.key).expect("checked above"))
-        .collect();
+    let heads: Vec<(TileRecord, u64)> = found.into_iter().flatten().collect();
     // Only what the pixels depend on, so identical runs give identical files.
     let meta = [("SFSFUSE_VERSION", env!("CARGO_PKG_VERSION").to_string())];
     let mut writers = Vec::new();
@@ -1435,6 +1471,8 @@ fn run_lab(l: &Lab, wf: &Workflow, progress: &Progress) -> Result<RunSummary> {
             status: "fused".into(),
             photometric_pixels: f.photometric.iter().filter(|&&b| b).count(),
             sanity: TileSums::default(),
+            // A lab run writes no tile file.
+            layers_sha256: String::new(),
             iterations: f.iterations(),
             seconds,
             stages: f.stages.clone(),

@@ -26,6 +26,10 @@ pub enum Workflow {
 #[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
 #[serde(deny_unknown_fields)]
 pub struct Orbital {
+    /// The file's `kind = "orbital"`, read when the struct is parsed on its own (so that TOML
+    /// errors keep their line); [`Workflow`]'s tag carries it otherwise.
+    #[serde(default, skip_serializing)]
+    pub kind: Option<String>,
     pub inputs: OrbitalInputs,
     /// Absent: the whole swath of the first observation.
     #[serde(default)]
@@ -289,6 +293,9 @@ fn default_layers() -> Vec<Layer> {
 #[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
 #[serde(deny_unknown_fields)]
 pub struct Lab {
+    /// As [`Orbital::kind`].
+    #[serde(default, skip_serializing)]
+    pub kind: Option<String>,
     pub inputs: LabInputs,
     pub illumination: Illumination,
     #[serde(default = "default_lab_model")]
@@ -365,9 +372,28 @@ impl Workflow {
 
     /// Parse `text` (named `path` in errors), resolving relative paths against `base`.
     pub fn parse(text: &str, path: &Path, base: &Path) -> Result<Workflow> {
-        let mut wf: Workflow = toml::from_str(text).map_err(|e| {
+        // Parsed as the struct its `kind` names, not through the tagged enum: serde buffers a
+        // tagged enum's content and its errors lose the key's line.
+        let toml_err = |e: toml::de::Error| {
             Error::Usage(format!("{}: {}", path.display(), e.to_string().trim_end()))
-        })?;
+        };
+        let table: toml::Table = toml::from_str(text).map_err(toml_err)?;
+        let mut wf = match table.get("kind").and_then(|k| k.as_str()) {
+            Some("orbital") => Workflow::Orbital(Box::new(toml::from_str(text).map_err(toml_err)?)),
+            Some("lab") => Workflow::Lab(Box::new(toml::from_str(text).map_err(toml_err)?)),
+            Some(other) => {
+                return Err(Error::Usage(format!(
+                    "{}: kind = \"{other}\": expected \"orbital\" or \"lab\"",
+                    path.display()
+                )))
+            }
+            None => {
+                return Err(Error::Usage(format!(
+                "{}: the top-level key kind = \"orbital\" or \"lab\" is missing (or not a string)",
+                path.display()
+            )))
+            }
+        };
         let abs = |p: &mut PathBuf| {
             if p.is_relative() {
                 *p = normalise(&base.join(&*p));
@@ -580,6 +606,19 @@ directory = "out"
             .unwrap_err()
             .to_string();
         assert!(e.contains("delat"), "{e}");
+        let kind = MINIMAL.replace("kind = \"orbital\"", "kind = \"orbit\"");
+        let e = Workflow::parse(&kind, Path::new("w.toml"), Path::new("."))
+            .unwrap_err()
+            .to_string();
+        assert!(
+            e.contains("kind = \"orbit\"") && e.contains("\"orbital\" or \"lab\""),
+            "{e}"
+        );
+        let no_kind = MINIMAL.replace("kind = \"orbital\"", "");
+        let e = Workflow::parse(&no_kind, Path::new("w.toml"), Path::new("."))
+            .unwrap_err()
+            .to_string();
+        assert!(e.contains("w.toml") && e.contains("kind"), "{e}");
         let mixed = MINIMAL.replace("lat_max = -11.0", "lat_max = -11.0\nx_min = 0.0");
         let e = Workflow::parse(&mixed, Path::new("w.toml"), Path::new("."))
             .unwrap_err()

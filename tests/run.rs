@@ -302,6 +302,35 @@ fn bad_workflows_fail_with_the_file_and_the_key() {
     let o = sfsfuse().arg("run").arg(&wf).output().unwrap();
     let e = String::from_utf8_lossy(&o.stderr);
     assert!(!o.status.success() && e.contains("LDEM_NOPE.LBL"), "{e}");
+    // A value of the wrong type names its line and shows the key.
+    let typed =
+        workflow(p, &out, 128, "").replace("resolution_m = 140.0", "resolution_m = \"140\"");
+    let line = typed
+        .lines()
+        .position(|l| l.starts_with("resolution_m"))
+        .unwrap()
+        + 1;
+    let wf = write_workflow(&dir, &typed);
+    let o = sfsfuse().arg("run").arg(&wf).output().unwrap();
+    let e = String::from_utf8_lossy(&o.stderr);
+    assert!(
+        !o.status.success()
+            && e.contains(&format!("line {line}"))
+            && e.contains("resolution_m = \"140\"")
+            && e.contains("expected f64"),
+        "{e}"
+    );
+    // Too many threads are refused before anything runs.
+    let o = sfsfuse()
+        .args(["--threads", "100000", "run"])
+        .arg(&wf)
+        .output()
+        .unwrap();
+    let e = String::from_utf8_lossy(&o.stderr);
+    assert!(
+        !o.status.success() && e.contains("--threads 100000: give 1 to"),
+        "{e}"
+    );
     std::fs::remove_dir_all(&dir).unwrap();
 }
 
@@ -731,5 +760,50 @@ directory = "{out}"
         .as_str()
         .unwrap()
         .contains("ground sample distance of"));
+    std::fs::remove_dir_all(&dir).unwrap();
+}
+
+/// A tile file damaged after it was written (one byte flipped in its layers) is never
+/// mosaicked: `--mosaic` refuses naming it, and a run recomputes it with a message and gives
+/// the same products as before.
+#[test]
+fn a_damaged_tile_is_recomputed_not_mosaicked() {
+    let p = scene_products(256, 10);
+    let dir = scratch("damaged");
+    let out = dir.join("out");
+    let wf = write_workflow(
+        &dir,
+        &workflow(p, &out, 128, "[solver]\nalbedo_sigmas = [30.0, 10.0, 4.0]"),
+    );
+    run_ok(&["run", "--progress", "lines"], &wf);
+    let before = output_bytes(&out);
+    let tile = out.join("tiles/tile_00001.sfstile");
+    let mut b = std::fs::read(&tile).unwrap();
+    let at = b.len() - 1000;
+    b[at] ^= 0x10;
+    std::fs::write(&tile, b).unwrap();
+    let o = sfsfuse()
+        .args(["run", "--mosaic", "--progress", "lines"])
+        .arg(&wf)
+        .output()
+        .unwrap();
+    let err = String::from_utf8_lossy(&o.stderr);
+    assert!(!o.status.success(), "{err}");
+    assert!(
+        err.contains("damaged") && err.contains("tile_00001"),
+        "{err}"
+    );
+    let o = sfsfuse()
+        .args(["run", "--progress", "lines"])
+        .arg(&wf)
+        .output()
+        .unwrap();
+    let log = String::from_utf8_lossy(&o.stderr);
+    assert!(o.status.success(), "{log}");
+    assert!(
+        log.contains("tile_00001.sfstile: its layers do not match the checksum"),
+        "{log}"
+    );
+    assert_eq!(output_bytes(&out), before);
     std::fs::remove_dir_all(&dir).unwrap();
 }
