@@ -11,6 +11,7 @@ pub mod fusion;
 pub mod grid;
 pub mod ingest;
 pub mod inspect;
+pub mod output;
 pub mod photometry;
 pub mod pipeline;
 pub mod progress;

@@ -23,6 +23,7 @@ use crate::export::{write_tiff, BandInfo, CogWriter, Container};
 use crate::fusion::{self, Directions, FusionParams, Problem, StageReport};
 use crate::grid::{Crs, Grid, Projector};
 use crate::ingest::{self, SwathIndex};
+use crate::output::OutputDir;
 use crate::photometry::{ModelSpec, ReflectanceModel};
 use crate::progress::Progress;
 use crate::raster::write_atomic;
@@ -883,8 +884,8 @@ pub fn list_tiles(wf: &Workflow, progress: &Progress) -> Result<Vec<TileStatus>>
 
 /// Run a workflow.
 pub fn run(wf: &Workflow, req: &Request, progress: &Progress) -> Result<RunSummary> {
-    match wf {
-        Workflow::Orbital(o) => run_orbital(o, wf, req, progress),
+    let out = match wf {
+        Workflow::Orbital(o) => &o.output.directory,
         Workflow::Lab(l) => {
             if req.tiles.is_some() || req.mosaic_only {
                 return Err(Error::Usage(
@@ -892,9 +893,26 @@ pub fn run(wf: &Workflow, req: &Request, progress: &Progress) -> Result<RunSumma
                         .into(),
                 ));
             }
-            run_lab(l, wf, progress)
+            &l.output.directory
         }
+    };
+    // Tile tasks share the directory (a cluster runs them side by side); anything else
+    // holds it alone.
+    let (dir, swept) = OutputDir::open(out, req.tiles.is_none())?;
+    if swept > 0 {
+        progress.note(&format!(
+            "removed {swept} temporary file(s) left by an interrupted run in {}",
+            out.display()
+        ));
     }
+    let result = match wf {
+        Workflow::Orbital(o) => run_orbital(o, wf, req, progress),
+        Workflow::Lab(l) => run_lab(l, wf, progress),
+    };
+    if result.is_err() {
+        dir.abandon();
+    }
+    result
 }
 
 fn run_orbital(
@@ -904,7 +922,6 @@ fn run_orbital(
     progress: &Progress,
 ) -> Result<RunSummary> {
     let out = &o.output.directory;
-    std::fs::create_dir_all(out.join("tiles")).map_err(|e| Error::io(out.join("tiles"), e))?;
     let inputs = Inputs::open(o, progress)?;
     let plan = plan(o, wf, &inputs, progress)?;
     let wanted: Vec<usize> = match &req.tiles {
@@ -930,6 +947,8 @@ fn run_orbital(
         progress.note(&format!("{skipped} tile(s) already done: skipped"));
     }
     if !pending.is_empty() {
+        let tiles = out.join("tiles");
+        std::fs::create_dir_all(&tiles).map_err(|e| Error::io(&tiles, e))?;
         progress.steps("tiles", pending.len() as u64);
         let results: Vec<Result<TileRecord>> = pending
             .par_iter()

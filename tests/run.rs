@@ -302,6 +302,15 @@ fn bad_workflows_fail_with_the_file_and_the_key() {
     let o = sfsfuse().arg("run").arg(&wf).output().unwrap();
     let e = String::from_utf8_lossy(&o.stderr);
     assert!(!o.status.success() && e.contains("LDEM_NOPE.LBL"), "{e}");
+    // A run that fails before writing anything leaves no folder behind.
+    let fresh = dir.join("fresh");
+    let wf = write_workflow(
+        &dir,
+        &workflow(p, &fresh, 128, "").replace("LDEM_64_SYNTHETIC.LBL", "LDEM_NOPE.LBL"),
+    );
+    let o = sfsfuse().arg("run").arg(&wf).output().unwrap();
+    assert!(!o.status.success());
+    assert!(!fresh.exists(), "{} was left behind", fresh.display());
     // A value of the wrong type names its line and shows the key.
     let typed =
         workflow(p, &out, 128, "").replace("resolution_m = 140.0", "resolution_m = \"140\"");
@@ -760,6 +769,52 @@ directory = "{out}"
         .as_str()
         .unwrap()
         .contains("ground sample distance of"));
+    std::fs::remove_dir_all(&dir).unwrap();
+}
+
+/// One writer per output directory: while another process holds its lock, a run is refused
+/// naming the lock, and no tile is computed twice; stale temporaries of a killed run are
+/// removed by the next run.
+#[test]
+fn a_locked_output_directory_is_refused_and_stale_temporaries_are_swept() {
+    let p = scene_products(256, 10);
+    let dir = scratch("lock");
+    let out = dir.join("out");
+    let wf = write_workflow(&dir, &workflow(p, &out, 512, ""));
+    std::fs::create_dir_all(&out).unwrap();
+    let lock = std::fs::OpenOptions::new()
+        .create(true)
+        .truncate(false)
+        .write(true)
+        .open(out.join(".sfsfuse.lock"))
+        .unwrap();
+    lock.try_lock().unwrap();
+    let o = sfsfuse()
+        .args(["run", "--progress", "lines"])
+        .arg(&wf)
+        .output()
+        .unwrap();
+    let e = String::from_utf8_lossy(&o.stderr);
+    assert!(!o.status.success() && e.contains(".sfsfuse.lock"), "{e}");
+    assert!(!out.join("tiles").exists() && !out.join("plan.json").exists());
+    drop(lock);
+    for f in ["dem.tif.L0.4242.tmp", "residual.tif.4242.tmp"] {
+        std::fs::write(out.join(f), b"left by a killed run").unwrap();
+    }
+    let o = sfsfuse()
+        .args(["run", "--progress", "lines"])
+        .arg(&wf)
+        .output()
+        .unwrap();
+    let e = String::from_utf8_lossy(&o.stderr);
+    assert!(o.status.success(), "{e}");
+    assert!(e.contains("removed 2 temporary file(s)"), "{e}");
+    let tmp: Vec<_> = std::fs::read_dir(&out)
+        .unwrap()
+        .map(|e| e.unwrap().file_name().into_string().unwrap())
+        .filter(|n| n.ends_with(".tmp"))
+        .collect();
+    assert!(tmp.is_empty(), "{tmp:?}");
     std::fs::remove_dir_all(&dir).unwrap();
 }
 
