@@ -284,6 +284,9 @@ const TILE_LAYERS: [Layer; 5] = [
     Layer::InputDem,
 ];
 const TILE_MAGIC: &[u8; 8] = b"SFSTILE1";
+/// Most tiles a run plans (a 2³¹-pixel region in 1024-px tiles is 2048; tiny tiles over a
+/// large region would make a plan of millions of windows).
+pub const MAX_TILES: usize = 20_000;
 /// Rows the mosaic blends at a time.
 const MOSAIC_BAND: usize = 256;
 
@@ -485,6 +488,19 @@ fn plan(o: &Orbital, wf: &Workflow, inputs: &Inputs, progress: &Progress) -> Res
     progress.stage("planning: grid, swath index, intensity scale");
     let (res, resolution_source) = resolution(o, inputs)?;
     let grid = make_grid(o, inputs, res)?;
+    let half_moon = std::f64::consts::PI * crate::grid::MOON_RADIUS_M;
+    let (w, h) = (
+        grid.cols as f64 * grid.spacing,
+        grid.rows as f64 * grid.spacing,
+    );
+    if w > half_moon || h > half_moon {
+        return Err(Error::Usage(format!(
+            "[region]: {:.0} × {:.0} km is more than half the Moon's circumference ({:.0} km) across: not a region one locally metric grid can hold; split it",
+            w / 1e3,
+            h / 1e3,
+            half_moon / 1e3
+        )));
+    }
     let pr = projector(&grid.crs)?;
     let mut swaths = Vec::new();
     let (mut sum, mut count) = (0.0, 0usize);
@@ -546,6 +562,13 @@ fn plan(o: &Orbital, wf: &Workflow, inputs: &Inputs, progress: &Progress) -> Res
         .tiling
         .halo
         .unwrap_or_else(|| crate::workflow::auto_halo(&params, dem_psf_sigma));
+    let n_tiles = grid.rows.div_ceil(o.tiling.tile_size) * grid.cols.div_ceil(o.tiling.tile_size);
+    if n_tiles > MAX_TILES {
+        return Err(Error::Usage(format!(
+            "[tiling]: {} × {} px in tiles of {} px makes {n_tiles} tiles, more than {MAX_TILES}: raise tile_size or shrink [region]",
+            grid.rows, grid.cols, o.tiling.tile_size
+        )));
+    }
     let tiles = tiling::layout(grid.rows, grid.cols, o.tiling.tile_size, halo);
     let blend = o.tiling.blend.unwrap_or(halo / 2).min(halo);
     let p = Plan {

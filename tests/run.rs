@@ -329,6 +329,30 @@ fn bad_workflows_fail_with_the_file_and_the_key() {
             && e.contains("expected f64"),
         "{e}"
     );
+    // A region wider than half the Moon, and a plan of too many tiles, are refused.
+    let huge = workflow(p, &out, 128, "")
+        .replace("x_min = -17920", "x_min = -3000000")
+        .replace("x_max = 17920", "x_max = 3000000")
+        .replace("y_max = 17920", "y_max = -17780");
+    let wf = write_workflow(&dir, &huge);
+    let o = sfsfuse().arg("run").arg(&wf).output().unwrap();
+    let e = String::from_utf8_lossy(&o.stderr);
+    assert!(
+        !o.status.success() && e.contains("half the Moon's circumference"),
+        "{e}"
+    );
+    let many = workflow(p, &out, 16, "")
+        .replace("x_min = -17920", "x_min = -210000")
+        .replace("x_max = 17920", "x_max = 210000")
+        .replace("y_min = -17920", "y_min = -210000")
+        .replace("y_max = 17920", "y_max = 210000");
+    let wf = write_workflow(&dir, &many);
+    let o = sfsfuse().arg("run").arg(&wf).output().unwrap();
+    let e = String::from_utf8_lossy(&o.stderr);
+    assert!(
+        !o.status.success() && e.contains("tiles, more than 20000"),
+        "{e}"
+    );
     // Too many threads are refused before anything runs.
     let o = sfsfuse()
         .args(["--threads", "100000", "run"])
