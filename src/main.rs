@@ -163,6 +163,13 @@ enum Command {
         /// Sweep limit for the `paper` solver.
         #[arg(long, default_value_t = 20000)]
         paper_sweeps: usize,
+        /// Time limit for the `paper` solver, seconds: the paper/fast ratio is then a lower
+        /// bound.
+        #[arg(long, default_value_t = 40.0)]
+        paper_seconds: f64,
+        /// Progress display.
+        #[arg(long, value_enum, default_value_t = ProgressArg::Auto)]
+        progress: ProgressArg,
         /// Benchmark `sfsfuse run` instead: one tile against tiles of `--tile` px.
         #[arg(long)]
         pipeline: bool,
@@ -378,11 +385,20 @@ fn run(cli: Cli) -> Result<(), sfsfuse::Error> {
         Command::Bench {
             size,
             paper_sweeps,
+            paper_seconds,
             json,
             pipeline: false,
+            progress,
             ..
         } => {
-            let report = sfsfuse::bench::run(size, paper_sweeps)?;
+            if !(paper_seconds.is_finite() && paper_seconds > 0.0) {
+                return Err(sfsfuse::Error::Usage(format!(
+                    "--paper-seconds {paper_seconds}: give a positive number of seconds"
+                )));
+            }
+            let progress = progress_of(progress);
+            let report = sfsfuse::bench::run(size, paper_sweeps, paper_seconds, &progress)?;
+            drop(progress);
             emit(json, &report, report.table());
         }
     }

@@ -267,3 +267,44 @@ fn inspect_shows_the_illumination_and_describes_geotiffs() {
     assert!(r["metadata"].to_string().contains("test heights"), "{r}");
     std::fs::remove_dir_all(&tmp).unwrap();
 }
+
+/// The benchmark caps the `paper` reference by time, and says when its ratio is only a lower
+/// bound.
+#[test]
+fn bench_caps_the_paper_reference_by_time() {
+    let o = sfsfuse()
+        .args([
+            "bench",
+            "--size",
+            "64",
+            "--paper-seconds",
+            "0.5",
+            "--progress",
+            "lines",
+            "--json",
+        ])
+        .output()
+        .unwrap();
+    assert!(o.status.success(), "{}", String::from_utf8_lossy(&o.stderr));
+    let r: serde_json::Value = serde_json::from_slice(&o.stdout).unwrap();
+    let paper = &r["paper"];
+    // Checked every 50 sweeps: the cap overshoots by less than one chunk.
+    let per_sweep = paper["seconds"].as_f64().unwrap() / paper["iterations"].as_f64().unwrap();
+    assert!(
+        paper["seconds"].as_f64().unwrap() < 0.5 + 50.0 * per_sweep + 0.1,
+        "{r}"
+    );
+    assert!(paper["iterations"].as_u64().unwrap() < 20000, "{r}");
+    assert_eq!(
+        r["speedup_is_lower_bound"].as_bool().unwrap(),
+        paper["seconds_to_tolerance"].is_null(),
+        "{r}"
+    );
+    assert!(String::from_utf8_lossy(&o.stderr).contains("paper:"));
+    let o = sfsfuse()
+        .args(["bench", "--size", "64", "--paper-seconds", "0"])
+        .output()
+        .unwrap();
+    assert!(!o.status.success());
+    assert!(String::from_utf8_lossy(&o.stderr).contains("--paper-seconds 0"));
+}
