@@ -1021,6 +1021,62 @@ fn run_orbital(
 }
 
 /// What a GIS user sees of each layer.
+/// The dataset metadata of a run's products: software, inputs by product ID, wavelength,
+/// photometric model, solver parameters and the DEM widths the tiles used.
+fn product_metadata(o: &Orbital, inputs: &Inputs, plan: &Plan) -> Vec<(&'static str, String)> {
+    let id = |label: &pds::Label, path: &Path| {
+        label
+            .get("PRODUCT_ID")
+            .and_then(|v| v.as_str())
+            .map(str::to_string)
+            .unwrap_or_else(|| {
+                path.file_stem()
+                    .map(|s| s.to_string_lossy().into_owned())
+                    .unwrap_or_default()
+            })
+    };
+    let m3: Vec<String> = inputs
+        .obs
+        .iter()
+        .map(|ob| id(&ob.label, &ob.label_path))
+        .collect();
+    let dems: Vec<String> = inputs
+        .lola
+        .iter()
+        .map(|d| match d {
+            Dem::Pds(d) => id(&d.label, &d.label_path),
+            Dem::GeoTiff(g) => g
+                .path
+                .file_name()
+                .map(|s| s.to_string_lossy().into_owned())
+                .unwrap_or_default(),
+        })
+        .collect();
+    let solver = FusionParams {
+        sigma_dem: plan.sigma_dem,
+        ..o.solver.clone()
+    };
+    vec![
+        ("SFSFUSE_VERSION", env!("CARGO_PKG_VERSION").to_string()),
+        ("M3_PRODUCT_IDS", m3.join(",")),
+        ("DEM_PRODUCT_IDS", dems.join(",")),
+        ("WAVELENGTH_NM", format!("{}", o.inputs.wavelength_nm)),
+        (
+            "PHOTOMETRIC_MODEL",
+            serde_json::to_string(&o.photometry).expect("models serialise"),
+        ),
+        (
+            "SOLVER_PARAMETERS",
+            serde_json::to_string(&solver).expect("parameters serialise"),
+        ),
+        ("DEM_PSF_SIGMA_PX", format!("{}", plan.dem_psf_sigma)),
+        (
+            "DEM_EFFECTIVE_RESOLUTION_M",
+            format!("{}", plan.dem_resolution_m),
+        ),
+    ]
+}
+
 fn layer_info(l: Layer, lunar: bool) -> (&'static str, &'static str) {
     match l {
         Layer::Dem if lunar => ("fused height above the 1737.4 km sphere", "m"),
@@ -1199,8 +1255,9 @@ fn mosaic(
     }
     let (rows, cols) = (plan.grid.rows, plan.grid.cols);
     let heads: Vec<(TileRecord, u64)> = found.into_iter().flatten().collect();
-    // Only what the pixels depend on, so identical runs give identical files.
-    let meta = [("SFSFUSE_VERSION", env!("CARGO_PKG_VERSION").to_string())];
+    // What the products are, from the inputs and parameters only (no path, time or run key:
+    // the same inputs give the same files wherever the run writes them).
+    let meta = product_metadata(o, inputs, plan);
     let mut writers = Vec::new();
     let mut outputs = Vec::new();
     for &l in &o.output.layers {
@@ -1209,11 +1266,29 @@ fn mosaic(
             .position(|&x| x == l)
             .expect("every layer is stored per tile");
         let (description, unit) = layer_info(l, true);
+        let description = match (l, &o.photometry) {
+            (Layer::Albedo, ModelSpec::Hapke(_)) => format!(
+                "Hapke single-scattering albedo w at {} nm",
+                o.inputs.wavelength_nm
+            ),
+            _ => description.to_string(),
+        };
+        let mut items = meta.clone();
+        if matches!(l, Layer::Dem | Layer::InputDem) {
+            items.extend([
+                ("VERTICAL_REFERENCE", "sphere".to_string()),
+                (
+                    "REFERENCE_RADIUS_M",
+                    format!("{}", crate::grid::MOON_RADIUS_M),
+                ),
+                ("HEIGHT_KIND", "height above reference".to_string()),
+            ]);
+        }
         let path = out.join(format!("{}.tif", l.name()));
         let info = BandInfo {
-            description,
+            description: &description,
             unit,
-            metadata: &meta,
+            metadata: &items,
         };
         writers.push((
             k,

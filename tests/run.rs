@@ -886,3 +886,61 @@ fn a_damaged_tile_is_recomputed_not_mosaicked() {
     assert_eq!(output_bytes(&out), before);
     std::fs::remove_dir_all(&dir).unwrap();
 }
+
+/// Run products describe themselves, and GDAL reads it: the inputs by product ID, the
+/// wavelength, the model and solver parameters, the vertical reference, and band statistics
+/// that match the pixels.
+#[test]
+#[ignore = "needs GDAL (gdal-bin); .ci/run runs it"]
+fn products_describe_themselves_to_gdal() {
+    let p = scene_products(256, 10);
+    let dir = scratch("describe");
+    let out = dir.join("out");
+    run_ok(
+        &["run", "--progress", "quiet"],
+        &write_workflow(&dir, &workflow(p, &out, 512, "")),
+    );
+    let gdalinfo = std::process::Command::new("gdalinfo")
+        .args(["-json"])
+        .arg(out.join("dem.tif"))
+        .output()
+        .expect("gdalinfo (gdal-bin)");
+    assert!(gdalinfo.status.success());
+    let j: serde_json::Value = serde_json::from_slice(&gdalinfo.stdout).unwrap();
+    let md = &j["metadata"][""];
+    assert_eq!(md["M3_PRODUCT_IDS"], "M3G20991231T000000_V03_RDN", "{md}");
+    assert_eq!(md["DEM_PRODUCT_IDS"], "LDEM_64_SYNTHETIC");
+    assert_eq!(md["WAVELENGTH_NM"], "1209.6");
+    assert_eq!(md["VERTICAL_REFERENCE"], "sphere");
+    assert_eq!(md["REFERENCE_RADIUS_M"], "1737400");
+    assert!(md["PHOTOMETRIC_MODEL"]
+        .as_str()
+        .unwrap()
+        .contains("\"hapke\""));
+    assert!(md["SOLVER_PARAMETERS"]
+        .as_str()
+        .unwrap()
+        .contains("\"delta\":50.0"));
+    let band = &j["bands"][0]["metadata"][""];
+    let dem = read_tiff(&out.join("dem.tif")).unwrap().data;
+    let v: Vec<f64> = dem.iter().map(|&x| x as f32 as f64).collect();
+    let (lo, hi) = v
+        .iter()
+        .fold((f64::MAX, f64::MIN), |m, &x| (m.0.min(x), m.1.max(x)));
+    let mean = v.iter().sum::<f64>() / v.len() as f64;
+    let num = |k: &str| band[k].as_str().unwrap().parse::<f64>().unwrap();
+    assert_eq!(num("STATISTICS_MINIMUM"), lo);
+    assert_eq!(num("STATISTICS_MAXIMUM"), hi);
+    assert!((num("STATISTICS_MEAN") - mean).abs() < 1e-9 * mean.abs().max(1.0));
+    let albedo = std::process::Command::new("gdalinfo")
+        .args(["-json"])
+        .arg(out.join("albedo.tif"))
+        .output()
+        .unwrap();
+    let a: serde_json::Value = serde_json::from_slice(&albedo.stdout).unwrap();
+    assert_eq!(
+        a["bands"][0]["description"],
+        "Hapke single-scattering albedo w at 1209.6 nm"
+    );
+    std::fs::remove_dir_all(&dir).unwrap();
+}

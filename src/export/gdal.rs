@@ -59,6 +59,12 @@ pub fn write_geotiff(
             )));
         }
         let values: Vec<f32> = data.iter().map(|&v| v as f32).collect();
+        let mut stats = super::Stats::default();
+        stats.add(&values);
+        for (k, v) in stats.items() {
+            band.set_metadata_item(k, &v, "")
+                .map_err(|e| fail("statistics", e))?;
+        }
         band.write(
             (0, 0),
             (grid.cols, grid.rows),

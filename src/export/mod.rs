@@ -125,6 +125,7 @@ pub struct CogWriter {
     info: OwnedInfo,
     container: Container,
     levels: Vec<Level>,
+    stats: Stats,
     done: bool,
 }
 
@@ -133,6 +134,70 @@ struct OwnedInfo {
     description: String,
     unit: String,
     metadata: Vec<(String, String)>,
+}
+
+/// Band statistics over the finite values, as GDAL stores them (`STATISTICS_*` band metadata),
+/// so that a GIS styles the layer without scanning it. Sums run in pixel order: the same
+/// values give the same figures.
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub struct Stats {
+    pub total: u64,
+    pub valid: u64,
+    pub min: f64,
+    pub max: f64,
+    pub sum: f64,
+    pub sum_sq: f64,
+}
+
+impl Default for Stats {
+    fn default() -> Self {
+        Stats {
+            total: 0,
+            valid: 0,
+            min: f64::INFINITY,
+            max: f64::NEG_INFINITY,
+            sum: 0.0,
+            sum_sq: 0.0,
+        }
+    }
+}
+
+impl Stats {
+    /// Add values as they are stored (float32).
+    pub fn add(&mut self, values: &[f32]) {
+        for &v in values {
+            self.total += 1;
+            if v.is_finite() {
+                let v = v as f64;
+                self.valid += 1;
+                self.min = self.min.min(v);
+                self.max = self.max.max(v);
+                self.sum += v;
+                self.sum_sq += v * v;
+            }
+        }
+    }
+
+    /// The `STATISTICS_*` items: minimum, maximum, mean, population standard deviation and the
+    /// valid percentage; none without a finite value.
+    pub fn items(&self) -> Vec<(&'static str, String)> {
+        if self.valid == 0 {
+            return Vec::new();
+        }
+        let n = self.valid as f64;
+        let mean = self.sum / n;
+        let sd = (self.sum_sq / n - mean * mean).max(0.0).sqrt();
+        vec![
+            ("STATISTICS_MINIMUM", format!("{}", self.min)),
+            ("STATISTICS_MAXIMUM", format!("{}", self.max)),
+            ("STATISTICS_MEAN", format!("{mean}")),
+            ("STATISTICS_STDDEV", format!("{sd}")),
+            (
+                "STATISTICS_VALID_PERCENT",
+                format!("{}", 100.0 * n / self.total as f64),
+            ),
+        ]
+    }
 }
 
 struct Level {
@@ -204,6 +269,7 @@ impl CogWriter {
             },
             container,
             levels,
+            stats: Stats::default(),
             done: false,
         })
     }
@@ -223,6 +289,7 @@ impl CogWriter {
             )));
         }
         let v: Vec<f32> = rows.iter().map(|&x| x as f32).collect();
+        self.stats.add(&v);
         self.push_level(0, v, rows.nrows())
     }
 
@@ -296,7 +363,8 @@ impl CogWriter {
         let mut pos = (header_len + ghost.len()) as u64;
         pos += pos % 2;
         let grid = self.grid;
-        let main = |k: usize| (k == 0).then_some((grid.as_ref(), &info));
+        let xml = gdal_metadata(&info, &self.stats);
+        let main = |k: usize| (k == 0).then_some((grid.as_ref(), xml.as_str()));
         let mut ifd_pos = Vec::new();
         for (k, l) in self.levels.iter().enumerate() {
             ifd_pos.push(pos);
@@ -523,7 +591,7 @@ fn level_tags(
     level: usize,
     (h, w): (usize, usize),
     sizes: &[u64],
-    main: Option<(Option<&Grid>, &BandInfo)>,
+    main: Option<(Option<&Grid>, &str)>,
     width: &Width,
     offsets: &[u64],
 ) -> Vec<Entry> {
@@ -559,7 +627,7 @@ fn level_tags(
         shorts(339, &[3]),
         ascii(42113, "nan"),
     ];
-    if let Some((grid, info)) = main {
+    if let Some((grid, xml)) = main {
         if let Some(grid) = grid {
             let s = grid.spacing;
             e.push(doubles(33550, &[s, s, 0.0]));
@@ -569,14 +637,14 @@ fn level_tags(
             e.push(doubles(34736, &keys.doubles));
             e.push(ascii(34737, &keys.ascii));
         }
-        e.push(ascii(42112, &gdal_metadata(info)));
+        e.push(ascii(42112, xml));
     }
     e.sort_by_key(|x| x.tag);
     e
 }
 
-/// GDAL's XML metadata (tag 42112): band description and unit, and dataset items.
-fn gdal_metadata(info: &BandInfo) -> String {
+/// GDAL's XML metadata (tag 42112): band description, unit and statistics, and dataset items.
+fn gdal_metadata(info: &BandInfo, stats: &Stats) -> String {
     let esc = |s: &str| {
         s.replace('&', "&amp;")
             .replace('<', "&lt;")
@@ -595,6 +663,9 @@ fn gdal_metadata(info: &BandInfo) -> String {
             "  <Item name=\"UNITTYPE\" sample=\"0\" role=\"unittype\">{}</Item>\n",
             esc(info.unit)
         ));
+    }
+    for (k, v) in stats.items() {
+        s.push_str(&format!("  <Item name=\"{k}\" sample=\"0\">{v}</Item>\n"));
     }
     s.push_str("</GDALMetadata>");
     s
@@ -739,6 +810,21 @@ fn geokeys(crs: &Crs) -> GeoKeys {
 #[cfg(test)]
 mod tests {
     use super::*;
+
+    #[test]
+    fn statistics_are_gdals_over_finite_values() {
+        let mut st = Stats::default();
+        st.add(&[1.0, 2.0, f32::NAN]);
+        st.add(&[3.0]);
+        let items: std::collections::HashMap<_, _> = st.items().into_iter().collect();
+        assert_eq!(items["STATISTICS_MINIMUM"], "1");
+        assert_eq!(items["STATISTICS_MAXIMUM"], "3");
+        assert_eq!(items["STATISTICS_MEAN"], "2");
+        let sd: f64 = items["STATISTICS_STDDEV"].parse().unwrap();
+        assert!((sd - (2.0f64 / 3.0).sqrt()).abs() < 1e-15);
+        assert_eq!(items["STATISTICS_VALID_PERCENT"], "75");
+        assert!(Stats::default().items().is_empty());
+    }
 
     #[test]
     fn float_predictor_matches_its_definition() {
