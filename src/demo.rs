@@ -5,7 +5,10 @@ use crate::error::{Error, Result};
 use crate::export::{write_geotiff, BandInfo};
 use crate::fusion::{fuse, FusionParams};
 use crate::grid::{Crs, Grid};
-use crate::quicklook::{hillshade, write_panels};
+use crate::quicklook::{
+    diverging, diverging_ramp, grey, grey_ramp, hillshade, quantiles, rgb, scale_bar, write_sheet,
+    ColourBar, Panel,
+};
 use crate::synth::{generate, rmse, Scene, SceneSpec};
 use ndarray::Array2;
 use serde::Serialize;
@@ -41,6 +44,60 @@ pub struct DemoReport {
     pub params: FusionParams,
     /// Per albedo stage: σ_ρ, and E with each term after every iteration.
     pub stages: Vec<crate::fusion::StageReport>,
+}
+
+/// The demo's quick look: the image, hillshades of the input, fused and true DEMs (one light),
+/// the error of the fused DEM against the truth with its colour bar, and the albedo.
+fn write_quicklook(path: &Path, scene: &Scene, f: &crate::fusion::Fusion) -> Result<()> {
+    let eps = scene.spec.spacing;
+    let shade = |z: &Array2<f64>| rgb(&hillshade(z, eps));
+    let mut input = shade(&scene.input_dem);
+    scale_bar(&mut input, eps);
+    let err = &f.height - &scene.truth_height;
+    let limit = quantiles(&err.mapv(f64::abs), 0.0, 0.99)
+        .map_or(1.0, |q| q.1)
+        .max(0.01);
+    let stretched = |a: &Array2<f64>, title: &str, digits: usize| {
+        let r = quantiles(a, 0.01, 0.99).unwrap_or((0.0, 1.0));
+        Panel {
+            title: title.into(),
+            picture: grey(a, r),
+            bar: Some(ColourBar {
+                ramp: grey_ramp,
+                low: format!("{:.*}", digits, r.0),
+                high: format!("{:.*}", digits, r.1),
+            }),
+        }
+    };
+    let panels = [
+        stretched(&scene.image, "image I, sr-1", 4),
+        Panel {
+            title: "input DEM, light az 315 el 45".into(),
+            picture: input,
+            bar: None,
+        },
+        Panel {
+            title: "fused DEM, same light".into(),
+            picture: shade(&f.height),
+            bar: None,
+        },
+        Panel {
+            title: "true DEM, same light".into(),
+            picture: shade(&scene.truth_height),
+            bar: None,
+        },
+        Panel {
+            title: "fused - true, m".into(),
+            picture: diverging(&err, limit),
+            bar: Some(ColourBar {
+                ramp: diverging_ramp,
+                low: format!("-{limit:.1}"),
+                high: format!("+{limit:.1}"),
+            }),
+        },
+        stretched(&f.albedo, "albedo w", 3),
+    ];
+    write_sheet(path, &panels, 3)
 }
 
 /// Scores of a fusion against a scene's truth: (height RMSE, albedo RMSE, albedo RMSE on lit
@@ -106,7 +163,6 @@ pub fn run(spec: &SceneSpec, params: &FusionParams, out: Option<&Path>) -> Resul
     let input_rmse_m = rmse(&scene.input_dem, &scene.truth_height);
     let mut outputs = Vec::new();
     if let Some(dir) = out {
-        let eps = spec.spacing;
         let grid = demo_grid(spec)?;
         let meta = [
             ("SFSFUSE_VERSION", env!("CARGO_PKG_VERSION").to_string()),
@@ -161,15 +217,7 @@ pub fn run(spec: &SceneSpec, params: &FusionParams, out: Option<&Path>) -> Resul
             outputs.push(path);
         }
         let ql = dir.join("quicklook.png");
-        write_panels(
-            &ql,
-            &[
-                hillshade(&scene.input_dem, eps),
-                hillshade(&fusion.height, eps),
-                hillshade(&scene.truth_height, eps),
-            ],
-            4,
-        )?;
+        write_quicklook(&ql, &scene, &fusion)?;
         outputs.push(ql);
     }
     let shadow_fraction =

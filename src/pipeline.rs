@@ -26,6 +26,7 @@ use crate::ingest::{self, SwathIndex};
 use crate::output::OutputDir;
 use crate::photometry::{ModelSpec, ReflectanceModel};
 use crate::progress::Progress;
+use crate::quicklook::Thumbnail;
 use crate::raster::write_atomic;
 use crate::sanity::{Sanity, TileSums};
 use crate::tiling::{self, Tile, Window};
@@ -276,12 +277,13 @@ pub struct TileRecord {
 }
 
 /// Layers stored per tile, in file order.
-const TILE_LAYERS: [Layer; 5] = [
+const TILE_LAYERS: [Layer; 6] = [
     Layer::Dem,
     Layer::Albedo,
     Layer::Residual,
     Layer::Mask,
     Layer::InputDem,
+    Layer::Image,
 ];
 const TILE_MAGIC: &[u8; 8] = b"SFSTILE1";
 /// Most tiles a run plans (a 2³¹-pixel region in 1024-px tiles is 2048; tiny tiles over a
@@ -787,7 +789,14 @@ fn run_tile(o: &Orbital, inputs: &Inputs, plan: &Plan, tile: &Tile) -> Result<Ti
             let mask = f.photometric.mapv(|b| if b { 0.0 } else { 1.0 });
             (
                 "fused",
-                [f.height, f.albedo, f.residual, mask, dem.clone()],
+                [
+                    f.height,
+                    f.albedo,
+                    f.residual,
+                    mask,
+                    dem.clone(),
+                    image.clone(),
+                ],
                 f.stages,
                 n,
                 sanity,
@@ -803,6 +812,7 @@ fn run_tile(o: &Orbital, inputs: &Inputs, plan: &Plan, tile: &Tile) -> Result<Ti
                     nan,
                     Array2::ones(dim),
                     dem.clone(),
+                    image.clone(),
                 ],
                 Vec::new(),
                 0,
@@ -1021,6 +1031,70 @@ fn run_orbital(
 }
 
 /// What a GIS user sees of each layer.
+/// Longest side of a run's quick-look panels, pixels.
+const QUICKLOOK_SIDE: usize = 480;
+
+/// The run's quick look (`quicklook.png`): the image, hillshades of the input and the fused
+/// DEM, the albedo, dem − input_dem and the residual, each titled, with colour bars and a
+/// scale bar, from block means of the products (`thumbs` in [`TILE_LAYERS`] order).
+fn write_quicklook(path: &Path, thumbs: &[Thumbnail], spacing: f64, nm: f64) -> Result<()> {
+    use crate::quicklook::{
+        diverging, diverging_ramp, grey, grey_ramp, hillshade, quantiles, rgb, scale_bar,
+        write_sheet, ColourBar, Panel,
+    };
+    let [dem, albedo, residual, _, input, image] = [0, 1, 2, 3, 4, 5].map(|k| thumbs[k].means());
+    let pixel = spacing * thumbs[0].factor as f64;
+    let stretched = |a: &Array2<f64>, title: String, digits: usize| {
+        let r = quantiles(a, 0.01, 0.99).unwrap_or((0.0, 1.0));
+        Panel {
+            title,
+            picture: grey(a, r),
+            bar: Some(ColourBar {
+                ramp: grey_ramp,
+                low: format!("{:.*}", digits, r.0),
+                high: format!("{:.*}", digits, r.1),
+            }),
+        }
+    };
+    // Hillshades cannot take no-data: fill it with the input DEM (the fused DEM has none).
+    let filled = |a: &Array2<f64>| {
+        Zip::from(a)
+            .and(&input)
+            .map_collect(|&v, &i| if v.is_finite() { v } else { i })
+    };
+    let mut input_shade = rgb(&hillshade(&filled(&input), pixel));
+    scale_bar(&mut input_shade, pixel);
+    let change = Zip::from(&dem).and(&input).map_collect(|&a, &b| a - b);
+    let limit = quantiles(&change.mapv(f64::abs), 0.0, 0.99)
+        .map_or(1.0, |q| q.1)
+        .max(0.01);
+    let panels = [
+        stretched(&image, format!("image I at {nm} nm, sr-1"), 4),
+        Panel {
+            title: "input DEM, light az 315 el 45".into(),
+            picture: input_shade,
+            bar: None,
+        },
+        Panel {
+            title: "fused DEM, same light".into(),
+            picture: rgb(&hillshade(&filled(&dem), pixel)),
+            bar: None,
+        },
+        stretched(&albedo, "albedo".into(), 3),
+        Panel {
+            title: "dem - input_dem, m".into(),
+            picture: diverging(&change, limit),
+            bar: Some(ColourBar {
+                ramp: diverging_ramp,
+                low: format!("-{limit:.1}"),
+                high: format!("+{limit:.1}"),
+            }),
+        },
+        stretched(&residual, "residual |I-R|, sr-1".into(), 4),
+    ];
+    write_sheet(path, &panels, 3)
+}
+
 /// The dataset metadata of a run's products: software, inputs by product ID, wavelength,
 /// photometric model, solver parameters and the DEM widths the tiles used.
 fn product_metadata(o: &Orbital, inputs: &Inputs, plan: &Plan) -> Vec<(&'static str, String)> {
@@ -1098,6 +1172,11 @@ fn layer_info(l: Layer, lunar: bool) -> (&'static str, &'static str) {
             "m",
         ),
         Layer::InputDem => ("input depth map as height", "m"),
+        Layer::Image if lunar => (
+            "observed reflectance I on the grid (first observation covering each pixel)",
+            "sr-1",
+        ),
+        Layer::Image => ("intensity image", ""),
     }
 }
 
@@ -1167,9 +1246,9 @@ impl MetricsAcc {
         }
     }
 
-    /// Add pixels: the five layers in [`TILE_LAYERS`] order.
-    fn add(&mut self, l: &[Array2<f64>; 5]) {
-        let [h, a, r, m, d] = l;
+    /// Add pixels: the layers in [`TILE_LAYERS`] order.
+    fn add(&mut self, l: &[Array2<f64>; 6]) {
+        let [h, a, r, m, d, _] = l;
         self.n += h.len();
         self.phot += m.iter().filter(|&&v| v == 0.0).count();
         for (x, acc) in [(r, &mut self.res), (a, &mut self.alb)] {
@@ -1298,6 +1377,10 @@ fn mosaic(
     }
     // Blend band by band: memory is one band of rows, whatever the region's size.
     let mut stats = MetricsAcc::new();
+    // Block means of the layers the quick look shows, in TILE_LAYERS order.
+    let mut thumbs: Vec<Thumbnail> = (0..TILE_LAYERS.len())
+        .map(|_| Thumbnail::new(rows, cols, QUICKLOOK_SIDE))
+        .collect();
     progress.steps("mosaic", rows.div_ceil(MOSAIC_BAND) as u64);
     for b0 in (0..rows).step_by(MOSAIC_BAND) {
         let b1 = (b0 + MOSAIC_BAND).min(rows);
@@ -1350,8 +1433,11 @@ fn mosaic(
                 *r = f64::NAN;
             }
         });
-        let layers: [Array2<f64>; 5] = layers.try_into().expect("five layers");
+        let layers: [Array2<f64>; 6] = layers.try_into().expect("six layers");
         stats.add(&layers);
+        for (t, l) in thumbs.iter_mut().zip(&layers) {
+            t.add(b0, l.view());
+        }
         for (k, w) in &mut writers {
             w.push(layers[*k].view())?;
         }
@@ -1363,6 +1449,9 @@ fn mosaic(
         w.finish()?;
     }
     progress.finish();
+    let ql = out.join("quicklook.png");
+    write_quicklook(&ql, &thumbs, plan.grid.spacing, o.inputs.wavelength_nm)?;
+    outputs.push(ql);
     let records: Vec<TileRecord> = heads.into_iter().map(|(r, _)| r).collect();
     let mut sums = TileSums::default();
     records.iter().for_each(|r| sums.add(&r.sanity));
@@ -1532,6 +1621,7 @@ fn run_lab(l: &Lab, wf: &Workflow, progress: &Progress) -> Result<RunSummary> {
         f.residual.clone(),
         mask,
         depth.clone(),
+        image.clone(),
     ];
     let meta = [("SFSFUSE_VERSION", env!("CARGO_PKG_VERSION").to_string())];
     let mut outputs = Vec::new();

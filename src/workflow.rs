@@ -254,15 +254,19 @@ pub enum Layer {
     Mask,
     /// The input DEM on the grid, for comparison.
     InputDem,
+    /// The observed reflectance I on the grid (orbital: at the wavelength, from the first
+    /// observation covering each pixel), sr⁻¹; the lab: the intensity image.
+    Image,
 }
 
 impl Layer {
-    pub const ALL: [Layer; 5] = [
+    pub const ALL: [Layer; 6] = [
         Layer::Dem,
         Layer::Albedo,
         Layer::Residual,
         Layer::Mask,
         Layer::InputDem,
+        Layer::Image,
     ];
 
     pub fn name(self) -> &'static str {
@@ -272,6 +276,7 @@ impl Layer {
             Layer::Residual => "residual",
             Layer::Mask => "mask",
             Layer::InputDem => "input_dem",
+            Layer::Image => "image",
         }
     }
 }

@@ -58,7 +58,8 @@ fn demo_writes_products_and_a_json_report() {
             let e = &i["energy"];
             let sum = e["intensity"].as_f64().unwrap()
                 + r["params"]["delta"].as_f64().unwrap() * e["dem"].as_f64().unwrap()
-                + r["params"]["eta"].as_f64().unwrap() * e["membrane"].as_f64().unwrap();
+                + r["params"]["eta"].as_f64().unwrap() * e["membrane"].as_f64().unwrap()
+                + e["tie"].as_f64().unwrap();
             assert!((sum - e["total"].as_f64().unwrap()).abs() <= 1e-9 * sum.abs());
         }
     }
@@ -82,10 +83,15 @@ fn demo_writes_products_and_a_json_report() {
         Some([-3360.0, 140.0, 0.0, 3360.0, 0.0, -140.0])
     );
     let png = std::fs::read(out.join("quicklook.png")).unwrap();
-    // IHDR width: three 48-px panels and two 4-px gaps.
+    // IHDR width and height: 3 × 2 titled panels of 48 px with 12-px margins (24-px title,
+    // 40-px colour-bar strip).
     assert_eq!(
         u32::from_be_bytes([png[16], png[17], png[18], png[19]]),
-        3 * 48 + 8
+        3 * 48 + 4 * 12
+    );
+    assert_eq!(
+        u32::from_be_bytes([png[20], png[21], png[22], png[23]]),
+        2 * (24 + 48 + 40) + 3 * 12
     );
     let leftovers: Vec<_> = std::fs::read_dir(&out)
         .unwrap()

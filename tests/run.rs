@@ -36,6 +36,18 @@ fn synthetic_products_through_run_meet_the_accuracy_bar() {
         "{e_out:.2} m is not 2× below the input's {e_in:.2} m"
     );
     assert!(e_w <= 0.01, "albedo RMSE {e_w:.4} > 0.01");
+    // The quick look: six titled panels of the 256² region (3 × 2 cells of 256 + title and
+    // bar), decoded as a PNG.
+    let ql = std::fs::File::open(out.join("quicklook.png")).unwrap();
+    let info = png::Decoder::new(std::io::BufReader::new(ql))
+        .read_info()
+        .unwrap()
+        .info()
+        .clone();
+    assert_eq!(
+        (info.width, info.height),
+        (3 * 256 + 4 * 12, 2 * (24 + 256 + 40) + 3 * 12)
+    );
     // The run record: resolved workflow with its defaults, checksums of every input, tiles.
     let rec: serde_json::Value =
         serde_json::from_slice(&std::fs::read(out.join("run.json")).unwrap()).unwrap();

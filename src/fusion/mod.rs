@@ -224,7 +224,7 @@ pub struct StageReport {
 pub struct Fusion {
     /// Heights, metres, same datum as the input DEM.
     pub height: Array2<f64>,
-    /// Albedo (Hapke w for the Hapke model).
+    /// Albedo (Hapke w for the Hapke model); NaN off the image's footprint.
     pub albedo: Array2<f64>,
     /// |I − R| at the solution where the pixel carried photometric information, NaN elsewhere.
     pub residual: Array2<f64>,
@@ -494,8 +494,14 @@ pub fn fuse(pr: &Problem, params: &FusionParams) -> Result<Fusion, FusionError> 
         .and(&obj.support)
         .and(pr.dem)
         .par_for_each(|z, &s, &d| *z = d + s * (*z - d));
-    let albedo = final_albedo(pr, &obj.dct, z.view(), &obj.observed, params)?;
+    let mut albedo = final_albedo(pr, &obj.dct, z.view(), &obj.observed, params)?;
     let photo = obj.photo(z.view(), albedo.view());
+    // Off the image's footprint the albedo would only be the smoothing's fill: no data.
+    Zip::from(&mut albedo).and(pr.image).for_each(|a, &i| {
+        if !i.is_finite() {
+            *a = f64::NAN;
+        }
+    });
     let residual = Zip::from(&photo.res)
         .and(&photo.used)
         .map_collect(|&r, &u| if u { (r * obj.scale).abs() } else { f64::NAN });
