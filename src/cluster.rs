@@ -82,6 +82,40 @@ pub struct Submission {
     pub mosaic_job: Option<String>,
     /// The scripts' text (shown by `--dry-run`).
     pub scripts: Vec<(PathBuf, String)>,
+    /// The command lines that submit them, the mosaic's depending on the tiles' job id (shell
+    /// syntax; what `--dry-run` would run).
+    pub commands: Vec<String>,
+}
+
+/// The shell command lines that submit `tiles` (if any) and then `mosaic` after it.
+fn submit_commands(
+    scheduler: Scheduler,
+    dep: &str,
+    tiles: Option<&Path>,
+    mosaic: &Path,
+) -> Vec<String> {
+    let q = |p: &Path| quote(&p.display().to_string());
+    let mut v = Vec::new();
+    match scheduler {
+        Scheduler::Slurm => match tiles {
+            Some(t) => {
+                v.push(format!("tiles=$(sbatch --parsable {})", q(t)));
+                v.push(format!(
+                    "sbatch --parsable --dependency={dep}:$tiles {}",
+                    q(mosaic)
+                ));
+            }
+            None => v.push(format!("sbatch --parsable {}", q(mosaic))),
+        },
+        Scheduler::Pbs => match tiles {
+            Some(t) => {
+                v.push(format!("tiles=$(qsub {})", q(t)));
+                v.push(format!("qsub -W depend={dep}:$tiles {}", q(mosaic)));
+            }
+            None => v.push(format!("qsub {}", q(mosaic))),
+        },
+    }
+    v
 }
 
 impl Submission {
@@ -90,6 +124,10 @@ impl Submission {
         if self.mosaic_job.is_none() {
             for (path, text) in &self.scripts {
                 s.push_str(&format!("# ---- {} ----\n{text}\n", path.display()));
+            }
+            s.push_str("# ---- submit with ----\n");
+            for c in &self.commands {
+                s.push_str(&format!("{c}\n"));
             }
         }
         s.push_str(&format!(
@@ -321,6 +359,12 @@ pub fn submit(
         tiles_job: None,
         mosaic_job: None,
         scripts,
+        commands: submit_commands(
+            opts.scheduler,
+            opts.dependency.word(),
+            (!b.is_empty()).then_some(tiles_path.as_path()),
+            &mosaic_path,
+        ),
     };
     if opts.dry_run {
         return Ok(sub);

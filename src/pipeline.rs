@@ -304,13 +304,16 @@ pub struct RunSummary {
     pub record: Option<PathBuf>,
     /// The sanity figures of the whole run (when the mosaic was written).
     pub sanity: Option<Sanity>,
+    /// Wall time of this invocation, seconds.
+    #[serde(default)]
+    pub seconds: f64,
 }
 
 impl RunSummary {
     pub fn table(&self) -> String {
         let mut s = format!(
-            "tiles: {} total, {} run now, {} already done\n",
-            self.tiles_total, self.tiles_run, self.tiles_skipped
+            "finished in {:.1} s; tiles: {} total, {} run now, {} already done\n",
+            self.seconds, self.tiles_total, self.tiles_run, self.tiles_skipped
         );
         for o in &self.outputs {
             s.push_str(&format!("wrote {}\n", o.display()));
@@ -938,14 +941,21 @@ pub fn run(wf: &Workflow, req: &Request, progress: &Progress) -> Result<RunSumma
             out.display()
         ));
     }
+    let t0 = Instant::now();
     let result = match wf {
         Workflow::Orbital(o) => run_orbital(o, wf, req, progress),
         Workflow::Lab(l) => run_lab(l, wf, progress),
     };
-    if result.is_err() {
-        dir.abandon();
+    match result {
+        Ok(mut s) => {
+            s.seconds = t0.elapsed().as_secs_f64();
+            Ok(s)
+        }
+        Err(e) => {
+            dir.abandon();
+            Err(e)
+        }
     }
-    result
 }
 
 fn run_orbital(
@@ -1019,6 +1029,7 @@ fn run_orbital(
         outputs: Vec::new(),
         record: None,
         sanity: None,
+        seconds: 0.0,
     };
     if req.tiles.is_none() {
         let (outputs, record, sanity) = mosaic(o, wf, &inputs, &plan, progress)?;
@@ -1702,6 +1713,7 @@ fn run_lab(l: &Lab, wf: &Workflow, progress: &Progress) -> Result<RunSummary> {
         outputs,
         record: Some(path),
         sanity: None,
+        seconds: 0.0,
     })
 }
 

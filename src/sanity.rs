@@ -260,19 +260,23 @@ impl Sanity {
         }
     }
 
-    /// Lines for the terminal.
+    /// Lines for the terminal ("—" where a class has no pixel).
     pub fn table(&self) -> String {
+        let m = |rms: f64, max: f64, digits: usize| {
+            if rms.is_nan() {
+                "— (no pixel)".to_string()
+            } else {
+                format!("{rms:.digits$} / {max:.digits$} m")
+            }
+        };
         let mut t = format!(
-            "photometric fraction {:.3}\nimage vs rendered: correlation {:.3} from the input DEM, {:.3} from the fused DEM\ndem − input_dem RMS / max: footprint {:.2} / {:.2} m, band {:.2} / {:.2} m, beyond {:.3} / {:.3} m\n",
+            "photometric fraction {:.3}\nimage vs rendered: correlation {:.3} from the input DEM, {:.3} from the fused DEM\ndem − input_dem RMS / max: footprint {}, band {}, beyond {}\n",
             self.photometric_fraction,
             self.correlation_input_dem,
             self.correlation_fused_dem,
-            self.change_footprint_rms_m,
-            self.change_footprint_max_m,
-            self.change_band_rms_m,
-            self.change_band_max_m,
-            self.change_beyond_rms_m,
-            self.change_beyond_max_m
+            m(self.change_footprint_rms_m, self.change_footprint_max_m, 2),
+            m(self.change_band_rms_m, self.change_band_max_m, 2),
+            m(self.change_beyond_rms_m, self.change_beyond_max_m, 3)
         );
         if self.observations.len() > 1 {
             for o in &self.observations {

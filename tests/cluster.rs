@@ -185,7 +185,21 @@ fn dry_run_prints_the_scripts() {
         &dir,
         &workflow(p, &out, 128, "[solver]\nalbedo_sigmas = [30.0, 10.0, 4.0]"),
     );
-    for (sched, want) in [("slurm", "#SBATCH --array=0-1"), ("pbs", "#PBS -J 0-1")] {
+    for (sched, want, submit) in [
+        (
+            "slurm",
+            "#SBATCH --array=0-1",
+            [
+                "tiles=$(sbatch --parsable ",
+                "sbatch --parsable --dependency=afterany:$tiles ",
+            ],
+        ),
+        (
+            "pbs",
+            "#PBS -J 0-1",
+            ["tiles=$(qsub ", "qsub -W depend=afterany:$tiles "],
+        ),
+    ] {
         let o = sfsfuse()
             .args([
                 "submit",
@@ -206,6 +220,10 @@ fn dry_run_prints_the_scripts() {
             text.contains(want) && text.contains("--mosaic") && text.contains("--tile"),
             "{text}"
         );
+        // The command lines that would submit them, the mosaic after the tiles.
+        for line in submit {
+            assert!(text.contains(line), "{line}: {text}");
+        }
         assert!(!out.join("cluster").exists(), "a dry run wrote files");
     }
     std::fs::remove_dir_all(&dir).unwrap();
