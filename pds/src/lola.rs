@@ -115,6 +115,20 @@ fn within(
 /// 368 640 samples wide; offsets beyond a few million pixels describe no lunar product.
 const MAX_PROJECTION_OFFSET: f64 = 1e7;
 
+/// A LINE/SAMPLE_PROJECTION_OFFSET within ±[`MAX_PROJECTION_OFFSET`].
+fn projection_offset(path: &Path, map: &Object, key: &str) -> Result<f64> {
+    let v = number(path, map, key)?;
+    within(
+        path,
+        map,
+        key,
+        v,
+        -MAX_PROJECTION_OFFSET,
+        MAX_PROJECTION_OFFSET,
+        "no lunar product is that large",
+    )
+}
+
 /// `value` must be a positive, finite number; the error names the keyword and the value.
 fn positive(path: &Path, key: &str, value: f64, unit: &str) -> Result<()> {
     if value.is_finite() && value > 0.0 {
@@ -278,18 +292,6 @@ impl LolaDem {
             let resolution = number(path, map, "MAP_RESOLUTION")?;
             positive(path, "MAP_RESOLUTION", resolution, "")?;
             positive(path, "MAP_SCALE", map_scale_m, " m/pix")?;
-            let offset = |key| {
-                let v = number(path, map, key)?;
-                within(
-                    path,
-                    map,
-                    key,
-                    v,
-                    -MAX_PROJECTION_OFFSET,
-                    MAX_PROJECTION_OFFSET,
-                    "no lunar product is that large",
-                )
-            };
             Projection::SimpleCylindrical {
                 resolution,
                 center_lat: {
@@ -316,8 +318,8 @@ impl LolaDem {
                         "longitudes are degrees",
                     )?
                 },
-                line_offset: offset("LINE_PROJECTION_OFFSET")?,
-                sample_offset: offset("SAMPLE_PROJECTION_OFFSET")?,
+                line_offset: projection_offset(path, map, "LINE_PROJECTION_OFFSET")?,
+                sample_offset: projection_offset(path, map, "SAMPLE_PROJECTION_OFFSET")?,
             }
         } else if kind.eq_ignore_ascii_case("POLAR STEREOGRAPHIC") {
             let center_lat = number(path, map, "CENTER_LATITUDE")?;
@@ -341,23 +343,11 @@ impl LolaDem {
                 ));
             }
             positive(path, "MAP_SCALE", map_scale_m, " m/pix")?;
-            let offset = |key| {
-                let v = number(path, map, key)?;
-                within(
-                    path,
-                    map,
-                    key,
-                    v,
-                    -MAX_PROJECTION_OFFSET,
-                    MAX_PROJECTION_OFFSET,
-                    "no lunar product is that large",
-                )
-            };
             Projection::PolarStereographic {
                 north,
                 scale_m: map_scale_m,
-                line_offset: offset("LINE_PROJECTION_OFFSET")?,
-                sample_offset: offset("SAMPLE_PROJECTION_OFFSET")?,
+                line_offset: projection_offset(path, map, "LINE_PROJECTION_OFFSET")?,
+                sample_offset: projection_offset(path, map, "SAMPLE_PROJECTION_OFFSET")?,
                 radius_m,
             }
         } else {
