@@ -314,3 +314,23 @@ fn bench_caps_the_paper_reference_by_time() {
     assert!(!o.status.success());
     assert!(String::from_utf8_lossy(&o.stderr).contains("--paper-seconds 0"));
 }
+
+/// A label given as a bare file name, in its own directory, whose pointer names the data file
+/// in another letter case: found (it used to fail with an empty path).
+#[test]
+fn a_bare_label_name_finds_its_data_file_in_any_case() {
+    let data = test_data().unwrap();
+    let dir = std::env::temp_dir().join(format!("sfsfuse-bare-{}", std::process::id()));
+    std::fs::create_dir_all(&dir).unwrap();
+    std::fs::copy(data.join("lola_ldem4/LDEM_4.LBL"), dir.join("LDEM_4.LBL")).unwrap();
+    std::os::unix::fs::symlink(data.join("lola_ldem4/LDEM_4.IMG"), dir.join("ldem_4.img")).unwrap();
+    let o = sfsfuse()
+        .args(["inspect", "--json", "LDEM_4.LBL"])
+        .current_dir(&dir)
+        .output()
+        .unwrap();
+    assert!(o.status.success(), "{}", String::from_utf8_lossy(&o.stderr));
+    let r: serde_json::Value = serde_json::from_slice(&o.stdout).unwrap();
+    assert_eq!(r["lines"], 720);
+    std::fs::remove_dir_all(&dir).unwrap();
+}

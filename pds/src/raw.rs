@@ -255,7 +255,11 @@ pub fn locate(label: &Path, name: &str) -> Result<PathBuf> {
             format!("file name {name:?} is not a plain file name"),
         ));
     }
-    let dir = label.parent().unwrap_or(Path::new("."));
+    // A bare file name's parent is "": the current directory.
+    let dir = match label.parent() {
+        Some(d) if !d.as_os_str().is_empty() => d,
+        _ => Path::new("."),
+    };
     let exact = dir.join(name);
     if exact.is_file() {
         return Ok(exact);
