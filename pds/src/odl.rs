@@ -231,6 +231,24 @@ struct Cursor<'a> {
     i: usize,
     line: usize,
     col: usize,
+    /// Where the first quoted string that swallowed a `KEY = …` line began: the sign of a
+    /// missing closing quote, reported there if parsing fails further on.
+    suspect: Option<(usize, usize)>,
+}
+
+/// Whether quoted text holds a line that reads like a statement (`KEY =`): a string that
+/// does has most likely lost its closing quote.
+fn swallows_a_statement(raw: &str) -> bool {
+    raw.lines().skip(1).any(|l| {
+        let l = l.trim_start();
+        let key: String = l
+            .chars()
+            .take_while(|c| c.is_ascii_alphanumeric() || matches!(c, '_' | ':' | '^'))
+            .collect();
+        !key.is_empty()
+            && key.starts_with(|c: char| c.is_ascii_alphabetic() || c == '^')
+            && l[key.len()..].trim_start().starts_with('=')
+    })
 }
 
 impl<'a> Cursor<'a> {
@@ -352,7 +370,23 @@ pub fn parse_label(bytes: &[u8]) -> Result<Label, ParseError> {
         i: 0,
         line: 1,
         col: 1,
+        suspect: None,
     };
+    parse_statements(&mut c).map_err(|e| match c.suspect {
+        Some((line, column)) if line < e.line => ParseError {
+            line,
+            column,
+            message: format!(
+                "this string's closing quote seems to be missing: it runs on over `KEY =` lines to line {}, where parsing fails ({})",
+                e.line, e.message
+            ),
+        },
+        _ => e,
+    })
+}
+
+/// The statements of a label, to its `END`.
+fn parse_statements(c: &mut Cursor) -> Result<Label, ParseError> {
     let mut stack: Vec<Object> = vec![Object::default()];
     loop {
         c.skip_ws()?;
@@ -407,7 +441,7 @@ pub fn parse_label(bytes: &[u8]) -> Result<Label, ParseError> {
             close_block(&mut stack, &upper, line, col)?;
             continue;
         }
-        let value = parse_value(&mut c, 0)?;
+        let value = parse_value(c, 0)?;
         if upper == "OBJECT" || upper == "GROUP" {
             if stack.len() > MAX_DEPTH {
                 return Err(ParseError {
@@ -494,6 +528,9 @@ fn parse_value(c: &mut Cursor, depth: usize) -> Result<Value, ParseError> {
                 column: col,
                 message: format!("string is not UTF-8 (byte {} of it)", e.valid_up_to()),
             })?;
+            if c.suspect.is_none() && swallows_a_statement(raw) {
+                c.suspect = Some((l, col));
+            }
             Value::Text(fold_lines(raw))
         }
         Some(b'\'') => Value::Symbol(c.delimited_on_line(b'\'', "literal `'`")?),
@@ -650,5 +687,19 @@ mod tests {
         }
         let e = parse_label(b"A = \"\xff\xfe\"\nEND\n").unwrap_err();
         assert!(e.message.contains("UTF-8"), "{e}");
+    }
+
+    /// A string whose closing quote is missing swallows the statements after it up to the
+    /// next quote, and parsing fails far below: the error points where the string starts.
+    #[test]
+    fn an_unterminated_string_is_reported_where_it_starts() {
+        let text =
+            "PDS_VERSION_ID = PDS3\nA = \"no end\nB = 1\nC = 2\nD = 3\nE = \"x\"\nF = 4\nEND\n";
+        let e = parse_label(text.as_bytes()).unwrap_err();
+        assert_eq!((e.line, e.column), (2, 5), "{e}");
+        assert!(e.message.contains("closing quote"), "{e}");
+        // Multi-line strings without statements inside stay legal.
+        let ok = "A = \"one\n  two = words\n  three\"\nEND\n";
+        assert!(parse_label(ok.as_bytes()).is_ok());
     }
 }
