@@ -23,6 +23,10 @@ pub struct DemoReport {
     pub seed: u64,
     pub image_noise: f64,
     pub input_dem_factor: usize,
+    /// Sun of each observation: (azimuth, elevation), degrees.
+    pub suns: Vec<(f64, f64)>,
+    /// The radiometric gains the fusion estimated, relative to the first observation.
+    pub gains: Vec<f64>,
     /// Elevation RMSE of the LOLA-like input DEM against the truth, metres.
     pub input_rmse_m: f64,
     /// Elevation RMSE of the fused DEM against the truth, metres.
@@ -228,6 +232,14 @@ pub fn run(spec: &SceneSpec, params: &FusionParams, out: Option<&Path>) -> Resul
         seed: spec.seed,
         image_noise: spec.noise,
         input_dem_factor: spec.dem_factor,
+        suns: std::iter::once((spec.sun_azimuth_deg, 90.0 - spec.sun_incidence_deg))
+            .chain(
+                spec.more
+                    .iter()
+                    .map(|m| (m.sun_azimuth_deg, 90.0 - m.sun_incidence_deg)),
+            )
+            .collect(),
+        gains: fusion.gains.clone(),
         input_rmse_m,
         result_rmse_m,
         improvement: input_rmse_m / result_rmse_m,
@@ -261,6 +273,19 @@ impl DemoReport {
                 self.input_dem_factor
             ),
         );
+        let suns: Vec<String> = self
+            .suns
+            .iter()
+            .map(|(a, e)| format!("{a:.0}/{e:.0}"))
+            .collect();
+        row(
+            "observations (Sun azimuth/elevation)",
+            format!("{}: {}", self.suns.len(), suns.join(", ")),
+        );
+        if self.gains.len() > 1 {
+            let g: Vec<String> = self.gains.iter().map(|g| format!("{g:.4}")).collect();
+            row("estimated gains", g.join(", "));
+        }
         row(
             "input DEM elevation RMSE",
             format!("{:.2} m", self.input_rmse_m),

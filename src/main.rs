@@ -36,6 +36,14 @@ enum Command {
         /// z-solver.
         #[arg(long, value_enum, default_value_t = SolverKind::Fast)]
         solver: SolverKind,
+        /// Observations of the scene, each under its own Sun (azimuths 105°, 225°, 345°, 45°,
+        /// 165°, 285°; elevations 25–35°), with independent noise, fused together.
+        #[arg(long, default_value_t = 1, value_parser = clap::value_parser!(u8).range(1..=6))]
+        observations: u8,
+        /// Each observation covers only a strip of the columns, overlapping its neighbours
+        /// by half a strip.
+        #[arg(long)]
+        strips: bool,
         /// Print the report as JSON instead of a table.
         #[arg(long)]
         json: bool,
@@ -151,6 +159,19 @@ enum Command {
         /// Random seed of the scene.
         #[arg(long, default_value_t = 1)]
         seed: u64,
+        /// The Sun of each observation as AZIMUTH/ELEVATION in degrees (azimuth clockwise
+        /// from north), e.g. `--sun 110/55 --sun 250/60`: one L1B product set per `--sun`.
+        /// Default: one observation, Sun at 105/30.
+        #[arg(long = "sun", value_parser = sfsfuse::synth::parse_sun)]
+        suns: Vec<(f64, f64)>,
+        /// Radiometric gain of each further observation relative to the first (in `--sun`
+        /// order from the second on; missing ones are 1).
+        #[arg(long = "gain")]
+        gains: Vec<f64>,
+        /// Each observation covers only a strip of the columns, overlapping its neighbours
+        /// by half a strip.
+        #[arg(long)]
+        strips: bool,
         /// Print JSON instead of a table.
         #[arg(long)]
         json: bool,
@@ -220,13 +241,20 @@ fn run(cli: Cli) -> Result<(), sfsfuse::Error> {
             size,
             seed,
             solver,
+            observations,
+            strips,
             json,
         } => {
             let spec = SceneSpec {
                 size,
                 seed,
                 ..SceneSpec::default()
-            };
+            }
+            .with_observations(
+                &sfsfuse::synth::DEMO_SUNS[..observations as usize],
+                &[],
+                strips,
+            );
             let params = match solver {
                 SolverKind::Fast => FusionParams::default(),
                 SolverKind::Paper => FusionParams::paper(),
@@ -347,12 +375,34 @@ fn run(cli: Cli) -> Result<(), sfsfuse::Error> {
             out,
             size,
             seed,
+            suns,
+            gains,
+            strips,
             json,
         } => {
+            if let Some(g) = gains.iter().find(|g| !(g.is_finite() && **g > 0.0)) {
+                return Err(sfsfuse::Error::Usage(format!(
+                    "--gain {g}: a gain must be a positive number"
+                )));
+            }
+            if gains.len() >= suns.len().max(1) {
+                return Err(sfsfuse::Error::Usage(format!(
+                    "{} --gain values for {} observation(s): give one per --sun after the first",
+                    gains.len(),
+                    suns.len().max(1)
+                )));
+            }
+            let mut all_gains = vec![1.0];
+            all_gains.extend(&gains);
             let spec = SceneSpec {
                 size,
                 seed,
                 ..SceneSpec::default()
+            };
+            let spec = if suns.is_empty() {
+                spec
+            } else {
+                spec.with_observations(&suns, &all_gains, strips)
             };
             if size < 16 {
                 return Err(sfsfuse::Error::Usage(format!(
@@ -362,9 +412,14 @@ fn run(cli: Cli) -> Result<(), sfsfuse::Error> {
             let scene = sfsfuse::synth::generate(&spec);
             let grid = sfsfuse::demo::demo_grid(&spec)?;
             let p = sfsfuse::synth::products::write(&scene, &grid, &out)?;
+            let labels: Vec<String> = p
+                .m3_labels
+                .iter()
+                .map(|l| l.display().to_string())
+                .collect();
             let table = format!(
                 "M3-like L1B label   {}\nLOLA-like GDR label {}\nsolar spectrum      {}\ntruth DEM           {}\ntruth albedo        {}\n",
-                p.m3_label.display(),
+                labels.join("\n                    "),
                 p.lola_label.display(),
                 p.solar_table.display(),
                 p.truth_dem.display(),

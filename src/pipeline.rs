@@ -251,6 +251,106 @@ pub struct Plan {
     pub sigma_dem: f64,
     /// One per M3 observation, in input order.
     pub swaths: Vec<SwathIndex>,
+    /// Radiometric gain g_k of each observation, relative to the first of its overlapping
+    /// group (1 where it overlaps no other).
+    #[serde(default)]
+    pub gains: Vec<f64>,
+    /// Noise weight ν_k of each observation (docs/science.md, "Several observations").
+    #[serde(default)]
+    pub noise_weights: Vec<f64>,
+}
+
+/// The most pixels the gain estimate looks at: the run's grid is decimated to at most this.
+const GAIN_PIXELS: usize = 1 << 20;
+
+/// The gains of the observations, estimated once for the whole run (tiles must agree on them)
+/// by [`fusion::observations::estimate_gains`] on the grid decimated to at most
+/// [`GAIN_PIXELS`], over the input DEM.
+fn run_gains(
+    o: &Orbital,
+    inputs: &Inputs,
+    grid: &Grid,
+    swaths: &[SwathIndex],
+    scale: f64,
+) -> Result<Vec<f64>> {
+    let f = ((grid.rows * grid.cols) as f64 / GAIN_PIXELS as f64)
+        .sqrt()
+        .ceil()
+        .max(1.0) as usize;
+    let coarse = Grid {
+        rows: grid.rows.div_ceil(f),
+        cols: grid.cols.div_ceil(f),
+        spacing: grid.spacing * f as f64,
+        ..*grid
+    };
+    let pr = projector(&coarse.crs)?;
+    let geo = coarse.geographic(&pr);
+    let mut shots = Vec::new();
+    for (k, (obs, index)) in inputs.obs.iter().zip(swaths).enumerate() {
+        if index.lines_for(&coarse).is_none() {
+            continue;
+        }
+        let img = ingest::m3_on_grid(
+            obs,
+            &inputs.solar,
+            o.inputs.wavelength_nm,
+            &coarse,
+            &pr,
+            &geo,
+            Some(index),
+        )?;
+        shots.push((k, img));
+    }
+    let mut dem = Array2::from_elem((coarse.rows, coarse.cols), f64::NAN);
+    for d in &inputs.lola {
+        let Ok(h) = d.on_grid(&geo, o.grid.dem_interpolation) else {
+            continue;
+        };
+        Zip::from(&mut dem).and(&h).for_each(|a, &b| {
+            if a.is_nan() {
+                *a = b;
+            }
+        });
+    }
+    fill_holes(&mut dem);
+    if !dem.iter().all(|v| v.is_finite()) {
+        // No DEM on the grid at all: the tiles will say so; gains cannot be estimated.
+        return Ok(vec![1.0; inputs.obs.len()]);
+    }
+    let problem = Problem {
+        observations: shots
+            .iter()
+            .map(|(_, img)| fusion::Observation {
+                image: img.reflectance.view(),
+                sun: Directions::PerPixel(img.sun.clone()),
+                view: Directions::PerPixel(img.view.clone()),
+            })
+            .collect(),
+        dem: dem.view(),
+        spacing: coarse.spacing,
+        dem_psf_sigma: 0.0,
+        model: inputs.model.as_ref(),
+        intensity_scale: Some(scale),
+        gains: None,
+        noise_weights: None,
+        selection: o.inputs.selection(),
+    };
+    let mut gains = vec![1.0; inputs.obs.len()];
+    if problem.observations.len() > 1 {
+        let w = fusion::observations::weights(
+            &problem,
+            vec![1.0; problem.observations.len()],
+            scale,
+            None,
+            o.solver.shadow_threshold,
+            0.0,
+        );
+        let g = fusion::observations::estimate_gains(&problem, &w.usable, dem.view());
+        for ((k, _), g) in shots.iter().zip(g) {
+            gains[*k] = g;
+        }
+    }
+    Ok(gains)
 }
 
 /// A finished tile's record (the header of its file, and a row of the run record).
@@ -509,11 +609,13 @@ fn plan(o: &Orbital, wf: &Workflow, inputs: &Inputs, progress: &Progress) -> Res
     let pr = projector(&grid.crs)?;
     let mut swaths = Vec::new();
     let (mut sum, mut count) = (0.0, 0usize);
+    let mut means = Vec::new();
     let mut why = Vec::new();
     for obs in &inputs.obs {
         let s = ingest::survey(obs, &inputs.solar, o.inputs.wavelength_nm, &grid, &pr)?;
         sum += s.sum;
         count += s.count;
+        means.push((s.count > 0).then(|| s.sum / s.count as f64));
         why.push(if s.on_grid == 0 {
             format!(
                 "{}: no pixel of its swath falls on the grid (region)",
@@ -576,6 +678,24 @@ fn plan(o: &Orbital, wf: &Workflow, inputs: &Inputs, progress: &Progress) -> Res
     }
     let tiles = tiling::layout(grid.rows, grid.cols, o.tiling.tile_size, halo);
     let blend = o.tiling.blend.unwrap_or(halo / 2).min(halo);
+    let intensity_scale = sum / count as f64;
+    let gains = if inputs.obs.len() > 1 {
+        progress.stage("planning: radiometric gains where observations overlap");
+        run_gains(o, inputs, &grid, &swaths, intensity_scale)?
+    } else {
+        vec![1.0]
+    };
+    // ν_k = (Ī/Ī_k)², Ī_k the observation's mean reflectance over its pixels on the grid,
+    // corrected by its gain (fusion::observations); 1 for a single observation.
+    let noise_weights = if inputs.obs.len() > 1 {
+        means
+            .iter()
+            .zip(&gains)
+            .map(|(m, g)| m.map_or(1.0, |m| (intensity_scale * g / m).powi(2)))
+            .collect()
+    } else {
+        vec![1.0]
+    };
     let p = Plan {
         version: env!("CARGO_PKG_VERSION").into(),
         key,
@@ -583,8 +703,10 @@ fn plan(o: &Orbital, wf: &Workflow, inputs: &Inputs, progress: &Progress) -> Res
         halo,
         blend,
         tiles,
-        intensity_scale: sum / count as f64,
+        intensity_scale,
         intensity_pixels: count,
+        gains,
+        noise_weights,
         dem_psf_sigma,
         resolution_source,
         dem_resolution_m,
@@ -708,16 +830,15 @@ fn run_tile(o: &Orbital, inputs: &Inputs, plan: &Plan, tile: &Tile) -> Result<Ti
     let pr = projector(&grid.crs)?;
     let geo = grid.geographic(&pr);
     let dim = (e.rows, e.cols);
-    // The image: the first observation that covers a pixel.
+    // Every observation that reaches the tile; the `image` layer shows the first one that
+    // covers a pixel.
     let mut image = Array2::from_elem(dim, f64::NAN);
-    let mut sun = Array2::from_elem(dim, [0.0, 0.0, 1.0]);
-    let mut view = Array2::from_elem(dim, [0.0, 0.0, 1.0]);
-    let mut source: Array2<Option<usize>> = Array2::from_elem(dim, None);
+    let mut shots = Vec::new();
     for (k, (obs, index)) in inputs.obs.iter().zip(&plan.swaths).enumerate() {
         if index.lines_for(&grid).is_none() {
             continue;
         }
-        let img = ingest::m3_on_grid(
+        let mut img = ingest::m3_on_grid(
             obs,
             &inputs.solar,
             o.inputs.wavelength_nm,
@@ -726,16 +847,25 @@ fn run_tile(o: &Orbital, inputs: &Inputs, plan: &Plan, tile: &Tile) -> Result<Ti
             &geo,
             Some(index),
         )?;
-        Zip::indexed(&mut image)
-            .and(&mut sun)
-            .and(&mut view)
-            .and(&mut source)
-            .for_each(|ij, i, s, v, src| {
-                let (ri, si, vi) = (img.reflectance[ij], img.sun[ij], img.view[ij]);
-                if i.is_nan() && ri.is_finite() && si[2].is_finite() && vi[2].is_finite() {
-                    (*i, *s, *v, *src) = (ri, si, vi, Some(k));
+        Zip::from(&mut img.reflectance)
+            .and(&img.sun)
+            .and(&img.view)
+            .for_each(|r, s, v| {
+                if !(s[2].is_finite() && v[2].is_finite()) {
+                    *r = f64::NAN;
                 }
             });
+        if !img.reflectance.iter().any(|r| r.is_finite()) {
+            continue;
+        }
+        Zip::from(&mut image)
+            .and(&img.reflectance)
+            .for_each(|i, &r| {
+                if i.is_nan() {
+                    *i = r;
+                }
+            });
+        shots.push((k, img));
     }
     // The DEM: the first product that covers a pixel.
     let mut dem = Array2::from_elem(dim, f64::NAN);
@@ -758,15 +888,29 @@ fn run_tile(o: &Orbital, inputs: &Inputs, plan: &Plan, tile: &Tile) -> Result<Ti
             e.c0 + c
         )));
     }
+    let ids: Vec<usize> = shots.iter().map(|(k, _)| *k).collect();
+    let per_obs = |v: &[f64]| {
+        ids.iter()
+            .map(|&k| v.get(k).copied().unwrap_or(1.0))
+            .collect()
+    };
     let problem = Problem {
-        image: image.view(),
+        observations: shots
+            .iter()
+            .map(|(_, img)| fusion::Observation {
+                image: img.reflectance.view(),
+                sun: Directions::PerPixel(img.sun.clone()),
+                view: Directions::PerPixel(img.view.clone()),
+            })
+            .collect(),
         dem: dem.view(),
         spacing: grid.spacing,
         dem_psf_sigma: plan.dem_psf_sigma,
-        sun: Directions::PerPixel(sun),
-        view: Directions::PerPixel(view),
         model: inputs.model.as_ref(),
         intensity_scale: Some(plan.intensity_scale),
+        gains: Some(per_obs(&plan.gains)),
+        noise_weights: Some(per_obs(&plan.noise_weights)),
+        selection: o.inputs.selection(),
     };
     let params = FusionParams {
         sigma_dem: plan.sigma_dem,
@@ -779,7 +923,12 @@ fn run_tile(o: &Orbital, inputs: &Inputs, plan: &Plan, tile: &Tile) -> Result<Ti
         tile.core.c0 - e.c0 + tile.core.cols,
     );
     let n_obs = inputs.obs.len();
-    let (status, layers, stages, photometric, sanity) = match fusion::fuse(&problem, &params) {
+    let fused = if problem.observations.is_empty() {
+        Err(fusion::FusionError::NoObservations)
+    } else {
+        fusion::fuse(&problem, &params)
+    };
+    let (status, layers, stages, photometric, sanity) = match fused {
         Ok(mut f) => {
             f.height = fusion::anchor(
                 &f.height,
@@ -787,7 +936,7 @@ fn run_tile(o: &Orbital, inputs: &Inputs, plan: &Plan, tile: &Tile) -> Result<Ti
                 f.support.view(),
                 plan.halo as f64 / 3.0,
             );
-            let sanity = TileSums::of_tile(&problem, &f, &f.height, &source, n_obs, core);
+            let sanity = TileSums::of_tile(&problem, &f, &f.height, &ids, n_obs, core);
             let n = f.photometric.iter().filter(|&&b| b).count();
             let mask = f.photometric.mapv(|b| if b { 0.0 } else { 1.0 });
             (
@@ -1609,16 +1758,15 @@ fn run_lab(l: &Lab, wf: &Workflow, progress: &Progress) -> Result<RunSummary> {
         progress.note("lab workflow with the Hapke model: intensities must be bidirectional reflectance (sr⁻¹)");
     }
     let d = |x: crate::workflow::Direction| crate::synth::direction(x.zenith_deg, x.azimuth_deg);
-    let problem = Problem {
-        image: image.view(),
-        dem: depth.view(),
-        spacing: l.inputs.pixel_size_m,
-        dem_psf_sigma: l.inputs.depth_psf_sigma_px,
-        sun: Directions::Uniform(d(l.illumination.light)),
-        view: Directions::Uniform(d(l.illumination.view)),
-        model: model.as_ref(),
-        intensity_scale: None,
-    };
+    let problem = Problem::single(
+        image.view(),
+        Directions::Uniform(d(l.illumination.light)),
+        Directions::Uniform(d(l.illumination.view)),
+        depth.view(),
+        l.inputs.pixel_size_m,
+        l.inputs.depth_psf_sigma_px,
+        model.as_ref(),
+    );
     progress.stage("fusing");
     let t0 = Instant::now();
     let params: &FusionParams = &l.solver;

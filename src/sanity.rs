@@ -17,6 +17,7 @@ use serde::{Deserialize, Serialize};
 #[derive(Debug, Clone, Default, PartialEq, Serialize, Deserialize)]
 pub struct Sums {
     pub pixels: usize,
+    /// Pixels that carried photometric information (per observation: its own).
     pub photometric: usize,
     /// (count, Σ(dem − input)², max |dem − input|) on the footprint, in the band, beyond.
     pub change: [(usize, f64, f64); 3],
@@ -26,21 +27,21 @@ pub struct Sums {
 }
 
 impl Sums {
-    /// One pixel: `class` 0 footprint, 1 band, 2 beyond; `dz` = dem − input; the observed and
-    /// both rendered values where the pixel is photometric.
-    fn pixel(&mut self, class: usize, dz: f64, photometric: Option<(f64, f64, f64)>) {
+    /// One pixel's change: `class` 0 footprint, 1 band, 2 beyond; `dz` = dem − input.
+    fn pixel(&mut self, class: usize, dz: f64) {
         self.pixels += 1;
         let c = &mut self.change[class];
         *c = (c.0 + 1, c.1 + dz * dz, c.2.max(dz.abs()));
-        if let Some((i, a, b)) = photometric {
-            self.photometric += 1;
-            for (acc, v) in
-                self.corr
-                    .iter_mut()
-                    .zip([1.0, i, i * i, a, a * a, i * a, b, b * b, i * b])
-            {
-                *acc += v;
-            }
+    }
+
+    /// One photometric pair: the observed value and both rendered values.
+    fn photo(&mut self, (i, a, b): (f64, f64, f64)) {
+        for (acc, v) in self
+            .corr
+            .iter_mut()
+            .zip([1.0, i, i * i, a, a * a, i * a, b, b * b, i * b])
+        {
+            *acc += v;
         }
     }
 
@@ -104,46 +105,68 @@ impl TileSums {
     }
 
     /// Sums over the window `core` = (r0, r1, c0, c1) of a tile solved on its whole extent:
-    /// `fused` the heights written, `source[(i, j)]` the observation that supplied the image
-    /// there (`None` where none did).
+    /// `fused` the heights written, `ids[k]` the run's index of the problem's observation k.
+    /// The run's sums count each pixel's change once and pool the (I_k/g_k, R_k) pairs of
+    /// every observation used there; an observation's sums cover its own footprint.
     pub fn of_tile(
         problem: &Problem,
         f: &Fusion,
         fused: &Array2<f64>,
-        source: &Array2<Option<usize>>,
+        ids: &[usize],
         observations: usize,
         core: (usize, usize, usize, usize),
     ) -> TileSums {
         let (r0, r1, c0, c1) = core;
         let win = |a: ArrayView2<'_, f64>| a.slice_move(s![r0..r1, c0..c1]).to_owned();
-        let rendered_in = win(fusion::render(problem, problem.dem, f.albedo.view()).view());
-        let rendered_out = win(fusion::render(problem, fused.view(), f.albedo.view()).view());
-        let (image, support, dem, z) = (
-            win(problem.image),
-            win(f.support.view()),
-            win(problem.dem),
-            win(fused.view()),
-        );
-        let photometric = f.photometric.slice(s![r0..r1, c0..c1]);
-        let source = source.slice(s![r0..r1, c0..c1]);
+        let (support, dem, z) = (win(f.support.view()), win(problem.dem), win(fused.view()));
         let mut out = TileSums {
             all: Sums::default(),
             observations: vec![Sums::default(); observations],
         };
-        for ((i, j), &obs) in source.indexed_iter() {
-            let v = image[(i, j)];
-            let class = if v.is_finite() {
+        let mut seen = Array2::from_elem(dem.dim(), false);
+        for o in &problem.observations {
+            let img = o.image.slice(s![r0..r1, c0..c1]);
+            ndarray::Zip::from(&mut seen)
+                .and(&img)
+                .for_each(|s, &v| *s |= v.is_finite());
+        }
+        for ((i, j), &d) in dem.indexed_iter() {
+            let class = if seen[(i, j)] {
                 0
             } else if support[(i, j)] > 0.0 {
                 1
             } else {
                 2
             };
-            let dz = z[(i, j)] - dem[(i, j)];
-            let ph = photometric[(i, j)].then(|| (v, rendered_in[(i, j)], rendered_out[(i, j)]));
-            out.all.pixel(class, dz, ph);
-            if let Some(k) = obs.filter(|&k| k < observations) {
-                out.observations[k].pixel(class, dz, ph);
+            out.all.pixel(class, z[(i, j)] - d);
+            out.all.photometric += f.photometric[(r0 + i, c0 + j)] as usize;
+        }
+        for (k, o) in problem.observations.iter().enumerate() {
+            let g = f.gains[k];
+            let rendered_in = win(fusion::render(problem, k, problem.dem, f.albedo.view()).view());
+            let rendered_out =
+                win(fusion::render(problem, k, fused.view(), f.albedo.view()).view());
+            let image = win(o.image);
+            let used = f.used_by[k].slice(s![r0..r1, c0..c1]);
+            let mut own = ids
+                .get(k)
+                .filter(|&&id| id < observations)
+                .map(|&id| &mut out.observations[id]);
+            for ((i, j), &v) in image.indexed_iter() {
+                if !v.is_finite() {
+                    continue;
+                }
+                let ph = used[(i, j)].then(|| (v / g, rendered_in[(i, j)], rendered_out[(i, j)]));
+                if let Some(own) = own.as_deref_mut() {
+                    own.pixel(0, z[(i, j)] - dem[(i, j)]);
+                    if let Some(ph) = ph {
+                        own.photometric += 1;
+                        own.photo(ph);
+                    }
+                }
+                if let Some(ph) = ph {
+                    out.all.photo(ph);
+                }
             }
         }
         out
@@ -309,9 +332,11 @@ mod tests {
     fn correlation_and_change_by_class() {
         let mut s = Sums::default();
         for (k, i) in [0.1, 0.2, 0.4, 0.3].into_iter().enumerate() {
-            s.pixel(k % 2, 3.0 * k as f64, Some((i, 2.0 * i + 1.0, 1.0 - i)));
+            s.pixel(k % 2, 3.0 * k as f64);
+            s.photometric += 1;
+            s.photo((i, 2.0 * i + 1.0, 1.0 - i));
         }
-        s.pixel(2, 0.0, None);
+        s.pixel(2, 0.0);
         assert!((s.correlation(0) - 1.0).abs() < 1e-12);
         assert!((s.correlation(1) + 1.0).abs() < 1e-12);
         // Class 0 got changes 0 and 6, class 1 got 3 and 9.
@@ -320,9 +345,13 @@ mod tests {
         assert_eq!(s.change[2], (1, 0.0, 0.0));
         // One observation with three footprint pixels, two of them photometric.
         let mut o = Sums::default();
-        o.pixel(0, 1.0, Some((0.1, 0.3, 0.1)));
-        o.pixel(0, -2.0, Some((0.2, 0.5, 0.3)));
-        o.pixel(0, 0.5, None);
+        o.pixel(0, 1.0);
+        o.photometric += 1;
+        o.photo((0.1, 0.3, 0.1));
+        o.pixel(0, -2.0);
+        o.photometric += 1;
+        o.photo((0.2, 0.5, 0.3));
+        o.pixel(0, 0.5);
         let mut t = TileSums {
             all: s.clone(),
             observations: vec![o],

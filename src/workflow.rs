@@ -72,7 +72,9 @@ fn default_model() -> ModelSpec {
 #[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
 #[serde(deny_unknown_fields)]
 pub struct OrbitalInputs {
-    /// M3 L1B labels (`*_L1B.LBL`). Where several cover a pixel, the first listed is used.
+    /// M3 L1B labels (`*_L1B.LBL`). Where several cover a pixel, all of them are fused, each
+    /// with its own geometry, shadows, weight and radiometric gain (docs/science.md, "Several
+    /// observations"); the first listed is the gains' reference.
     pub m3: Vec<PathBuf>,
     /// DEMs: LOLA GDR labels (`LDEM_*.LBL`), or GeoTIFFs (`.tif`) of heights in metres above
     /// the 1737.4 km sphere on the Moon sphere CRS (docs/workflows.md). Where several cover a
@@ -94,6 +96,29 @@ pub struct OrbitalInputs {
     /// ground-track gap at the region's latitude (docs/science.md).
     #[serde(default)]
     pub dem_resolution_m: Option<f64>,
+    /// At most this many observations per pixel, the best by weight × emission cosine
+    /// (absent or 0: all of them).
+    #[serde(default)]
+    pub max_observations_per_pixel: usize,
+    /// Pixels whose Sun is closer to the zenith than this are not used, degrees (default 0).
+    #[serde(default)]
+    pub min_incidence_deg: Option<f64>,
+    /// Pixels whose Sun is lower than this are not used, degrees (default 90: the horizon);
+    /// weights fade over the 10° before it.
+    #[serde(default)]
+    pub max_incidence_deg: Option<f64>,
+}
+
+impl OrbitalInputs {
+    /// The observation selection these options give.
+    pub fn selection(&self) -> crate::fusion::Selection {
+        let d = crate::fusion::Selection::default();
+        crate::fusion::Selection {
+            max_per_pixel: self.max_observations_per_pixel,
+            min_incidence_deg: self.min_incidence_deg.unwrap_or(d.min_incidence_deg),
+            max_incidence_deg: self.max_incidence_deg.unwrap_or(d.max_incidence_deg),
+        }
+    }
 }
 
 fn default_wavelength() -> f64 {
@@ -462,6 +487,16 @@ impl Workflow {
                             "[inputs] dem_resolution_m = {r} must be a positive number of metres"
                         )));
                     }
+                }
+                let sel = o.inputs.selection();
+                let ok = (0.0..90.0).contains(&sel.min_incidence_deg)
+                    && sel.max_incidence_deg > sel.min_incidence_deg
+                    && sel.max_incidence_deg <= 90.0;
+                if !ok {
+                    return Err(fail(format!(
+                        "[inputs] min_incidence_deg = {} and max_incidence_deg = {} must satisfy 0 ≤ min < max ≤ 90",
+                        sel.min_incidence_deg, sel.max_incidence_deg
+                    )));
                 }
                 o.sigma_dem_given = text
                     .parse::<toml::Table>()

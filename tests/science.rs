@@ -142,7 +142,7 @@ fn bad_problems_are_reported() {
     assert!(e.contains("(16, 16)") && e.contains("(8, 8)"), "{e}");
     let dark = ndarray::Array2::<f64>::zeros((16, 16));
     let mut pr = scene.problem();
-    pr.image = dark.view();
+    pr.observations[0].image = dark.view();
     let e = fuse(&pr, &FusionParams::default()).unwrap_err().to_string();
     assert!(e.contains("no pixel"), "{e}");
     let params = FusionParams {

@@ -9,8 +9,9 @@ use super::{ops, FusionParams, IterationRecord};
 use crate::spectral;
 use ndarray::{Array2, ArrayView2, Zip};
 
-/// (2JᵀJ + DᵀMD)·v for the photometric term, J v = a·D_x v + b·D_y v, M the per-pixel
-/// residual curvature of [`Objective::curvature`] acting on (D_x v, D_y v).
+/// Dᵀ(H + M)D·v for the photometric term: H = Σ_k 2w_k(a_k, b_k)ᵀ(a_k, b_k) the per-pixel
+/// Gauss–Newton Hessian in (p, q) ([`Photo::gn`]), M the residual curvature of
+/// [`Objective::curvature`], both acting on (D_x v, D_y v).
 fn data_normal(
     obj: &Objective,
     photo: &Photo,
@@ -23,14 +24,12 @@ fn data_normal(
     let mut w = Array2::zeros(v.dim());
     Zip::indexed(&mut u)
         .and(&mut w)
-        .and(&photo.a)
-        .and(&photo.b)
+        .and(&photo.gn)
         .and(curv)
-        .par_for_each(|ij, u, w, &a, &b, m| {
+        .par_for_each(|ij, u, w, h, m| {
             let (x, y) = (vx[ij], vy[ij]);
-            let jv = 2.0 * (a * x + b * y);
-            *u = jv * a + m[0] * x + m[1] * y;
-            *w = jv * b + m[1] * x + m[2] * y;
+            *u = (h[0] + m[0]) * x + (h[1] + m[1]) * y;
+            *w = (h[1] + m[1]) * x + (h[2] + m[2]) * y;
         });
     let mut out = ops::gradient_adjoint(u.view(), w.view(), eps);
     if let Some(k) = &obj.tie {
@@ -42,12 +41,7 @@ fn data_normal(
     out
 }
 
-/// Mean of x² over the grid.
-fn mean_sq(a: &Array2<f64>) -> f64 {
-    ops::dot(a.view(), a.view()) / a.len() as f64
-}
-
-/// Preconditioned CG for (2JᵀJ + DᵀMD + 2K + H_Q)Δ = −g in DCT coefficients (K the tie's
+/// Preconditioned CG for (Dᵀ(H + M)D + 2K + H_Q)Δ = −g in DCT coefficients (K the tie's
 /// per-pixel weight); returns (Δ, iterations). Without a tie no term sees the mean height, which
 /// stays the DEM's; with one, the mean is solved for too.
 fn newton_step(
@@ -61,10 +55,12 @@ fn newton_step(
     let (ny, nx) = g.dim();
     let e2 = obj.problem.spacing * obj.problem.spacing;
     let n = curv.len() as f64;
-    let (mx, my) = curv
+    let (ax, ay) = curv
         .iter()
-        .fold((0.0, 0.0), |(x, y), m| (x + m[0] / n, y + m[2] / n));
-    let (ax, ay) = (2.0 * mean_sq(&photo.a) + mx, 2.0 * mean_sq(&photo.b) + my);
+        .zip(&photo.gn)
+        .fold((0.0, 0.0), |(x, y), (m, h)| {
+            (x + (m[0] + h[0]) / n, y + (m[2] + h[2]) / n)
+        });
     let cx = spectral::central_symbol(nx);
     let cy = spectral::central_symbol(ny);
     let tie = obj.tie.as_ref().map(|k| 2.0 * ops::sum(k.view()) / n);

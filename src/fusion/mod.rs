@@ -8,13 +8,15 @@
 
 mod fast;
 pub mod objective;
+pub mod observations;
 pub mod ops;
 mod paper;
 pub mod support;
 
 pub use objective::Energy;
+pub use observations::{Selection, Weights};
 
-use crate::photometry::{Albedo, ReflectanceModel, Vec3};
+use crate::photometry::{ReflectanceModel, Vec3};
 use crate::spectral::{self, Dct2d};
 use ndarray::{Array2, ArrayView2, Zip};
 use objective::Objective;
@@ -39,10 +41,19 @@ impl Directions {
     }
 }
 
+/// One observation of the surface: an image on the grid with its Sun and view directions.
+pub struct Observation<'a> {
+    /// Observed reflectance I in the model's units (sr⁻¹ for Hapke); NaN = not seen.
+    pub image: ArrayView2<'a, f64>,
+    pub sun: Directions,
+    pub view: Directions,
+}
+
 /// One fusion problem on a locally metric grid (row 0 north, column 0 west).
 pub struct Problem<'a> {
-    /// Observed reflectance I in the model's units (sr⁻¹ for Hapke); NaN = no data.
-    pub image: ArrayView2<'a, f64>,
+    /// Every observation of the grid (at least one); E_I sums over them
+    /// ([`observations`]).
+    pub observations: Vec<Observation<'a>>,
     /// Input DEM resampled to the grid, metres; must be finite everywhere.
     pub dem: ArrayView2<'a, f64>,
     /// Grid spacing ε in metres (equal in x and y).
@@ -50,13 +61,44 @@ pub struct Problem<'a> {
     /// Standard deviation, in grid pixels, of the input DEM's own point-spread relative to the
     /// grid (0 = the seed's plain DEM term). See [`dem_psf_sigma`].
     pub dem_psf_sigma: f64,
-    pub sun: Directions,
-    pub view: Directions,
     pub model: &'a dyn ReflectanceModel,
     /// Ī, the intensity scale E_I is normalised by. `None`: the mean of the usable pixels of
-    /// this image. A tiled run passes the mean over the whole region, so every tile weighs
+    /// all images. A tiled run passes the mean over the whole region, so every tile weighs
     /// E_I against the DEM terms alike (no tile-to-tile offsets).
     pub intensity_scale: Option<f64>,
+    /// Radiometric gains g_k (I_k = g_k·R). `None`: estimated from where the observations
+    /// overlap on the input DEM ([`observations::estimate_gains`]); a tiled run passes the
+    /// run-wide values.
+    pub gains: Option<Vec<f64>>,
+    /// Noise weights ν_k. `None`: (Ī/Ī_k)² from the images ([`observations`]).
+    pub noise_weights: Option<Vec<f64>>,
+    /// Which observations each pixel uses.
+    pub selection: Selection,
+}
+
+impl<'a> Problem<'a> {
+    /// A problem with one image, everything else by default.
+    pub fn single(
+        image: ArrayView2<'a, f64>,
+        sun: Directions,
+        view: Directions,
+        dem: ArrayView2<'a, f64>,
+        spacing: f64,
+        dem_psf_sigma: f64,
+        model: &'a dyn ReflectanceModel,
+    ) -> Self {
+        Self {
+            observations: vec![Observation { image, sun, view }],
+            dem,
+            spacing,
+            dem_psf_sigma,
+            model,
+            intensity_scale: None,
+            gains: None,
+            noise_weights: None,
+            selection: Selection::default(),
+        }
+    }
 }
 
 /// Effective Gaussian point-spread, in grid pixels, of a DEM sampled `factor` times coarser than
@@ -135,6 +177,9 @@ pub struct FusionParams {
     pub cg_iterations: usize,
     /// Relative residual at which conjugate gradients stop.
     pub cg_tolerance: f64,
+    /// Width, in pixels, of the band inside an observation's edge over which its weight ramps
+    /// up where another observation carries on ([`observations::edge_weights`]).
+    pub edge_ramp_px: f64,
 }
 
 impl Default for FusionParams {
@@ -154,6 +199,7 @@ impl Default for FusionParams {
             curvature_residual: 0.05,
             cg_iterations: 60,
             cg_tolerance: 0.1,
+            edge_ramp_px: 16.0,
         }
     }
 }
@@ -197,6 +243,14 @@ pub enum FusionError {
         got: (usize, usize),
         want: (usize, usize),
     },
+    #[error("the problem has no observation: fusion needs at least one image")]
+    NoImage,
+    #[error("{what} has {got} values for {want} observations")]
+    PerObservation {
+        what: &'static str,
+        got: usize,
+        want: usize,
+    },
 }
 
 /// One iteration's record.
@@ -226,10 +280,19 @@ pub struct Fusion {
     pub height: Array2<f64>,
     /// Albedo (Hapke w for the Hapke model); NaN off the image's footprint.
     pub albedo: Array2<f64>,
-    /// |I − R| at the solution where the pixel carried photometric information, NaN elsewhere.
+    /// The residual |I/g − R| at the solution (with several observations, their w-weighted
+    /// RMS) where the pixel carried photometric information, NaN elsewhere.
     pub residual: Array2<f64>,
     /// True where the pixel carried photometric information at the solution.
     pub photometric: Array2<bool>,
+    /// How many observations carried photometric information at each pixel.
+    pub observations: Array2<u8>,
+    /// Per observation: where it carried photometric information.
+    pub used_by: Vec<Array2<bool>>,
+    /// The radiometric gains g_k used (given or estimated).
+    pub gains: Vec<f64>,
+    /// The noise weights ν_k used.
+    pub noise_weights: Vec<f64>,
     /// s ∈ [0, 1], the photometric support ([`support`]): the result is
     /// z_DEM + s·(z − z_DEM), so it is the input DEM wherever s = 0.
     pub support: Array2<f64>,
@@ -247,11 +310,33 @@ impl Fusion {
 
 fn validate(pr: &Problem, params: &FusionParams) -> Result<(), FusionError> {
     let dim = pr.dem.dim();
-    if pr.image.dim() != dim {
+    if pr.observations.is_empty() {
+        return Err(FusionError::NoImage);
+    }
+    if let Some(o) = pr.observations.iter().find(|o| o.image.dim() != dim) {
         return Err(FusionError::Shape {
-            image: pr.image.dim(),
+            image: o.image.dim(),
             dem: dim,
         });
+    }
+    let k = pr.observations.len();
+    for (what, v) in [("gains", &pr.gains), ("noise_weights", &pr.noise_weights)] {
+        if let Some(v) = v {
+            if v.len() != k {
+                return Err(FusionError::PerObservation {
+                    what,
+                    got: v.len(),
+                    want: k,
+                });
+            }
+            if let Some(&x) = v.iter().find(|x| !(x.is_finite() && **x > 0.0)) {
+                return Err(FusionError::Parameter {
+                    name: what,
+                    value: x,
+                    why: "must be positive",
+                });
+            }
+        }
     }
     if dim.0 < 3 || dim.1 < 3 {
         return Err(FusionError::TooSmall(dim));
@@ -262,7 +347,7 @@ fn validate(pr: &Problem, params: &FusionParams) -> Result<(), FusionError> {
     if let Some(((row, col), _)) = pr.dem.indexed_iter().find(|(_, h)| !h.is_finite()) {
         return Err(FusionError::DemNotFinite { row, col });
     }
-    for d in [&pr.sun, &pr.view] {
+    for d in pr.observations.iter().flat_map(|o| [&o.sun, &o.view]) {
         if let Directions::PerPixel(a) = d {
             if a.dim() != dim {
                 return Err(FusionError::DirectionShape {
@@ -272,7 +357,26 @@ fn validate(pr: &Problem, params: &FusionParams) -> Result<(), FusionError> {
             }
         }
     }
-    let checks: [(&'static str, f64, bool, &'static str); 9] = [
+    let sel = &pr.selection;
+    let checks: [(&'static str, f64, bool, &'static str); 12] = [
+        (
+            "edge_ramp_px",
+            params.edge_ramp_px,
+            params.edge_ramp_px >= 0.0,
+            "must be ≥ 0 pixels",
+        ),
+        (
+            "min_incidence_deg",
+            sel.min_incidence_deg,
+            (0.0..90.0).contains(&sel.min_incidence_deg),
+            "must be in [0, 90)",
+        ),
+        (
+            "max_incidence_deg",
+            sel.max_incidence_deg,
+            sel.max_incidence_deg > sel.min_incidence_deg && sel.max_incidence_deg <= 90.0,
+            "must be above min_incidence_deg and at most 90",
+        ),
         ("gamma", params.gamma, params.gamma > 0.0, "must be > 0"),
         ("delta", params.delta, params.delta >= 0.0, "must be ≥ 0"),
         ("eta", params.eta, params.eta >= 0.0, "must be ≥ 0"),
@@ -339,39 +443,11 @@ fn validate(pr: &Problem, params: &FusionParams) -> Result<(), FusionError> {
     Ok(())
 }
 
-/// Pixel-wise albedo inversion on surface `z`: the raw values and where they are defined.
-pub fn invert_albedo(
-    pr: &Problem,
-    z: ArrayView2<f64>,
-    usable: &Array2<bool>,
-) -> (Array2<f64>, Array2<bool>) {
-    let (p, q) = ops::gradient(z, pr.spacing);
-    let dim = z.dim();
-    let mut rho = Array2::zeros(dim);
-    let mut ok = Array2::from_elem(dim, false);
-    Zip::indexed(&mut rho)
-        .and(&mut ok)
-        .par_for_each(|(i, j), rho, ok| {
-            if !usable[(i, j)] {
-                return;
-            }
-            if let Albedo::Value(w) = pr.model.invert(
-                pr.image[(i, j)],
-                p[(i, j)],
-                q[(i, j)],
-                pr.sun.at(i, j),
-                pr.view.at(i, j),
-            ) {
-                *rho = w;
-                *ok = true;
-            }
-        });
-    (rho, ok)
-}
-
-/// The image the model renders from surface `z` with albedo `rho`: R(p, q, ρ; s, v) at every
-/// pixel (0 where the surface faces away from the Sun or the camera).
-pub fn render(pr: &Problem, z: ArrayView2<f64>, rho: ArrayView2<f64>) -> Array2<f64> {
+/// The image observation `k` of the problem renders from surface `z` with albedo `rho`:
+/// R(p, q, ρ; s_k, v_k) at every pixel (0 where the surface faces away from the Sun or the
+/// camera), in the units of I/g_k.
+pub fn render(pr: &Problem, k: usize, z: ArrayView2<f64>, rho: ArrayView2<f64>) -> Array2<f64> {
+    let o = &pr.observations[k];
     let (p, q) = ops::gradient(z, pr.spacing);
     let mut out = Array2::zeros(z.dim());
     Zip::indexed(&mut out).par_for_each(|(i, j), r| {
@@ -381,43 +457,40 @@ pub fn render(pr: &Problem, z: ArrayView2<f64>, rho: ArrayView2<f64>) -> Array2<
                 p[(i, j)],
                 q[(i, j)],
                 rho[(i, j)],
-                pr.sun.at(i, j),
-                pr.view.at(i, j),
+                o.sun.at(i, j),
+                o.view.at(i, j),
             )
             .r;
     });
     out
 }
 
-/// Masked Gaussian of the per-pixel albedo on surface `z`.
+/// Masked Gaussian of the per-pixel (joint) albedo on surface `z`.
 fn albedo_map(
     pr: &Problem,
+    w: &Weights,
     dct: &Dct2d,
     z: ArrayView2<f64>,
-    usable: &Array2<bool>,
     sigma: f64,
 ) -> Result<Array2<f64>, FusionError> {
-    let (raw, ok) = invert_albedo(pr, z, usable);
+    let (raw, ok, _) = observations::invert_albedo(pr, w, z);
     spectral::masked_gaussian(dct, &raw, &ok, sigma).ok_or(FusionError::NoObservations)
 }
 
-/// The final albedo: the per-pixel inversion on the final surface, smoothed by
+/// The final albedo: the per-pixel joint inversion on the final surface, smoothed by
 /// `final_albedo_sigma` where it is defined; pixels without an inversion (shadow, no data) take
 /// the wider last-stage estimate (σ_ρ of the last stage), which draws on more context.
 fn final_albedo(
     pr: &Problem,
+    w: &Weights,
     dct: &Dct2d,
     z: ArrayView2<f64>,
-    usable: &Array2<bool>,
     params: &FusionParams,
 ) -> Result<Array2<f64>, FusionError> {
-    let (raw, ok) = invert_albedo(pr, z, usable);
-    // Weight each inversion by its brightness²: dim pixels (near the terminator) amplify slope
-    // errors into albedo errors by ∂w/∂R ∝ 1/R.
-    let weights = Zip::from(&pr.image)
-        .and(&ok)
-        .map_collect(|&i, &k| if k { i * i } else { 0.0 });
-    let fine = spectral::weighted_gaussian(dct, &raw, &weights, params.final_albedo_sigma)
+    // Each inversion is weighted by Σ_k w_k (I_k/g_k)²: dim pixels (near the terminator)
+    // amplify slope errors into albedo errors by ∂w/∂R ∝ 1/R.
+    let (raw, ok, strength) = observations::invert_albedo(pr, w, z);
+    let fine = spectral::weighted_gaussian(dct, &raw, &strength, params.final_albedo_sigma)
         .ok_or(FusionError::NoObservations)?;
     let wide_sigma = params
         .albedo_sigmas
@@ -433,18 +506,36 @@ fn final_albedo(
         .map_collect(|&f, &w, &k| if k { f } else { w }))
 }
 
-/// Validate the problem and set up its energy: Ī and the usable-pixel mask.
+/// Mean of I_k/g_k over the valid (finite, positive) pixels of all observations, and their count.
+fn mean_intensity(pr: &Problem, gains: &[f64]) -> (f64, usize) {
+    let (mut s, mut n) = (0.0, 0usize);
+    for (o, &g) in pr.observations.iter().zip(gains) {
+        let (so, no) = o.image.fold((0.0, 0usize), |(s, n), &v| {
+            if v.is_finite() && v > 0.0 {
+                (s + v / g, n + 1)
+            } else {
+                (s, n)
+            }
+        });
+        s += so;
+        n += no;
+    }
+    (if n > 0 { s / n as f64 } else { 0.0 }, n)
+}
+
+/// Validate the problem and set up its energy: gains, Ī and the per-observation weights.
 fn objective<'a, 'p>(
     pr: &'a Problem<'p>,
     params: &FusionParams,
 ) -> Result<Objective<'a, 'p>, FusionError> {
     validate(pr, params)?;
-    let valid = pr.image.mapv(|v| v.is_finite() && v > 0.0);
-    let count = valid.iter().filter(|&&b| b).count();
+    let k = pr.observations.len();
+    let mut gains = pr.gains.clone().unwrap_or_else(|| vec![1.0; k]);
+    let (mean, count) = mean_intensity(pr, &gains);
     if count == 0 {
         return Err(FusionError::NoObservations);
     }
-    let scale = match pr.intensity_scale {
+    let mut scale = match pr.intensity_scale {
         Some(s) if s.is_finite() && s > 0.0 => s,
         Some(s) => {
             return Err(FusionError::Parameter {
@@ -453,16 +544,26 @@ fn objective<'a, 'p>(
                 why: "must be a positive mean reflectance",
             })
         }
-        None => {
-            Zip::from(&pr.image)
-                .and(&valid)
-                .fold(0.0, |s, &v, &ok| if ok { s + v } else { s })
-                / count as f64
-        }
+        None => mean,
     };
-    let usable = Zip::from(&pr.image)
-        .and(&valid)
-        .map_collect(|&v, &ok| ok && v / scale >= params.shadow_threshold);
+    let weights = |gains: Vec<f64>, scale: f64| {
+        observations::weights(
+            pr,
+            gains,
+            scale,
+            pr.noise_weights.clone(),
+            params.shadow_threshold,
+            params.edge_ramp_px,
+        )
+    };
+    if pr.gains.is_none() && k > 1 {
+        let first = weights(gains, scale);
+        gains = observations::estimate_gains(pr, &first.usable, pr.dem);
+        if pr.intensity_scale.is_none() {
+            scale = mean_intensity(pr, &gains).0;
+        }
+    }
+    let w = weights(gains, scale);
     Ok(Objective::new(
         pr,
         params.delta,
@@ -470,18 +571,19 @@ fn objective<'a, 'p>(
         params.sigma_dem,
         pr.dem_psf_sigma,
         scale,
-        usable,
+        w,
     ))
 }
 
 /// Run the whole fusion: albedo stages, each followed by a surface solve.
 pub fn fuse(pr: &Problem, params: &FusionParams) -> Result<Fusion, FusionError> {
     let obj = objective(pr, params)?;
+    let w = &obj.weights;
     let mut z = pr.dem.to_owned();
     let mut stages = Vec::new();
     for &sigma in &params.albedo_sigmas {
         let t0 = Instant::now();
-        let rho = albedo_map(pr, &obj.dct, z.view(), &obj.observed, sigma)?;
+        let rho = albedo_map(pr, w, &obj.dct, z.view(), sigma)?;
         let iterations = minimise(&obj, &mut z, rho.view(), params, &mut |_| {});
         stages.push(StageReport {
             sigma_rho: sigma,
@@ -494,22 +596,60 @@ pub fn fuse(pr: &Problem, params: &FusionParams) -> Result<Fusion, FusionError> 
         .and(&obj.support)
         .and(pr.dem)
         .par_for_each(|z, &s, &d| *z = d + s * (*z - d));
-    let mut albedo = final_albedo(pr, &obj.dct, z.view(), &obj.observed, params)?;
+    let mut albedo = final_albedo(pr, w, &obj.dct, z.view(), params)?;
     let photo = obj.photo(z.view(), albedo.view());
-    // Off the image's footprint the albedo would only be the smoothing's fill: no data.
-    Zip::from(&mut albedo).and(pr.image).for_each(|a, &i| {
-        if !i.is_finite() {
+    // Off every image's footprint the albedo would only be the smoothing's fill: no data.
+    let mut seen = Array2::from_elem(z.dim(), false);
+    for o in &pr.observations {
+        Zip::from(&mut seen)
+            .and(&o.image)
+            .for_each(|s, &v| *s |= v.is_finite());
+    }
+    Zip::from(&mut albedo).and(&seen).for_each(|a, &s| {
+        if !s {
             *a = f64::NAN;
         }
     });
-    let residual = Zip::from(&photo.res)
+    // The weighted RMS of the residuals over the observations used at a pixel.
+    let mut sq = Array2::<f64>::zeros(z.dim());
+    let mut sw = Array2::<f64>::zeros(z.dim());
+    let mut count = Array2::<u8>::zeros(z.dim());
+    for (ph, wk) in photo.obs.iter().zip(&w.weight) {
+        Zip::from(&mut sq)
+            .and(&mut sw)
+            .and(&mut count)
+            .and(&ph.res)
+            .and(&ph.used)
+            .and(wk)
+            .for_each(|sq, sw, n, &r, &u, &w| {
+                if u {
+                    *sq += w * r * r;
+                    *sw += w;
+                    *n = n.saturating_add(1);
+                }
+            });
+    }
+    let residual = Zip::from(&sq)
+        .and(&sw)
         .and(&photo.used)
-        .map_collect(|&r, &u| if u { (r * obj.scale).abs() } else { f64::NAN });
+        .map_collect(|&q, &w, &u| {
+            if u && w > 0.0 {
+                (q / w).sqrt() * obj.scale
+            } else {
+                f64::NAN
+            }
+        });
+    let photometric = photo.used;
+    let used_by = photo.obs.into_iter().map(|ph| ph.used).collect();
     Ok(Fusion {
         height: z,
         albedo,
         residual,
-        photometric: photo.used,
+        photometric,
+        observations: count,
+        used_by,
+        gains: w.gains.clone(),
+        noise_weights: w.noise.clone(),
         support: obj.support,
         stages,
     })
@@ -555,7 +695,7 @@ pub fn initial_albedo(pr: &Problem, params: &FusionParams) -> Result<Array2<f64>
         .first()
         .copied()
         .unwrap_or(params.final_albedo_sigma);
-    albedo_map(pr, &obj.dct, pr.dem, &obj.observed, sigma)
+    albedo_map(pr, &obj.weights, &obj.dct, pr.dem, sigma)
 }
 
 /// Solve one surface problem at fixed albedo from `z`, calling `observe` after each iteration

@@ -1,9 +1,11 @@
 //! The fusion energy as a function of the surface z (slopes dimensionless, z in metres):
 //!
 //! E(z) = E_I + δ·E_DEM + η·E_reg, with
-//! * E_I   = Σ_obs (I/Ī − R(p, q, ρ)/Ī)², (p, q) = central-difference gradient of z, summed over
-//!   the pixels observed lit: valid, not image-shadowed (I/Ī ≥ threshold) and seen by the
-//!   camera (μ > 0). R is continued through μ0 = 0
+//! * E_I   = Σ_k Σ_x w_k(x)·(I_k/g_k − R(p, q, ρ; s_k, v_k))²/Ī² over the observations k,
+//!   (p, q) the central-difference gradient of z, summed over the pixels each observation saw
+//!   lit: valid, not image-shadowed (I/Ī ≥ threshold), seen by the camera (μ > 0), and within
+//!   the selection; w_k and the gains g_k are those of [`super::observations`]. R is continued
+//!   through μ0 = 0
 //!   ([`ReflectanceModel::shade_observed`](crate::photometry::ReflectanceModel::shade_observed)),
 //!   so a surface turned away from the Sun at an observed-lit pixel is penalised, not dropped;
 //! * E_DEM = Σ ‖f_σ(∇ B z) − f_σ(∇ z_DEM)‖², f_σ the Gaussian low-pass of width σ_DEM, B the
@@ -31,6 +33,7 @@
 //! evaluates R at z_x, z_y, which makes γ a step size (docs/science.md): both solvers minimise the
 //! E(z) above, where E_int = 0.
 
+use super::observations::Weights;
 use super::ops;
 use super::support;
 use super::Problem;
@@ -57,12 +60,27 @@ pub struct Energy {
     pub total: f64,
 }
 
-/// Photometric quantities at the current surface: residual r = (I − R)/Ī and a = ∂R/∂p/Ī,
-/// b = ∂R/∂q/Ī, all zero where the pixel is not used.
-pub struct Photo {
+/// Photometric quantities of one observation at the current surface: residual
+/// r = (I/g − R)/Ī and a = ∂R/∂p/Ī, b = ∂R/∂q/Ī, all zero where the pixel is not used.
+pub struct ObsPhoto {
     pub res: Array2<f64>,
     pub a: Array2<f64>,
     pub b: Array2<f64>,
+    pub used: Array2<bool>,
+}
+
+/// Photometric quantities of all observations at the current surface, and their weighted sums
+/// (w_k the per-pixel weights of [`Weights`]).
+pub struct Photo {
+    pub obs: Vec<ObsPhoto>,
+    /// Σ_k w_k r_k a_k and Σ_k w_k r_k b_k: ∂E_I/∂z = −2 Dᵀ(fx, fy).
+    pub fx: Array2<f64>,
+    pub fy: Array2<f64>,
+    /// Σ_k 2 w_k (a_k², a_k b_k, b_k²): the Gauss–Newton Hessian of E_I in (p, q) per pixel.
+    pub gn: Array2<[f64; 3]>,
+    /// E_I = Σ_k Σ w_k r_k².
+    pub intensity: f64,
+    /// True where at least one observation is used.
     pub used: Array2<bool>,
 }
 
@@ -91,8 +109,8 @@ pub struct Objective<'a, 'p> {
     pub eta: f64,
     /// Ī: intensities are divided by it.
     pub scale: f64,
-    /// Pixels whose observation is usable: valid and not image-shadowed.
-    pub observed: Array2<bool>,
+    /// Each observation's usable pixels, weights w_k(x) and gain g_k.
+    pub weights: Weights,
     /// s: photometric support, 1 on and near the image's footprint (finite I, shadow
     /// included), 0 beyond the band.
     pub support: Array2<f64>,
@@ -108,7 +126,7 @@ impl<'a, 'p> Objective<'a, 'p> {
         sigma_dem: f64,
         psf: f64,
         scale: f64,
-        observed: Array2<bool>,
+        weights: Weights,
     ) -> Self {
         let (ny, nx) = problem.dem.dim();
         let dct = Dct2d::new(ny, nx);
@@ -125,7 +143,12 @@ impl<'a, 'p> Objective<'a, 'p> {
         let (r0, r1) = support::band(sigma_dem);
         // The footprint is where the image has a value at all: cast shadow is part of it (the
         // image does see the surface there; E_I just has no gradient to give).
-        let covered = problem.image.mapv(f64::is_finite);
+        let mut covered = Array2::from_elem((ny, nx), false);
+        for o in &problem.observations {
+            Zip::from(&mut covered)
+                .and(&o.image)
+                .for_each(|c, &v| *c |= v.is_finite());
+        }
         let support = support::support(&covered, r0, r1);
         let (dem_target, tie) = if covered.iter().all(|&c| c) {
             (&gd * &dem_hat, None)
@@ -163,7 +186,7 @@ impl<'a, 'p> Objective<'a, 'p> {
             delta,
             eta,
             scale,
-            observed,
+            weights,
             support,
             tie,
         }
@@ -179,49 +202,99 @@ impl<'a, 'p> Objective<'a, 'p> {
         ops::sum(t.view())
     }
 
-    /// Photometric residuals and derivatives at surface `z` with albedo `rho`.
+    /// Photometric residuals and derivatives of every observation at surface `z` with albedo
+    /// `rho`, and their weighted sums.
     pub fn photo(&self, z: ArrayView2<f64>, rho: ArrayView2<f64>) -> Photo {
         let pr = self.problem;
         let model: &dyn ReflectanceModel = pr.model;
         let (p, q) = ops::gradient(z, pr.spacing);
         let dim = z.dim();
-        let mut res = Array2::zeros(dim);
-        let mut a = Array2::zeros(dim);
-        let mut b = Array2::zeros(dim);
-        let mut used = Array2::from_elem(dim, false);
         let s = self.scale;
-        Zip::indexed(&mut res)
-            .and(&mut a)
-            .and(&mut b)
-            .and(&mut used)
-            .par_for_each(|(i, j), res, a, b, used| {
-                if !self.observed[(i, j)] {
-                    return;
-                }
-                let sh = model.shade_observed(
-                    p[(i, j)],
-                    q[(i, j)],
-                    rho[(i, j)],
-                    pr.sun.at(i, j),
-                    pr.view.at(i, j),
-                );
-                if sh.lit {
-                    *res = (pr.image[(i, j)] - sh.r) / s;
-                    *a = sh.dr_dp / s;
-                    *b = sh.dr_dq / s;
-                    *used = true;
-                }
-            });
-        Photo { res, a, b, used }
+        let obs: Vec<ObsPhoto> = pr
+            .observations
+            .iter()
+            .enumerate()
+            .map(|(k, o)| {
+                let usable = &self.weights.usable[k];
+                let g = self.weights.gains[k];
+                let mut res = Array2::zeros(dim);
+                let mut a = Array2::zeros(dim);
+                let mut b = Array2::zeros(dim);
+                let mut used = Array2::from_elem(dim, false);
+                Zip::indexed(&mut res)
+                    .and(&mut a)
+                    .and(&mut b)
+                    .and(&mut used)
+                    .par_for_each(|(i, j), res, a, b, used| {
+                        if !usable[(i, j)] {
+                            return;
+                        }
+                        let sh = model.shade_observed(
+                            p[(i, j)],
+                            q[(i, j)],
+                            rho[(i, j)],
+                            o.sun.at(i, j),
+                            o.view.at(i, j),
+                        );
+                        if sh.lit {
+                            *res = (o.image[(i, j)] / g - sh.r) / s;
+                            *a = sh.dr_dp / s;
+                            *b = sh.dr_dq / s;
+                            *used = true;
+                        }
+                    });
+                ObsPhoto { res, a, b, used }
+            })
+            .collect();
+        let mut fx = Array2::zeros(dim);
+        let mut fy = Array2::zeros(dim);
+        let mut gn = Array2::from_elem(dim, [0.0; 3]);
+        let mut used = Array2::from_elem(dim, false);
+        let mut intensity = 0.0;
+        for (ph, w) in obs.iter().zip(&self.weights.weight) {
+            Zip::from(&mut fx)
+                .and(&mut fy)
+                .and(&ph.res)
+                .and(&ph.a)
+                .and(&ph.b)
+                .and(w)
+                .par_for_each(|fx, fy, &r, &a, &b, &w| {
+                    *fx += w * r * a;
+                    *fy += w * r * b;
+                });
+            Zip::from(&mut gn)
+                .and(&ph.a)
+                .and(&ph.b)
+                .and(w)
+                .par_for_each(|gn, &a, &b, &w| {
+                    gn[0] += 2.0 * w * a * a;
+                    gn[1] += 2.0 * w * a * b;
+                    gn[2] += 2.0 * w * b * b;
+                });
+            let wr = Zip::from(&ph.res).and(w).map_collect(|&r, &w| w * r);
+            intensity += ops::dot(wr.view(), ph.res.view());
+        }
+        for ph in &obs {
+            Zip::from(&mut used).and(&ph.used).for_each(|u, &p| *u |= p);
+        }
+        Photo {
+            obs,
+            fx,
+            fy,
+            gn,
+            intensity,
+            used,
+        }
     }
 
-    /// The residual part of E_I's Hessian in (p, q) per pixel, −2r·∇²R/Ī, projected onto the
-    /// positive semi-definite matrices, as (xx, xy, yy); zero where the pixel is not used or
-    /// where |r| ≤ `min_residual`. Gauss–Newton drops this term, which is right where
-    /// residuals are small but converges only linearly (halving the error each step) where
-    /// the image is brighter than any slope can make R — there R sits at its maximum over the
-    /// slopes, ∂R/∂(p, q) = 0, and only this term sees the curvature. ∇²R is the central
-    /// difference of the analytic gradient over ±1e-5 in p and q.
+    /// The residual part of E_I's Hessian in (p, q) per pixel, Σ_k w_k·(−2r_k·∇²R_k/Ī) with
+    /// each observation's term projected onto the positive semi-definite matrices, as
+    /// (xx, xy, yy); an observation adds nothing where it is not used or where
+    /// |r_k| ≤ `min_residual`. Gauss–Newton drops this term, which is right where residuals are
+    /// small but converges only linearly (halving the error each step) where the image is
+    /// brighter than any slope can make R — there R sits at its maximum over the slopes,
+    /// ∂R/∂(p, q) = 0, and only this term sees the curvature. ∇²R is the central difference of
+    /// the analytic gradient over ±1e-5 in p and q.
     pub fn curvature(
         &self,
         z: ArrayView2<f64>,
@@ -234,22 +307,30 @@ impl<'a, 'p> Objective<'a, 'p> {
         let (p, q) = ops::gradient(z, pr.spacing);
         let mut out = Array2::from_elem(z.dim(), [0.0; 3]);
         let s = self.scale;
-        Zip::indexed(&mut out).par_for_each(|(i, j), m| {
-            let r = photo.res[(i, j)];
-            if !photo.used[(i, j)] || r.abs() <= min_residual {
-                return;
-            }
-            let h = 1e-5;
-            let (pp, qq, w) = (p[(i, j)], q[(i, j)], rho[(i, j)]);
-            let (sun, view) = (pr.sun.at(i, j), pr.view.at(i, j));
-            let at = |dp: f64, dq: f64| model.shade_observed(pp + dp, qq + dq, w, sun, view);
-            let (xp, xm, yp, ym) = (at(h, 0.0), at(-h, 0.0), at(0.0, h), at(0.0, -h));
-            let rxx = (xp.dr_dp - xm.dr_dp) / (2.0 * h);
-            let ryy = (yp.dr_dq - ym.dr_dq) / (2.0 * h);
-            let rxy = 0.25 * (xp.dr_dq - xm.dr_dq + yp.dr_dp - ym.dr_dp) / h;
-            let k = -2.0 * r / s;
-            *m = psd_part([k * rxx, k * rxy, k * ryy]);
-        });
+        for (k, o) in pr.observations.iter().enumerate() {
+            let ph = &photo.obs[k];
+            let wk = &self.weights.weight[k];
+            Zip::indexed(&mut out).par_for_each(|(i, j), m| {
+                let r = ph.res[(i, j)];
+                if !ph.used[(i, j)] || r.abs() <= min_residual {
+                    return;
+                }
+                let h = 1e-5;
+                let (pp, qq, w) = (p[(i, j)], q[(i, j)], rho[(i, j)]);
+                let (sun, view) = (o.sun.at(i, j), o.view.at(i, j));
+                let at = |dp: f64, dq: f64| model.shade_observed(pp + dp, qq + dq, w, sun, view);
+                let (xp, xm, yp, ym) = (at(h, 0.0), at(-h, 0.0), at(0.0, h), at(0.0, -h));
+                let rxx = (xp.dr_dp - xm.dr_dp) / (2.0 * h);
+                let ryy = (yp.dr_dq - ym.dr_dq) / (2.0 * h);
+                let rxy = 0.25 * (xp.dr_dq - xm.dr_dq + yp.dr_dp - ym.dr_dp) / h;
+                let c = -2.0 * r / s;
+                let t = psd_part([c * rxx, c * rxy, c * ryy]);
+                let w = wk[(i, j)];
+                m[0] += w * t[0];
+                m[1] += w * t[1];
+                m[2] += w * t[2];
+            });
+        }
         out
     }
 
@@ -286,7 +367,7 @@ impl<'a, 'p> Objective<'a, 'p> {
 
     /// Energy at `z` given ẑ and the photometric state.
     pub fn energy_with(&self, z: ArrayView2<f64>, zh: &Array2<f64>, photo: &Photo) -> Energy {
-        let intensity = ops::dot(photo.res.view(), photo.res.view());
+        let intensity = photo.intensity;
         let (dem, membrane) = self.quadratic(zh);
         let tie = self.tie_energy(z);
         Energy {
@@ -301,9 +382,8 @@ impl<'a, 'p> Objective<'a, 'p> {
 
     /// ∂E/∂z (spatial) at `z`, given ẑ and the photometric state.
     pub fn gradient(&self, z: ArrayView2<f64>, zh: &Array2<f64>, photo: &Photo) -> Array2<f64> {
-        let ra = &photo.res * &photo.a;
-        let rb = &photo.res * &photo.b;
-        let data = ops::gradient_adjoint(ra.view(), rb.view(), self.problem.spacing) * -2.0;
+        let data =
+            ops::gradient_adjoint(photo.fx.view(), photo.fy.view(), self.problem.spacing) * -2.0;
         let mut quad_hat = Zip::from(&self.lam)
             .and(&self.gs)
             .and(zh)
@@ -363,6 +443,12 @@ mod tests {
     use crate::fusion::Directions;
     use crate::photometry::Hapke;
 
+    /// Every finite pixel usable, unit gains, no edge ramps.
+    fn weights_of(pr: &Problem, scale: f64) -> Weights {
+        let k = pr.observations.len();
+        crate::fusion::observations::weights(pr, vec![1.0; k], scale, None, 0.0, 0.0)
+    }
+
     /// ∂E/∂z at `points` of `z` (albedo 0.4) against central differences of E.
     fn assert_gradient_matches(obj: &Objective, z: &Array2<f64>, points: &[(usize, usize)]) {
         let rho = Array2::from_elem(z.dim(), 0.4);
@@ -400,25 +486,16 @@ mod tests {
         let image =
             Array2::from_shape_fn((ny, nx), |(i, j)| 0.03 + 0.002 * ((i * 3 + j) % 5) as f64);
         let model = Hapke::moon();
-        let pr = Problem {
-            image: image.view(),
-            dem: dem.view(),
-            spacing: 100.0,
-            dem_psf_sigma: 1.5,
-            sun: Directions::Uniform(crate::synth::direction(50.0, 100.0)),
-            view: Directions::Uniform(crate::synth::direction(5.0, 200.0)),
-            model: &model,
-            intensity_scale: None,
-        };
-        let obj = Objective::new(
-            &pr,
-            3.0,
-            0.2,
-            1.2,
+        let pr = Problem::single(
+            image.view(),
+            Directions::Uniform(crate::synth::direction(50.0, 100.0)),
+            Directions::Uniform(crate::synth::direction(5.0, 200.0)),
+            dem.view(),
+            100.0,
             1.5,
-            0.03,
-            Array2::from_elem((ny, nx), true),
+            &model,
         );
+        let obj = Objective::new(&pr, 3.0, 0.2, 1.2, 1.5, 0.03, weights_of(&pr, 0.03));
         assert_gradient_matches(&obj, &z, &[(0, 0), (3, 4), (11, 9), (6, 0), (0, 7)]);
     }
 
@@ -441,21 +518,68 @@ mod tests {
             }
         });
         let model = Hapke::moon();
-        let pr = Problem {
-            image: image.view(),
-            dem: dem.view(),
-            spacing: 100.0,
-            dem_psf_sigma: 1.5,
-            sun: Directions::Uniform(crate::synth::direction(50.0, 100.0)),
-            view: Directions::Uniform(crate::synth::direction(5.0, 200.0)),
-            model: &model,
-            intensity_scale: None,
-        };
-        let observed = image.mapv(f64::is_finite);
-        let obj = Objective::new(&pr, 3.0, 0.2, 1.2, 1.5, 0.03, observed);
+        let pr = Problem::single(
+            image.view(),
+            Directions::Uniform(crate::synth::direction(50.0, 100.0)),
+            Directions::Uniform(crate::synth::direction(5.0, 200.0)),
+            dem.view(),
+            100.0,
+            1.5,
+            &model,
+        );
+        let obj = Objective::new(&pr, 3.0, 0.2, 1.2, 1.5, 0.03, weights_of(&pr, 0.03));
         assert!(obj.tie.is_some());
         assert!(obj.tie_energy(z.view()) > 0.0);
         assert_gradient_matches(&obj, &z, &[(3, 4), (6, 19), (5, 21), (11, 25), (0, 29)]);
+    }
+
+    /// Two overlapping observations under different Suns, with gains, noise weights and edge
+    /// ramps: the summed photometric term's gradient matches E too.
+    #[test]
+    fn gradient_matches_finite_differences_with_two_observations() {
+        let (ny, nx) = (12, 30);
+        let z = Array2::from_shape_fn((ny, nx), |(i, j)| {
+            30.0 * (0.4 * i as f64).sin() + 20.0 * (0.3 * j as f64).cos()
+        });
+        let dem = Array2::from_shape_fn((ny, nx), |(i, j)| {
+            25.0 * (0.35 * i as f64).sin() + 0.5 * j as f64
+        });
+        let strip = |lo: usize, hi: usize, g: f64| {
+            Array2::from_shape_fn((ny, nx), |(i, j)| {
+                if j < lo || j >= hi {
+                    f64::NAN
+                } else {
+                    g * (0.03 + 0.002 * ((i * 3 + j) % 5) as f64)
+                }
+            })
+        };
+        let (a, b) = (strip(0, 20, 1.0), strip(8, 30, 1.1));
+        let model = Hapke::moon();
+        let mut pr = Problem::single(
+            a.view(),
+            Directions::Uniform(crate::synth::direction(50.0, 100.0)),
+            Directions::Uniform(crate::synth::direction(5.0, 200.0)),
+            dem.view(),
+            100.0,
+            1.5,
+            &model,
+        );
+        pr.observations.push(crate::fusion::Observation {
+            image: b.view(),
+            sun: Directions::Uniform(crate::synth::direction(65.0, 230.0)),
+            view: Directions::Uniform(crate::synth::direction(2.0, 90.0)),
+        });
+        let w = crate::fusion::observations::weights(
+            &pr,
+            vec![1.0, 1.1],
+            0.03,
+            Some(vec![1.0, 0.7]),
+            0.0,
+            4.0,
+        );
+        assert!(w.weight[1][(3, 9)] > 0.0 && w.weight[1][(3, 9)] < 0.7);
+        let obj = Objective::new(&pr, 3.0, 0.2, 1.2, 1.5, 0.03, w);
+        assert_gradient_matches(&obj, &z, &[(3, 4), (6, 9), (5, 15), (11, 25), (0, 29)]);
     }
 
     #[test]
@@ -482,31 +606,23 @@ mod tests {
         let z = Array2::from_shape_fn((ny, nx), |(i, j)| p0 * eps * j as f64 - q0 * eps * i as f64);
         let image = Array2::from_elem((ny, nx), 0.9);
         let model = Lambert;
-        let pr = Problem {
-            image: image.view(),
-            dem: z.view(),
-            spacing: eps,
-            dem_psf_sigma: 0.0,
-            sun: Directions::Uniform(sun),
-            view: Directions::Uniform([0.0, 0.0, 1.0]),
-            model: &model,
-            intensity_scale: None,
-        };
-        let s = 0.7;
-        let obj = Objective::new(
-            &pr,
-            1.0,
-            0.1,
-            1.0,
+        let pr = Problem::single(
+            image.view(),
+            Directions::Uniform(sun),
+            Directions::Uniform([0.0, 0.0, 1.0]),
+            z.view(),
+            eps,
             0.0,
-            s,
-            Array2::from_elem((ny, nx), true),
+            &model,
         );
+        let s = 0.7;
+        let obj = Objective::new(&pr, 1.0, 0.1, 1.0, 0.0, s, weights_of(&pr, s));
         let rho = Array2::from_elem((ny, nx), 0.6);
         let photo = obj.photo(z.view(), rho.view());
         let m = obj.curvature(z.view(), rho.view(), &photo, 0.0)[(2, 2)];
-        let (a, b) = (photo.a[(2, 2)], photo.b[(2, 2)]);
-        assert!(photo.res[(2, 2)] > 0.1, "the pixel must be brighter than R");
+        let ph = &photo.obs[0];
+        let (a, b) = (ph.a[(2, 2)], ph.b[(2, 2)]);
+        assert!(ph.res[(2, 2)] > 0.1, "the pixel must be brighter than R");
         let e = |p: f64, q: f64| {
             let r = (0.9 - model.shade_observed(p, q, 0.6, &sun, &[0.0, 0.0, 1.0]).r) / s;
             r * r

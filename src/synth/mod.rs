@@ -49,6 +49,33 @@ pub struct SceneSpec {
     pub crater_min_px: f64,
     /// Craters per megapixel.
     pub crater_density: f64,
+    /// Columns `[first, end)` the first observation covers (`None`: all); NaN elsewhere.
+    pub columns: Option<[usize; 2]>,
+    /// Further observations of the same surface, each with its own Sun, gain, coverage and
+    /// independent noise (same view and noise level).
+    pub more: Vec<ShotSpec>,
+}
+
+/// One further observation of a scene.
+#[derive(Debug, Clone, PartialEq, Serialize)]
+pub struct ShotSpec {
+    pub sun_incidence_deg: f64,
+    pub sun_azimuth_deg: f64,
+    /// Radiometric gain: the image is g × the rendered reflectance (detector and calibration
+    /// differences between observations).
+    pub gain: f64,
+    /// Columns `[first, end)` it covers (`None`: all).
+    pub columns: Option<[usize; 2]>,
+}
+
+/// One further observation of a scene, rendered.
+#[derive(Debug, Clone)]
+pub struct Shot {
+    pub spec: ShotSpec,
+    /// g × reflectance (sr⁻¹) with noise; NaN outside its columns.
+    pub image: Array2<f64>,
+    pub shadow: Array2<bool>,
+    pub sun: Vec3,
 }
 
 impl Default for SceneSpec {
@@ -69,7 +96,79 @@ impl Default for SceneSpec {
             dem_stripe_m: 4.0,
             crater_min_px: 4.0,
             crater_density: 1500.0,
+            columns: None,
+            more: Vec::new(),
         }
+    }
+}
+
+/// Sun directions (azimuth clockwise from north, elevation above the horizon; degrees) of
+/// the demo's observations, in order: the first is the single-image demo's, the second ≥ 90°
+/// away in azimuth, the third ≥ 90° from both.
+pub const DEMO_SUNS: [(f64, f64); 6] = [
+    (105.0, 30.0),
+    (225.0, 35.0),
+    (345.0, 25.0),
+    (45.0, 28.0),
+    (165.0, 32.0),
+    (285.0, 27.0),
+];
+
+/// Parse a Sun direction `AZ/EL` (degrees: azimuth clockwise from north, elevation above the
+/// horizon), as `sfsfuse synth --sun` takes it.
+pub fn parse_sun(text: &str) -> Result<(f64, f64), String> {
+    let bad = || format!("--sun {text}: expected AZIMUTH/ELEVATION in degrees, e.g. 110/55");
+    let (a, e) = text.split_once('/').ok_or_else(bad)?;
+    let (a, e): (f64, f64) = (
+        a.trim().parse().map_err(|_| bad())?,
+        e.trim().parse().map_err(|_| bad())?,
+    );
+    if !(a.is_finite() && (0.0..=360.0).contains(&a)) {
+        return Err(format!("--sun {text}: azimuth {a} must be in [0, 360]"));
+    }
+    if !(e > 0.0 && e <= 90.0) {
+        return Err(format!(
+            "--sun {text}: elevation {e} must be above the horizon (0 < elevation ≤ 90)"
+        ));
+    }
+    Ok((a, e))
+}
+
+impl SceneSpec {
+    /// This scene seen under several Suns (azimuth, elevation; the first replaces the spec's
+    /// own), with gains (missing ones are 1). With `strips`, observation k covers only the
+    /// k-th of a row of equal column strips that overlap their neighbours by half a strip
+    /// (two strips: [0, ⅔n) and [⅓n, n)).
+    pub fn with_observations(mut self, suns: &[(f64, f64)], gains: &[f64], strips: bool) -> Self {
+        let n = self.size;
+        let k = suns.len().max(1);
+        let strip = |i: usize| -> Option<[usize; 2]> {
+            if !strips || k == 1 {
+                return None;
+            }
+            // Width w with (k + 1)·w/2 = n; strip i starts at i·w/2.
+            let w = 2.0 * n as f64 / (k as f64 + 1.0);
+            let a = (i as f64 * w / 2.0).round() as usize;
+            let b = ((i as f64 * w / 2.0 + w).round() as usize).min(n);
+            Some([a, b])
+        };
+        if let Some(&(az, el)) = suns.first() {
+            self.sun_azimuth_deg = az;
+            self.sun_incidence_deg = 90.0 - el;
+        }
+        self.columns = strip(0);
+        self.more = suns
+            .iter()
+            .enumerate()
+            .skip(1)
+            .map(|(i, &(az, el))| ShotSpec {
+                sun_incidence_deg: 90.0 - el,
+                sun_azimuth_deg: az,
+                gain: gains.get(i).copied().unwrap_or(1.0),
+                columns: strip(i),
+            })
+            .collect();
+        self
     }
 }
 
@@ -87,6 +186,8 @@ pub struct Scene {
     pub sun: Vec3,
     pub view: Vec3,
     pub model: Hapke,
+    /// The further observations of `spec.more`.
+    pub more: Vec<Shot>,
 }
 
 /// Unit vector in east-north-up from zenith and azimuth (clockwise from north), degrees: docs/formats.md's
@@ -278,34 +379,36 @@ pub fn generate(spec: &SceneSpec) -> Scene {
     let model = Hapke::moon();
     let sun = direction(spec.sun_incidence_deg, spec.sun_azimuth_deg);
     let view = direction(spec.view_zenith_deg, spec.view_azimuth_deg);
-    let cast = cast_shadow(&height, h_sub, &sun);
-    let mut image = Array2::zeros((n, n));
-    let mut shadow = Array2::from_elem((n, n), false);
-    Zip::indexed(&mut image)
-        .and(&mut shadow)
-        .par_for_each(|(i, j), r, s| {
-            let (mut sum, mut dark) = (0.0, 0);
-            for si in i * SUB..(i + 1) * SUB {
-                for sj in j * SUB..(j + 1) * SUB {
-                    let sh = model.shade(px[(si, sj)], py[(si, sj)], albedo[(i, j)], &sun, &view);
-                    if sh.lit && !cast[(si, sj)] {
-                        sum += sh.r;
-                    } else {
-                        dark += 1;
-                    }
-                }
-            }
-            *r = sum / (SUB * SUB) as f64;
-            *s = 2 * dark > SUB * SUB;
-        });
-    let lit: Vec<f64> = image
+    let surface = Subsampled {
+        height: &height,
+        px: &px,
+        py: &py,
+        albedo: &albedo,
+        h_sub,
+    };
+    let (mut image, shadow) = surface.render(&model, &sun, &view, spec.noise, &mut rng);
+    mask_columns(&mut image, spec.columns);
+    let more = spec
+        .more
         .iter()
-        .zip(&shadow)
-        .filter(|(_, s)| !**s)
-        .map(|(r, _)| *r)
+        .enumerate()
+        .map(|(k, m)| {
+            // Each further observation's noise comes from its own stream, so the first
+            // observation and the input DEM do not depend on how many there are.
+            let mut rng =
+                Rng::new(spec.seed ^ (0x9E37_79B9_7F4A_7C15u64.wrapping_mul(k as u64 + 1)));
+            let sun = direction(m.sun_incidence_deg, m.sun_azimuth_deg);
+            let (mut image, shadow) = surface.render(&model, &sun, &view, spec.noise, &mut rng);
+            image.mapv_inplace(|r| r * m.gain);
+            mask_columns(&mut image, m.columns);
+            Shot {
+                spec: m.clone(),
+                image,
+                shadow,
+                sun,
+            }
+        })
         .collect();
-    let sigma = spec.noise * lit.iter().sum::<f64>() / lit.len().max(1) as f64;
-    image.mapv_inplace(|r| r + sigma * rng.normal());
     let height = Array2::from_shape_fn((n, n), |(i, j)| {
         height[(i * SUB + SUB / 2, j * SUB + SUB / 2)]
     });
@@ -321,6 +424,78 @@ pub fn generate(spec: &SceneSpec) -> Scene {
         sun,
         view,
         model,
+        more,
+    }
+}
+
+/// NaN outside columns `[first, end)`.
+fn mask_columns(image: &mut Array2<f64>, columns: Option<[usize; 2]>) {
+    if let Some([a, b]) = columns {
+        for ((_, j), v) in image.indexed_iter_mut() {
+            if j < a || j >= b {
+                *v = f64::NAN;
+            }
+        }
+    }
+}
+
+/// The truth surface on the SUB-times finer grid, and the per-pixel albedo.
+struct Subsampled<'a> {
+    height: &'a Array2<f64>,
+    px: &'a Array2<f64>,
+    py: &'a Array2<f64>,
+    albedo: &'a Array2<f64>,
+    h_sub: f64,
+}
+
+impl Subsampled<'_> {
+    /// The image under `sun` seen from `view` (each pixel the mean of its subsamples, cast
+    /// shadows by ray marching), plus Gaussian noise of `noise` × the mean lit reflectance;
+    /// and where more than half a pixel is in shadow.
+    fn render(
+        &self,
+        model: &Hapke,
+        sun: &Vec3,
+        view: &Vec3,
+        noise: f64,
+        rng: &mut Rng,
+    ) -> (Array2<f64>, Array2<bool>) {
+        let n = self.albedo.nrows();
+        let cast = cast_shadow(self.height, self.h_sub, sun);
+        let mut image = Array2::zeros((n, n));
+        let mut shadow = Array2::from_elem((n, n), false);
+        Zip::indexed(&mut image)
+            .and(&mut shadow)
+            .par_for_each(|(i, j), r, s| {
+                let (mut sum, mut dark) = (0.0, 0);
+                for si in i * SUB..(i + 1) * SUB {
+                    for sj in j * SUB..(j + 1) * SUB {
+                        let sh = model.shade(
+                            self.px[(si, sj)],
+                            self.py[(si, sj)],
+                            self.albedo[(i, j)],
+                            sun,
+                            view,
+                        );
+                        if sh.lit && !cast[(si, sj)] {
+                            sum += sh.r;
+                        } else {
+                            dark += 1;
+                        }
+                    }
+                }
+                *r = sum / (SUB * SUB) as f64;
+                *s = 2 * dark > SUB * SUB;
+            });
+        let lit: Vec<f64> = image
+            .iter()
+            .zip(&shadow)
+            .filter(|(_, s)| !**s)
+            .map(|(r, _)| *r)
+            .collect();
+        let sigma = noise * lit.iter().sum::<f64>() / lit.len().max(1) as f64;
+        image.mapv_inplace(|r| r + sigma * rng.normal());
+        (image, shadow)
     }
 }
 
@@ -398,16 +573,22 @@ fn lola_like(truth: &Array2<f64>, spec: &SceneSpec, dct: &Dct2d, rng: &mut Rng) 
 impl Scene {
     /// The fusion problem this scene poses.
     pub fn problem(&self) -> crate::fusion::Problem<'_> {
-        crate::fusion::Problem {
-            image: self.image.view(),
-            dem: self.input_dem.view(),
-            spacing: self.spec.spacing,
-            dem_psf_sigma: crate::fusion::dem_psf_sigma(self.spec.dem_factor as f64),
-            sun: Directions::Uniform(self.sun),
-            view: Directions::Uniform(self.view),
-            model: &self.model,
-            intensity_scale: None,
-        }
+        let mut pr = crate::fusion::Problem::single(
+            self.image.view(),
+            Directions::Uniform(self.sun),
+            Directions::Uniform(self.view),
+            self.input_dem.view(),
+            self.spec.spacing,
+            crate::fusion::dem_psf_sigma(self.spec.dem_factor as f64),
+            &self.model,
+        );
+        pr.observations
+            .extend(self.more.iter().map(|m| crate::fusion::Observation {
+                image: m.image.view(),
+                sun: Directions::Uniform(m.sun),
+                view: Directions::Uniform(self.view),
+            }));
+        pr
     }
 }
 

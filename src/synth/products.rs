@@ -30,7 +30,10 @@ use std::path::{Path, PathBuf};
 /// Where the written products are.
 #[derive(Debug, Clone, serde::Serialize)]
 pub struct Products {
+    /// The first observation's label (`m3_labels[0]`).
     pub m3_label: PathBuf,
+    /// Every observation's label, the scene's first observation first.
+    pub m3_labels: Vec<PathBuf>,
     pub lola_label: PathBuf,
     pub solar_table: PathBuf,
     pub truth_dem: PathBuf,
@@ -77,117 +80,34 @@ pub fn write(scene: &Scene, grid: &Grid, dir: &Path) -> Result<Products> {
         .map_err(|e| Error::Usage(e.to_string()))?;
     let geo = grid.geographic(&pr);
     let wl = pds::m3::band_centres(pds::m3::Mode::Global);
-    let band_1209 = wl
-        .iter()
-        .position(|&w| (w - 1209.57).abs() < 0.01)
-        .expect("the global table holds 1209.57 nm");
     let irr: Vec<f64> = wl.iter().map(|&w| blackbody_irradiance(w)).collect();
-
-    // RDN: LINE_INTERLEAVED = for each line, every band's samples in turn.
-    let mut rdn = Vec::with_capacity(rows * cols * wl.len() * 4);
-    for i in 0..rows {
-        for (b, &w) in wl.iter().enumerate() {
-            // A smooth, red-sloped lunar spectrum normalised at 1209.57 nm.
-            let shape = (w / wl[band_1209]).powf(0.6);
-            for j in 0..cols {
-                let r = scene.image[(i, j)] * shape;
-                f32_bytes(&mut rdn, r * irr[b] / (SOLAR_DISTANCE * SOLAR_DISTANCE));
-            }
-        }
+    let mut m3_labels = vec![write_m3(
+        dir,
+        M3_ID,
+        Shot {
+            image: scene.image.view(),
+            sun: scene.sun,
+            columns: scene.spec.columns,
+        },
+        scene,
+        grid,
+        &geo,
+    )?];
+    for (k, m) in scene.more.iter().enumerate() {
+        let id = format!("M3G20991231T{:02}0000", k + 1);
+        m3_labels.push(write_m3(
+            dir,
+            &id,
+            Shot {
+                image: m.image.view(),
+                sun: m.sun,
+                columns: m.spec.columns,
+            },
+            scene,
+            grid,
+            &geo,
+        )?);
     }
-    // LOC: longitude (east, 0–360), latitude, radius.
-    let mut loc = Vec::with_capacity(rows * cols * 3 * 8);
-    for i in 0..rows {
-        for band in 0..3 {
-            for j in 0..cols {
-                let v = match band {
-                    0 => geo.lon[(i, j)].rem_euclid(360.0),
-                    1 => geo.lat[(i, j)],
-                    _ => MOON_RADIUS_M + scene.truth_height[(i, j)],
-                };
-                loc.extend_from_slice(&v.to_le_bytes());
-            }
-        }
-    }
-    // OBS: grid-frame directions → local east-north-up (inverse of the ingest rotation).
-    let to_enu = |v: [f64; 3], t: f64| {
-        let (s, c) = t.sin_cos();
-        [v[0] * c - v[1] * s, v[0] * s + v[1] * c, v[2]]
-    };
-    let az_zen = |v: [f64; 3]| {
-        (
-            v[0].atan2(v[1]).to_degrees().rem_euclid(360.0),
-            v[2].clamp(-1.0, 1.0).acos().to_degrees(),
-        )
-    };
-    let (p, q) = crate::fusion::ops::gradient(scene.truth_height.view(), grid.spacing);
-    let mut obs = Vec::with_capacity(rows * cols * 10 * 4);
-    for i in 0..rows {
-        let mut bands: Vec<Vec<f64>> = (0..10).map(|_| Vec::with_capacity(cols)).collect();
-        for j in 0..cols {
-            let t = geo.bearing[(i, j)];
-            let (s, v) = (to_enu(scene.sun, t), to_enu(scene.view, t));
-            let (saz, sz) = az_zen(s);
-            let (vaz, vz) = az_zen(v);
-            let phase = (s[0] * v[0] + s[1] * v[1] + s[2] * v[2])
-                .clamp(-1.0, 1.0)
-                .acos();
-            // Facet normal (−p, −q, 1)/|…| in the grid frame, then east-north-up.
-            let n = (p[(i, j)] * p[(i, j)] + q[(i, j)] * q[(i, j)] + 1.0).sqrt();
-            let nrm = to_enu([-p[(i, j)] / n, -q[(i, j)] / n, 1.0 / n], t);
-            let (aspect, slope) = az_zen(nrm);
-            let cos_i = nrm[0] * s[0] + nrm[1] * s[1] + nrm[2] * s[2];
-            let vals = [
-                saz,
-                sz,
-                vaz,
-                vz,
-                phase.to_degrees(),
-                0.0,
-                100_000.0,
-                slope,
-                aspect,
-                cos_i,
-            ];
-            for (b, x) in vals.into_iter().enumerate() {
-                bands[b].push(x);
-            }
-        }
-        for b in bands {
-            for x in b {
-                f32_bytes(&mut obs, x);
-            }
-        }
-    }
-    let name = |part: &str, ext: &str| format!("{M3_ID}_V03_{part}.{ext}");
-    write_atomic(&dir.join(name("RDN", "IMG")), &rdn)?;
-    write_atomic(&dir.join(name("LOC", "IMG")), &loc)?;
-    write_atomic(&dir.join(name("OBS", "IMG")), &obs)?;
-    let wl_list: Vec<String> = wl.iter().map(|w| format!("{w:.6}")).collect();
-    let hdr = format!(
-        "ENVI\ndescription = {{SYNTHETIC M3-like radiance written by sfsfuse}}\nsamples = {cols}\nlines = {rows}\nbands = {}\nheader offset = 0\nfile type = ENVI Standard\ndata type = 4\ninterleave = bil\nbyte order = 0\nwavelength = {{\n {} }}\n",
-        wl.len(),
-        wl_list.join(",\n ")
-    );
-    write_atomic(&dir.join(name("RDN", "HDR")), hdr.as_bytes())?;
-    let image_object = |part: &str, bits: u32, bands: usize, extra: &str| {
-        let rb = cols * bands * bits as usize / 8;
-        format!(
-            "OBJECT = {part}_FILE\r\n  ^{part}_IMAGE = \"{file}\"\r\n  RECORD_TYPE = FIXED_LENGTH\r\n  RECORD_BYTES = {rb}\r\n  FILE_RECORDS = {rows}\r\n  OBJECT = {part}_IMAGE\r\n    LINES = {rows}\r\n    LINE_SAMPLES = {cols}\r\n    SAMPLE_TYPE = PC_REAL\r\n    SAMPLE_BITS = {bits}\r\n    BANDS = {bands}\r\n    BAND_STORAGE_TYPE = LINE_INTERLEAVED\r\n{extra}  END_OBJECT = {part}_IMAGE\r\nEND_OBJECT = {part}_FILE\r\n",
-            file = name(part, "IMG"),
-        )
-    };
-    let label = format!(
-        "PDS_VERSION_ID = PDS3\r\n/* SYNTHETIC product written by sfsfuse {ver} (seed {seed}): not mission data */\r\nDATA_SET_ID = \"SFSFUSE-SYNTHETIC-M3-L1B-LIKE\"\r\nPRODUCT_ID = {M3_ID}_V03_RDN\r\nRECORD_TYPE = UNDEFINED\r\nINSTRUMENT_ID = M3\r\nTARGET_NAME = MOON\r\nSOLAR_DISTANCE = {SOLAR_DISTANCE} <AU>\r\nINSTRUMENT_MODE_ID = GLOBAL\r\nCH1:SWATH_WIDTH = {cols} <pixel>\r\nCH1:SWATH_LENGTH = {rows} <pixel>\r\n{rdn}OBJECT = RDN_HDR_FILE\r\n  ^RDN_ENVI_HEADER = \"{hdr}\"\r\n  RECORD_TYPE = VARIABLE_LENGTH\r\nEND_OBJECT = RDN_HDR_FILE\r\n{loc}{obs}END\r\n",
-        ver = env!("CARGO_PKG_VERSION"),
-        seed = scene.spec.seed,
-        rdn = image_object("RDN", 32, wl.len(), "    UNIT = \"W/(m^2 um sr)\"\r\n"),
-        hdr = name("RDN", "HDR"),
-        loc = image_object("LOC", 64, 3, "    BAND_NAME = (Longitude, Latitude, Radius)\r\n"),
-        obs = image_object("OBS", 32, 10, ""),
-    );
-    let m3_label = dir.join(name("L1B", "LBL"));
-    write_atomic(&m3_label, label.as_bytes())?;
 
     let solar_table = dir.join("M3G_SYNTHETIC_SOLAR_SPEC.TAB");
     let table: String = wl
@@ -225,7 +145,8 @@ pub fn write(scene: &Scene, grid: &Grid, dir: &Path) -> Result<Products> {
         },
     )?;
     Ok(Products {
-        m3_label,
+        m3_label: m3_labels[0].clone(),
+        m3_labels,
         lola_label,
         solar_table,
         truth_dem,
@@ -233,6 +154,142 @@ pub fn write(scene: &Scene, grid: &Grid, dir: &Path) -> Result<Products> {
         grid: *grid,
         spec: scene.spec.clone(),
     })
+}
+
+/// One observation to write: its image on the grid, its Sun, the columns its swath covers.
+struct Shot<'a> {
+    image: ndarray::ArrayView2<'a, f64>,
+    sun: crate::photometry::Vec3,
+    columns: Option<[usize; 2]>,
+}
+
+/// One M3-like L1B product set (label, RDN + ENVI header, LOC, OBS) named `id`: swath sample
+/// s lies at grid column first + s.
+fn write_m3(
+    dir: &Path,
+    id: &str,
+    shot: Shot,
+    scene: &Scene,
+    grid: &Grid,
+    geo: &crate::grid::Geographic,
+) -> Result<PathBuf> {
+    let wl = pds::m3::band_centres(pds::m3::Mode::Global);
+    let band_1209 = wl
+        .iter()
+        .position(|&w| (w - 1209.57).abs() < 0.01)
+        .expect("the global table holds 1209.57 nm");
+    let irr: Vec<f64> = wl.iter().map(|&w| blackbody_irradiance(w)).collect();
+    let rows = grid.rows;
+    let [c0, c1] = shot.columns.unwrap_or([0, grid.cols]);
+    let (c0, c1) = (c0.min(grid.cols), c1.min(grid.cols));
+    let cols = c1 - c0;
+
+    // RDN: LINE_INTERLEAVED = for each line, every band's samples in turn.
+    let mut rdn = Vec::with_capacity(rows * cols * wl.len() * 4);
+    for i in 0..rows {
+        for (b, &w) in wl.iter().enumerate() {
+            // A smooth, red-sloped lunar spectrum normalised at 1209.57 nm.
+            let shape = (w / wl[band_1209]).powf(0.6);
+            for j in c0..c1 {
+                let r = shot.image[(i, j)] * shape;
+                f32_bytes(&mut rdn, r * irr[b] / (SOLAR_DISTANCE * SOLAR_DISTANCE));
+            }
+        }
+    }
+    // LOC: longitude (east, 0–360), latitude, radius.
+    let mut loc = Vec::with_capacity(rows * cols * 3 * 8);
+    for i in 0..rows {
+        for band in 0..3 {
+            for j in c0..c1 {
+                let v = match band {
+                    0 => geo.lon[(i, j)].rem_euclid(360.0),
+                    1 => geo.lat[(i, j)],
+                    _ => MOON_RADIUS_M + scene.truth_height[(i, j)],
+                };
+                loc.extend_from_slice(&v.to_le_bytes());
+            }
+        }
+    }
+    // OBS: grid-frame directions → local east-north-up (inverse of the ingest rotation).
+    let to_enu = |v: [f64; 3], t: f64| {
+        let (s, c) = t.sin_cos();
+        [v[0] * c - v[1] * s, v[0] * s + v[1] * c, v[2]]
+    };
+    let az_zen = |v: [f64; 3]| {
+        (
+            v[0].atan2(v[1]).to_degrees().rem_euclid(360.0),
+            v[2].clamp(-1.0, 1.0).acos().to_degrees(),
+        )
+    };
+    let (p, q) = crate::fusion::ops::gradient(scene.truth_height.view(), grid.spacing);
+    let mut obs = Vec::with_capacity(rows * cols * 10 * 4);
+    for i in 0..rows {
+        let mut bands: Vec<Vec<f64>> = (0..10).map(|_| Vec::with_capacity(cols)).collect();
+        for j in c0..c1 {
+            let t = geo.bearing[(i, j)];
+            let (s, v) = (to_enu(shot.sun, t), to_enu(scene.view, t));
+            let (saz, sz) = az_zen(s);
+            let (vaz, vz) = az_zen(v);
+            let phase = (s[0] * v[0] + s[1] * v[1] + s[2] * v[2])
+                .clamp(-1.0, 1.0)
+                .acos();
+            // Facet normal (−p, −q, 1)/|…| in the grid frame, then east-north-up.
+            let n = (p[(i, j)] * p[(i, j)] + q[(i, j)] * q[(i, j)] + 1.0).sqrt();
+            let nrm = to_enu([-p[(i, j)] / n, -q[(i, j)] / n, 1.0 / n], t);
+            let (aspect, slope) = az_zen(nrm);
+            let cos_i = nrm[0] * s[0] + nrm[1] * s[1] + nrm[2] * s[2];
+            let vals = [
+                saz,
+                sz,
+                vaz,
+                vz,
+                phase.to_degrees(),
+                0.0,
+                100_000.0,
+                slope,
+                aspect,
+                cos_i,
+            ];
+            for (b, x) in vals.into_iter().enumerate() {
+                bands[b].push(x);
+            }
+        }
+        for b in bands {
+            for x in b {
+                f32_bytes(&mut obs, x);
+            }
+        }
+    }
+    let name = |part: &str, ext: &str| format!("{id}_V03_{part}.{ext}");
+    write_atomic(&dir.join(name("RDN", "IMG")), &rdn)?;
+    write_atomic(&dir.join(name("LOC", "IMG")), &loc)?;
+    write_atomic(&dir.join(name("OBS", "IMG")), &obs)?;
+    let wl_list: Vec<String> = wl.iter().map(|w| format!("{w:.6}")).collect();
+    let hdr = format!(
+        "ENVI\ndescription = {{SYNTHETIC M3-like radiance written by sfsfuse}}\nsamples = {cols}\nlines = {rows}\nbands = {}\nheader offset = 0\nfile type = ENVI Standard\ndata type = 4\ninterleave = bil\nbyte order = 0\nwavelength = {{\n {} }}\n",
+        wl.len(),
+        wl_list.join(",\n ")
+    );
+    write_atomic(&dir.join(name("RDN", "HDR")), hdr.as_bytes())?;
+    let image_object = |part: &str, bits: u32, bands: usize, extra: &str| {
+        let rb = cols * bands * bits as usize / 8;
+        format!(
+            "OBJECT = {part}_FILE\r\n  ^{part}_IMAGE = \"{file}\"\r\n  RECORD_TYPE = FIXED_LENGTH\r\n  RECORD_BYTES = {rb}\r\n  FILE_RECORDS = {rows}\r\n  OBJECT = {part}_IMAGE\r\n    LINES = {rows}\r\n    LINE_SAMPLES = {cols}\r\n    SAMPLE_TYPE = PC_REAL\r\n    SAMPLE_BITS = {bits}\r\n    BANDS = {bands}\r\n    BAND_STORAGE_TYPE = LINE_INTERLEAVED\r\n{extra}  END_OBJECT = {part}_IMAGE\r\nEND_OBJECT = {part}_FILE\r\n",
+            file = name(part, "IMG"),
+        )
+    };
+    let label = format!(
+        "PDS_VERSION_ID = PDS3\r\n/* SYNTHETIC product written by sfsfuse {ver} (seed {seed}): not mission data */\r\nDATA_SET_ID = \"SFSFUSE-SYNTHETIC-M3-L1B-LIKE\"\r\nPRODUCT_ID = {id}_V03_RDN\r\nRECORD_TYPE = UNDEFINED\r\nINSTRUMENT_ID = M3\r\nTARGET_NAME = MOON\r\nSOLAR_DISTANCE = {SOLAR_DISTANCE} <AU>\r\nINSTRUMENT_MODE_ID = GLOBAL\r\nCH1:SWATH_WIDTH = {cols} <pixel>\r\nCH1:SWATH_LENGTH = {rows} <pixel>\r\n{rdn}OBJECT = RDN_HDR_FILE\r\n  ^RDN_ENVI_HEADER = \"{hdr}\"\r\n  RECORD_TYPE = VARIABLE_LENGTH\r\nEND_OBJECT = RDN_HDR_FILE\r\n{loc}{obs}END\r\n",
+        ver = env!("CARGO_PKG_VERSION"),
+        seed = scene.spec.seed,
+        rdn = image_object("RDN", 32, wl.len(), "    UNIT = \"W/(m^2 um sr)\"\r\n"),
+        hdr = name("RDN", "HDR"),
+        loc = image_object("LOC", 64, 3, "    BAND_NAME = (Longitude, Latitude, Radius)\r\n"),
+        obs = image_object("OBS", 32, 10, ""),
+    );
+    let m3_label = dir.join(name("L1B", "LBL"));
+    write_atomic(&m3_label, label.as_bytes())?;
+    Ok(m3_label)
 }
 
 /// The LOLA-like DEM: the smallest 64 px/deg window covering the grid with 4 pixels to spare,

@@ -45,7 +45,7 @@ pub fn workflow(p: &products::Products, out: &Path, tile: usize, extra: &str) ->
     format!(
         r#"kind = "orbital"
 [inputs]
-m3 = ["{m3}"]
+m3 = [{m3}]
 lola = ["{lola}"]
 solar_spectrum = "{solar}"
 # The LOLA-like product samples a DEM whose own point spread is 4/√2 px every 3.38 px:
@@ -67,7 +67,12 @@ directory = "{out}"
 layers = ["dem", "albedo", "residual", "mask", "input_dem"]
 {extra}
 "#,
-        m3 = p.m3_label.display(),
+        m3 = p
+            .m3_labels
+            .iter()
+            .map(|l| format!("{:?}", l.display().to_string()))
+            .collect::<Vec<_>>()
+            .join(", "),
         lola = p.lola_label.display(),
         solar = p.solar_table.display(),
         lo = -half,
@@ -106,6 +111,7 @@ pub fn copy_products(p: &products::Products, dir: &Path) -> products::Products {
     let mv = |f: &Path| dir.join(f.file_name().unwrap());
     products::Products {
         m3_label: mv(&p.m3_label),
+        m3_labels: p.m3_labels.iter().map(|l| mv(l)).collect(),
         lola_label: mv(&p.lola_label),
         solar_table: mv(&p.solar_table),
         truth_dem: mv(&p.truth_dem),

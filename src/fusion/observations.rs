@@ -1,0 +1,493 @@
+//! Several observations of one surface (docs/science.md, "Several observations"): which pixels
+//! each observation contributes, with what weight, at what radiometric gain, and the albedo
+//! they agree on.
+//!
+//! E_I = Σ_k Σ_x w_k(x)·(I_k(x)/g_k − R(p, q, ρ; s_k, v_k))²/Ī², with
+//! * g_k, the gain of observation k (its detector and calibration relative to the reference:
+//!   I_k = g_k·R), estimated from where observations overlap ([`estimate_gains`]);
+//! * w_k(x) = ν_k·e_k(x)·τ_k(x) on the pixels k sees lit (0 elsewhere):
+//!   - ν_k = (Ī/Ī_k)², Ī_k the mean of I_k/g_k over its valid pixels: each image's error
+//!     (noise, calibration, photometric model) is taken as a fixed fraction of its own
+//!     brightness, so a dim low-Sun image weighs as much per unit of relative error as a
+//!     bright one. One observation: ν = 1;
+//!   - e_k(x) = ramp_k(x)/max_j ramp_j(x), ramp_k a C¹ smoothstep of the distance to the edge
+//!     of k's footprint over `edge_ramp_px`: an observation fades in over a band inside its
+//!     edge wherever another one carries on, so no strip edge is a step in the data; where it
+//!     is alone e_k = 1;
+//!   - τ_k(x), 1 up to 10° before the maximum incidence and a smoothstep to 0 at it: near the
+//!     terminator shadows and roughness make the model least reliable.
+//! * Selection: pixels outside [min, max] incidence drop out; with `max_per_pixel` = M > 0 only
+//!   the M observations of largest w_k·μ_k (μ the cosine of the emission angle) are kept at a
+//!   pixel.
+
+use super::support;
+use super::{Directions, Problem};
+use crate::photometry::{Albedo, ReflectanceModel};
+use ndarray::{Array2, ArrayView2, Axis, Zip};
+use rayon::prelude::*;
+use serde::{Deserialize, Serialize};
+
+/// Which observations a pixel uses ([inputs] in a workflow).
+#[derive(Debug, Clone, Copy, PartialEq, Serialize, Deserialize)]
+#[serde(deny_unknown_fields, default)]
+pub struct Selection {
+    /// At most this many observations per pixel, the best by w·μ (0: all).
+    pub max_per_pixel: usize,
+    /// Pixels whose Sun is closer to the zenith than this are not used (degrees).
+    pub min_incidence_deg: f64,
+    /// Pixels whose Sun is lower than this are not used; weights fade over the 10° before it.
+    pub max_incidence_deg: f64,
+}
+
+impl Default for Selection {
+    fn default() -> Self {
+        Self {
+            max_per_pixel: 0,
+            min_incidence_deg: 0.0,
+            max_incidence_deg: 90.0,
+        }
+    }
+}
+
+/// Width, in degrees, over which τ fades to 0 at the maximum incidence.
+pub const INCIDENCE_FADE_DEG: f64 = 10.0;
+
+/// Per-observation masks and weights for one problem.
+#[derive(Debug, Clone)]
+pub struct Weights {
+    /// Pixels observation k contributes: valid, lit in the image, within the selection.
+    pub usable: Vec<Array2<bool>>,
+    /// w_k(x), 0 where not usable.
+    pub weight: Vec<Array2<f64>>,
+    /// g_k.
+    pub gains: Vec<f64>,
+    /// ν_k.
+    pub noise: Vec<f64>,
+}
+
+impl Weights {
+    /// How many observations a pixel uses.
+    pub fn count(&self) -> Array2<u8> {
+        let dim = self.usable[0].dim();
+        let mut n = Array2::<u8>::zeros(dim);
+        for u in &self.usable {
+            Zip::from(&mut n)
+                .and(u)
+                .for_each(|n, &u| *n = n.saturating_add(u as u8));
+        }
+        n
+    }
+
+    /// True where at least one observation is usable.
+    pub fn any(&self) -> Array2<bool> {
+        let mut a = self.usable[0].clone();
+        for u in &self.usable[1..] {
+            Zip::from(&mut a).and(u).for_each(|a, &u| *a |= u);
+        }
+        a
+    }
+}
+
+/// Incidence angle, degrees, of a Sun vector in the grid frame (z up).
+pub fn incidence_deg(sun: &[f64; 3]) -> f64 {
+    sun[2].clamp(-1.0, 1.0).acos().to_degrees()
+}
+
+/// C¹ step: 0 at t ≤ 0, 1 at t ≥ 1.
+fn smoothstep(t: f64) -> f64 {
+    let t = t.clamp(0.0, 1.0);
+    t * t * (3.0 - 2.0 * t)
+}
+
+/// τ(i) for incidence `i` and maximum incidence `max` (degrees).
+pub fn incidence_taper(i: f64, max: f64) -> f64 {
+    smoothstep((max - i) / INCIDENCE_FADE_DEG)
+}
+
+/// e_k for every observation: ramp_k/max_j ramp_j over the footprints (finite images).
+pub fn edge_weights(footprints: &[Array2<bool>], width: f64) -> Vec<Array2<f64>> {
+    let dim = footprints[0].dim();
+    if footprints.len() == 1 || width <= 0.0 {
+        return vec![Array2::from_elem(dim, 1.0); footprints.len()];
+    }
+    let ramps: Vec<Array2<f64>> = footprints
+        .iter()
+        .map(|f| {
+            let d = support::distance(&f.mapv(|b| !b));
+            d.mapv(|d| {
+                if d.is_infinite() {
+                    1.0
+                } else {
+                    smoothstep(d / width)
+                }
+            })
+        })
+        .collect();
+    let mut top = Array2::<f64>::zeros(dim);
+    for r in &ramps {
+        Zip::from(&mut top).and(r).for_each(|t, &r| *t = t.max(r));
+    }
+    ramps
+        .into_iter()
+        .map(|r| {
+            Zip::from(&r)
+                .and(&top)
+                .map_collect(|&r, &t| if t > 0.0 { r / t } else { 0.0 })
+        })
+        .collect()
+}
+
+/// The usable pixels and weights of every observation, with the given gains g_k, scale Ī and
+/// noise weights ν_k (`None`: (Ī/Ī_k)²).
+pub fn weights(
+    pr: &Problem,
+    gains: Vec<f64>,
+    scale: f64,
+    noise: Option<Vec<f64>>,
+    shadow_threshold: f64,
+    edge_ramp_px: f64,
+) -> Weights {
+    let sel = pr.selection;
+    let mut usable: Vec<Array2<bool>> = pr
+        .observations
+        .iter()
+        .zip(&gains)
+        .map(|(o, &g)| {
+            Zip::indexed(&o.image).par_map_collect(|(i, j), &v| {
+                let inc = incidence_deg(o.sun.at(i, j));
+                v.is_finite()
+                    && v > 0.0
+                    && v / g / scale >= shadow_threshold
+                    && inc >= sel.min_incidence_deg
+                    && inc < sel.max_incidence_deg
+            })
+        })
+        .collect();
+    let noise = match noise {
+        Some(n) => n,
+        None if pr.observations.len() == 1 => vec![1.0],
+        None => pr
+            .observations
+            .iter()
+            .zip(&gains)
+            .map(|(o, &g)| {
+                let (s, n) = o.image.fold((0.0, 0usize), |(s, n), &v| {
+                    if v.is_finite() && v > 0.0 {
+                        (s + v / g, n + 1)
+                    } else {
+                        (s, n)
+                    }
+                });
+                if n == 0 {
+                    1.0
+                } else {
+                    (scale * n as f64 / s).powi(2)
+                }
+            })
+            .collect(),
+    };
+    let footprints: Vec<Array2<bool>> = pr
+        .observations
+        .iter()
+        .map(|o| o.image.mapv(f64::is_finite))
+        .collect();
+    let edges = edge_weights(&footprints, edge_ramp_px);
+    let mut weight: Vec<Array2<f64>> = pr
+        .observations
+        .iter()
+        .zip(&usable)
+        .zip(&edges)
+        .zip(&noise)
+        .map(|(((o, u), e), &nu)| {
+            Zip::indexed(u).and(e).par_map_collect(|(i, j), &u, &e| {
+                if u {
+                    nu * e * incidence_taper(incidence_deg(o.sun.at(i, j)), sel.max_incidence_deg)
+                } else {
+                    0.0
+                }
+            })
+        })
+        .collect();
+    if sel.max_per_pixel > 0 && pr.observations.len() > sel.max_per_pixel {
+        keep_best(pr, &mut usable, &mut weight, sel.max_per_pixel);
+    }
+    for (u, w) in usable.iter_mut().zip(&weight) {
+        Zip::from(u).and(w).for_each(|u, &w| *u &= w > 0.0);
+    }
+    Weights {
+        usable,
+        weight,
+        gains,
+        noise,
+    }
+}
+
+/// Keep, at each pixel, the `m` observations of largest w_k·μ_k (ties: the first listed).
+fn keep_best(pr: &Problem, usable: &mut [Array2<bool>], weight: &mut [Array2<f64>], m: usize) {
+    let (ny, nx) = usable[0].dim();
+    for i in 0..ny {
+        for j in 0..nx {
+            let mut score: Vec<(f64, usize)> = weight
+                .iter()
+                .enumerate()
+                .filter(|(_, w)| w[(i, j)] > 0.0)
+                .map(|(k, w)| (w[(i, j)] * pr.observations[k].view.at(i, j)[2], k))
+                .collect();
+            if score.len() <= m {
+                continue;
+            }
+            score.sort_by(|a, b| b.0.total_cmp(&a.0).then(a.1.cmp(&b.1)));
+            for &(_, k) in &score[m..] {
+                usable[k][(i, j)] = false;
+                weight[k][(i, j)] = 0.0;
+            }
+        }
+    }
+}
+
+/// Median of `v` (sorted in place); `None` when empty.
+fn median(v: &mut [f64]) -> Option<f64> {
+    if v.is_empty() {
+        return None;
+    }
+    v.sort_by(f64::total_cmp);
+    let n = v.len();
+    Some(if n % 2 == 1 {
+        v[n / 2]
+    } else {
+        0.5 * (v[n / 2 - 1] + v[n / 2])
+    })
+}
+
+/// Fewest overlapping pixels from which a pair of observations informs the gains.
+pub const MIN_OVERLAP: usize = 50;
+
+/// The gains g_k, from where observations overlap on surface `z`: for each pair (j, k) the
+/// median over their common usable pixels of ln(I_k/g_k) − ln R_k(ρ_j), ρ_j inverted from
+/// I_j/g_j, is the error of ln g_k − ln g_j; the logs are corrected by least squares over the
+/// pairs (weighted by overlap size) with the first observation of each connected group fixed,
+/// three times over (R is not linear in ρ for Hapke). Observations overlapping no other keep
+/// g = 1.
+pub fn estimate_gains(pr: &Problem, usable: &[Array2<bool>], z: ArrayView2<f64>) -> Vec<f64> {
+    let k_obs = pr.observations.len();
+    let mut log_g = vec![0.0; k_obs];
+    if k_obs < 2 {
+        return vec![1.0; k_obs];
+    }
+    let (p, q) = super::ops::gradient(z, pr.spacing);
+    let model: &dyn ReflectanceModel = pr.model;
+    for _ in 0..3 {
+        let g: Vec<f64> = log_g.iter().map(|l: &f64| l.exp()).collect();
+        let mut pairs = Vec::new();
+        for j in 0..k_obs {
+            for k in j + 1..k_obs {
+                let (oj, ok) = (&pr.observations[j], &pr.observations[k]);
+                let rows: Vec<Vec<f64>> = (0..z.nrows())
+                    .into_par_iter()
+                    .map(|i| {
+                        let mut out = Vec::new();
+                        for c in 0..z.ncols() {
+                            if !(usable[j][(i, c)] && usable[k][(i, c)]) {
+                                continue;
+                            }
+                            let (pp, qq) = (p[(i, c)], q[(i, c)]);
+                            let ij = oj.image[(i, c)] / g[j];
+                            let ik = ok.image[(i, c)] / g[k];
+                            let Albedo::Value(rho) =
+                                model.invert(ij, pp, qq, oj.sun.at(i, c), oj.view.at(i, c))
+                            else {
+                                continue;
+                            };
+                            let r = model.shade(pp, qq, rho, ok.sun.at(i, c), ok.view.at(i, c));
+                            if r.lit && r.r > 0.0 {
+                                out.push(ik.ln() - r.r.ln());
+                            }
+                        }
+                        out
+                    })
+                    .collect();
+                let mut all: Vec<f64> = rows.into_iter().flatten().collect();
+                if all.len() >= MIN_OVERLAP {
+                    let n = all.len() as f64;
+                    if let Some(m) = median(&mut all) {
+                        pairs.push((j, k, m, n));
+                    }
+                }
+            }
+        }
+        if pairs.is_empty() {
+            break;
+        }
+        let delta = solve_pairs(k_obs, &pairs);
+        for (l, d) in log_g.iter_mut().zip(&delta) {
+            *l += d;
+        }
+    }
+    log_g.iter().map(|l| l.exp()).collect()
+}
+
+/// Least squares δ_k − δ_j = c_jk (weight n_jk) over the pairs, δ = 0 at the first
+/// observation of each connected group (Gauss–Seidel; the groups are small graphs).
+fn solve_pairs(k_obs: usize, pairs: &[(usize, usize, f64, f64)]) -> Vec<f64> {
+    // Connected groups: the reference is each group's lowest index.
+    let mut group: Vec<usize> = (0..k_obs).collect();
+    let find = |g: &Vec<usize>, mut a: usize| {
+        while g[a] != a {
+            a = g[a];
+        }
+        a
+    };
+    for &(j, k, _, _) in pairs {
+        let (a, b) = (find(&group, j), find(&group, k));
+        let (lo, hi) = (a.min(b), a.max(b));
+        group[hi] = lo;
+    }
+    let reference: Vec<bool> = (0..k_obs).map(|k| find(&group, k) == k).collect();
+    let mut d = vec![0.0; k_obs];
+    for _ in 0..500 {
+        let mut moved = 0.0f64;
+        for k in 0..k_obs {
+            if reference[k] {
+                continue;
+            }
+            let (mut s, mut w) = (0.0, 0.0);
+            for &(a, b, c, n) in pairs {
+                if b == k {
+                    s += n * (d[a] + c);
+                    w += n;
+                } else if a == k {
+                    s += n * (d[b] - c);
+                    w += n;
+                }
+            }
+            if w > 0.0 {
+                let new = s / w;
+                moved = moved.max((new - d[k]).abs());
+                d[k] = new;
+            }
+        }
+        if moved < 1e-12 {
+            break;
+        }
+    }
+    d
+}
+
+/// The joint albedo at each pixel on surface `z`: ρ minimising Σ_k w_k (I_k/g_k − R_k(ρ))² over
+/// the observations usable there, by Gauss–Newton in ρ from the weighted mean of the
+/// per-observation inversions (one observation: its inversion, exactly). Returns ρ, where it
+/// is defined, and the weight Σ_k w_k·(I_k/g_k)² of the pixel's data.
+pub fn invert_albedo(
+    pr: &Problem,
+    w: &Weights,
+    z: ArrayView2<f64>,
+) -> (Array2<f64>, Array2<bool>, Array2<f64>) {
+    let (p, q) = super::ops::gradient(z, pr.spacing);
+    let dim = z.dim();
+    let model: &dyn ReflectanceModel = pr.model;
+    let mut rho = Array2::zeros(dim);
+    let mut ok = Array2::from_elem(dim, false);
+    let mut strength = Array2::zeros(dim);
+    rho.axis_iter_mut(Axis(0))
+        .into_par_iter()
+        .zip(ok.axis_iter_mut(Axis(0)))
+        .zip(strength.axis_iter_mut(Axis(0)))
+        .enumerate()
+        .for_each(|(i, ((mut rrow, mut orow), mut srow))| {
+            let mut data: Vec<(f64, f64, &Directions, &Directions)> = Vec::new();
+            for j in 0..dim.1 {
+                data.clear();
+                let (pp, qq) = (p[(i, j)], q[(i, j)]);
+                let (mut sw, mut swr, mut s2) = (0.0, 0.0, 0.0);
+                for (k, o) in pr.observations.iter().enumerate() {
+                    let wk = w.weight[k][(i, j)];
+                    if wk <= 0.0 {
+                        continue;
+                    }
+                    let ik = o.image[(i, j)] / w.gains[k];
+                    if let Albedo::Value(r) =
+                        model.invert(ik, pp, qq, o.sun.at(i, j), o.view.at(i, j))
+                    {
+                        sw += wk;
+                        swr += wk * r;
+                        s2 += wk * ik * ik;
+                        data.push((wk, ik, &o.sun, &o.view));
+                    }
+                }
+                if data.is_empty() {
+                    continue;
+                }
+                let mut r = swr / sw;
+                if data.len() > 1 {
+                    for _ in 0..4 {
+                        let (mut num, mut den) = (0.0, 0.0);
+                        let h = 1e-6;
+                        for &(wk, ik, s, v) in &data {
+                            let (s, v) = (s.at(i, j), v.at(i, j));
+                            let f0 = model.shade(pp, qq, r, s, v).r;
+                            let jac = (model.shade(pp, qq, r + h, s, v).r
+                                - model.shade(pp, qq, (r - h).max(0.0), s, v).r)
+                                / (r + h - (r - h).max(0.0));
+                            num += wk * jac * (ik - f0);
+                            den += wk * jac * jac;
+                        }
+                        if den <= 0.0 {
+                            break;
+                        }
+                        r = (r + num / den).clamp(1e-6, 0.999);
+                    }
+                }
+                rrow[j] = r;
+                orow[j] = true;
+                srow[j] = s2;
+            }
+        });
+    (rho, ok, strength)
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn pair_least_squares_recovers_log_gains_with_a_reference_per_group() {
+        // Group {0, 1, 2}: δ1 = 0.1, δ2 = −0.05, consistent pairs. Group {3, 4}: δ4 − δ3 = 0.2.
+        let pairs = [
+            (0, 1, 0.1, 100.0),
+            (1, 2, -0.15, 50.0),
+            (0, 2, -0.05, 80.0),
+            (3, 4, 0.2, 60.0),
+        ];
+        let d = solve_pairs(6, &pairs);
+        let want = [0.0, 0.1, -0.05, 0.0, 0.2, 0.0];
+        for (g, w) in d.iter().zip(want) {
+            assert!((g - w).abs() < 1e-9, "{d:?}");
+        }
+    }
+
+    #[test]
+    fn edge_weights_fade_an_observation_in_only_where_another_carries_on() {
+        // Observation 0 covers columns 0..40, observation 1 columns 20..60 of a 60-column grid.
+        let f0 = Array2::from_shape_fn((10, 60), |(_, j)| j < 40);
+        let f1 = Array2::from_shape_fn((10, 60), |(_, j)| j >= 20);
+        let e = edge_weights(&[f0, f1], 8.0);
+        // Alone: full weight, up to its edge.
+        assert_eq!(e[0][(5, 0)], 1.0);
+        assert_eq!(e[0][(5, 19)], 1.0);
+        assert_eq!(e[1][(5, 59)], 1.0);
+        // Inside the overlap, next to 0's edge (column 39), 0 fades while 1 is full.
+        assert!(e[0][(5, 39)] < 0.05 && e[1][(5, 39)] == 1.0);
+        assert!(e[0][(5, 35)] > e[0][(5, 38)]);
+        assert_eq!(e[0][(5, 30)], 1.0);
+        // Off its footprint an observation has no weight.
+        assert_eq!(e[0][(5, 45)], 0.0);
+    }
+
+    #[test]
+    fn incidence_taper_fades_over_the_last_ten_degrees() {
+        assert_eq!(incidence_taper(70.0, 90.0), 1.0);
+        assert_eq!(incidence_taper(80.0, 90.0), 1.0);
+        assert!((incidence_taper(85.0, 90.0) - 0.5).abs() < 1e-12);
+        assert_eq!(incidence_taper(90.0, 90.0), 0.0);
+    }
+}
