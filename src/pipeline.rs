@@ -377,13 +377,14 @@ pub struct TileRecord {
 }
 
 /// Layers stored per tile, in file order.
-const TILE_LAYERS: [Layer; 6] = [
+const TILE_LAYERS: [Layer; 7] = [
     Layer::Dem,
     Layer::Albedo,
     Layer::Residual,
     Layer::Mask,
     Layer::InputDem,
     Layer::Image,
+    Layer::Observations,
 ];
 const TILE_MAGIC: &[u8; 8] = b"SFSTILE1";
 /// Most tiles a run plans (a 2³¹-pixel region in 1024-px tiles is 2048; tiny tiles over a
@@ -739,6 +740,20 @@ fn plan(o: &Orbital, wf: &Workflow, inputs: &Inputs, progress: &Progress) -> Res
         p.dem_psf_sigma,
         p.sigma_dem
     ));
+    if p.gains.len() > 1 {
+        let list = |v: &[f64]| {
+            v.iter()
+                .map(|x| format!("{x:.4}"))
+                .collect::<Vec<_>>()
+                .join(", ")
+        };
+        progress.note(&format!(
+            "plan: {} observations, gains {} (relative to the first of each overlapping group), noise weights {}",
+            p.gains.len(),
+            list(&p.gains),
+            list(&p.noise_weights)
+        ));
+    }
     Ok(p)
 }
 
@@ -948,6 +963,7 @@ fn run_tile(o: &Orbital, inputs: &Inputs, plan: &Plan, tile: &Tile) -> Result<Ti
                     mask,
                     dem.clone(),
                     image.clone(),
+                    f.observations.mapv(f64::from),
                 ],
                 f.stages,
                 n,
@@ -965,6 +981,7 @@ fn run_tile(o: &Orbital, inputs: &Inputs, plan: &Plan, tile: &Tile) -> Result<Ti
                     Array2::ones(dim),
                     dem.clone(),
                     image.clone(),
+                    Array2::zeros(dim),
                 ],
                 Vec::new(),
                 0,
@@ -1290,6 +1307,12 @@ fn product_metadata(o: &Orbital, inputs: &Inputs, plan: &Plan) -> Vec<(&'static 
         sigma_dem: plan.sigma_dem,
         ..o.solver.clone()
     };
+    let join = |v: &[f64]| {
+        v.iter()
+            .map(|x| format!("{x}"))
+            .collect::<Vec<_>>()
+            .join(",")
+    };
     vec![
         ("SFSFUSE_VERSION", env!("CARGO_PKG_VERSION").to_string()),
         ("M3_PRODUCT_IDS", m3.join(",")),
@@ -1304,6 +1327,8 @@ fn product_metadata(o: &Orbital, inputs: &Inputs, plan: &Plan) -> Vec<(&'static 
             serde_json::to_string(&solver).expect("parameters serialise"),
         ),
         ("DEM_PSF_SIGMA_PX", format!("{}", plan.dem_psf_sigma)),
+        ("M3_GAINS", join(&plan.gains)),
+        ("M3_NOISE_WEIGHTS", join(&plan.noise_weights)),
         (
             "DEM_EFFECTIVE_RESOLUTION_M",
             format!("{}", plan.dem_resolution_m),
@@ -1320,7 +1345,7 @@ fn layer_info(l: Layer, lunar: bool) -> (&'static str, &'static str) {
             "",
         ),
         Layer::Residual => (
-            "|I - R| at the solution; no data without photometric information",
+            "|I/g - R| at the solution (w-weighted RMS over the observations used); no data without photometric information",
             "sr-1",
         ),
         Layer::Mask => (
@@ -1337,6 +1362,10 @@ fn layer_info(l: Layer, lunar: bool) -> (&'static str, &'static str) {
             "sr-1",
         ),
         Layer::Image => ("intensity image", ""),
+        Layer::Observations => (
+            "number of observations that carried photometric information at the pixel",
+            "",
+        ),
     }
 }
 
@@ -1382,7 +1411,24 @@ struct RunRecord<'a> {
     metrics: Metrics,
     /// Sanity figures for real data (orbital runs).
     sanity: Option<Sanity>,
+    /// Per M3 observation: gain, weight and how much of its footprint was photometric
+    /// (orbital runs).
+    observations: Vec<ObservationRecord>,
     outputs: Vec<PathBuf>,
+}
+
+/// One observation's part in a run.
+#[derive(Debug, Clone, Serialize)]
+struct ObservationRecord {
+    label: PathBuf,
+    /// Radiometric gain g relative to the first observation of its overlapping group.
+    gain: f64,
+    /// Noise weight ν (docs/science.md, "Several observations").
+    noise_weight: f64,
+    /// Its pixels on the grid (its footprint).
+    footprint_pixels: usize,
+    /// The share of its footprint where it carried photometric information.
+    photometric_fraction: f64,
 }
 
 /// [`Metrics`] gathered band by band.
@@ -1407,8 +1453,8 @@ impl MetricsAcc {
     }
 
     /// Add pixels: the layers in [`TILE_LAYERS`] order.
-    fn add(&mut self, l: &[Array2<f64>; 6]) {
-        let [h, a, r, m, d, _] = l;
+    fn add(&mut self, l: &[Array2<f64>; 7]) {
+        let [h, a, r, m, d, _, _] = l;
         self.n += h.len();
         self.phot += m.iter().filter(|&&v| v == 0.0).count();
         for (x, acc) in [(r, &mut self.res), (a, &mut self.alb)] {
@@ -1593,7 +1639,9 @@ fn mosaic(
                 *r = f64::NAN;
             }
         });
-        let layers: [Array2<f64>; 6] = layers.try_into().expect("six layers");
+        // Observation counts: the nearest whole number across a blend.
+        layers[6].mapv_inplace(f64::round);
+        let layers: [Array2<f64>; 7] = layers.try_into().expect("seven layers");
         stats.add(&layers);
         for (t, l) in thumbs.iter_mut().zip(&layers) {
             t.add(b0, l.view());
@@ -1639,6 +1687,21 @@ fn mosaic(
         tiles: records,
         metrics: stats.finish(),
         sanity: Some(sanity.clone()),
+        observations: inputs
+            .obs
+            .iter()
+            .enumerate()
+            .map(|(k, ob)| ObservationRecord {
+                label: ob.label_path.clone(),
+                gain: plan.gains.get(k).copied().unwrap_or(1.0),
+                noise_weight: plan.noise_weights.get(k).copied().unwrap_or(1.0),
+                footprint_pixels: sanity.observations.get(k).map_or(0, |o| o.footprint_pixels),
+                photometric_fraction: sanity
+                    .observations
+                    .get(k)
+                    .map_or(0.0, |o| o.photometric_fraction),
+            })
+            .collect(),
         outputs: outputs.clone(),
     };
     let path = write_record(out, &record)?;
@@ -1781,6 +1844,7 @@ fn run_lab(l: &Lab, wf: &Workflow, progress: &Progress) -> Result<RunSummary> {
         mask,
         depth.clone(),
         image.clone(),
+        f.observations.mapv(f64::from),
     ];
     let meta = [("SFSFUSE_VERSION", env!("CARGO_PKG_VERSION").to_string())];
     let mut outputs = Vec::new();
@@ -1844,6 +1908,7 @@ fn run_lab(l: &Lab, wf: &Workflow, progress: &Progress) -> Result<RunSummary> {
             stages: f.stages.clone(),
         }],
         sanity: None,
+        observations: Vec::new(),
         metrics: {
             let mut m = MetricsAcc::new();
             m.add(&layers);

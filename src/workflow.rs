@@ -282,16 +282,19 @@ pub enum Layer {
     /// The observed reflectance I on the grid (orbital: at the wavelength, from the first
     /// observation covering each pixel), sr⁻¹; the lab: the intensity image.
     Image,
+    /// How many observations carried photometric information at each pixel (0 where none).
+    Observations,
 }
 
 impl Layer {
-    pub const ALL: [Layer; 6] = [
+    pub const ALL: [Layer; 7] = [
         Layer::Dem,
         Layer::Albedo,
         Layer::Residual,
         Layer::Mask,
         Layer::InputDem,
         Layer::Image,
+        Layer::Observations,
     ];
 
     pub fn name(self) -> &'static str {
@@ -302,6 +305,7 @@ impl Layer {
             Layer::Mask => "mask",
             Layer::InputDem => "input_dem",
             Layer::Image => "image",
+            Layer::Observations => "observations",
         }
     }
 }

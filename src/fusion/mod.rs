@@ -180,6 +180,13 @@ pub struct FusionParams {
     /// Width, in pixels, of the band inside an observation's edge over which its weight ramps
     /// up where another observation carries on ([`observations::edge_weights`]).
     pub edge_ramp_px: f64,
+    /// Where two or more observations see a pixel under different Suns, shading and albedo
+    /// separate pixel by pixel: a last albedo stage of this σ_ρ (pixels) is run there,
+    /// blended into the last configured stage by the multi-coverage c(x) of
+    /// [`observations::Weights::multiplicity`] (no effect with one observation).
+    pub multi_albedo_sigma: f64,
+    /// σ of the final albedo map where c(x) = 1 (blended by c with `final_albedo_sigma`).
+    pub multi_final_albedo_sigma: f64,
 }
 
 impl Default for FusionParams {
@@ -200,6 +207,8 @@ impl Default for FusionParams {
             cg_iterations: 60,
             cg_tolerance: 0.1,
             edge_ramp_px: 16.0,
+            multi_albedo_sigma: 1.0,
+            multi_final_albedo_sigma: 0.7,
         }
     }
 }
@@ -358,7 +367,19 @@ fn validate(pr: &Problem, params: &FusionParams) -> Result<(), FusionError> {
         }
     }
     let sel = &pr.selection;
-    let checks: [(&'static str, f64, bool, &'static str); 12] = [
+    let checks: [(&'static str, f64, bool, &'static str); 14] = [
+        (
+            "multi_albedo_sigma",
+            params.multi_albedo_sigma,
+            params.multi_albedo_sigma >= 0.0,
+            "must be ≥ 0 pixels",
+        ),
+        (
+            "multi_final_albedo_sigma",
+            params.multi_final_albedo_sigma,
+            params.multi_final_albedo_sigma >= 0.0,
+            "must be ≥ 0 pixels",
+        ),
         (
             "edge_ramp_px",
             params.edge_ramp_px,
@@ -485,25 +506,34 @@ fn final_albedo(
     w: &Weights,
     dct: &Dct2d,
     z: ArrayView2<f64>,
+    sigma: f64,
     params: &FusionParams,
 ) -> Result<Array2<f64>, FusionError> {
     // Each inversion is weighted by Σ_k w_k (I_k/g_k)²: dim pixels (near the terminator)
     // amplify slope errors into albedo errors by ∂w/∂R ∝ 1/R.
     let (raw, ok, strength) = observations::invert_albedo(pr, w, z);
-    let fine = spectral::weighted_gaussian(dct, &raw, &strength, params.final_albedo_sigma)
+    let fine = spectral::weighted_gaussian(dct, &raw, &strength, sigma)
         .ok_or(FusionError::NoObservations)?;
     let wide_sigma = params
         .albedo_sigmas
         .last()
         .copied()
-        .unwrap_or(params.final_albedo_sigma)
-        .max(params.final_albedo_sigma);
+        .unwrap_or(sigma)
+        .max(sigma);
     let wide =
         spectral::masked_gaussian(dct, &raw, &ok, wide_sigma).ok_or(FusionError::NoObservations)?;
     Ok(Zip::from(&fine)
         .and(&wide)
         .and(&ok)
         .map_collect(|&f, &w, &k| if k { f } else { w }))
+}
+
+/// c·a + (1 − c)·b.
+fn blend(a: &Array2<f64>, b: &Array2<f64>, c: &Array2<f64>) -> Array2<f64> {
+    Zip::from(a)
+        .and(b)
+        .and(c)
+        .map_collect(|&a, &b, &c| c * a + (1.0 - c) * b)
 }
 
 /// Mean of I_k/g_k over the valid (finite, positive) pixels of all observations, and their count.
@@ -591,12 +621,36 @@ pub fn fuse(pr: &Problem, params: &FusionParams) -> Result<Fusion, FusionError> 
             seconds: t0.elapsed().as_secs_f64(),
         });
     }
+    let multi = w.multiplicity();
+    if let (Some(&last), true) = (params.albedo_sigmas.last(), multi.iter().any(|&c| c > 0.0)) {
+        let t0 = Instant::now();
+        let coarse = albedo_map(pr, w, &obj.dct, z.view(), last)?;
+        let fine = albedo_map(pr, w, &obj.dct, z.view(), params.multi_albedo_sigma)?;
+        let rho = blend(&fine, &coarse, &multi);
+        let iterations = minimise(&obj, &mut z, rho.view(), params, &mut |_| {});
+        stages.push(StageReport {
+            sigma_rho: params.multi_albedo_sigma,
+            iterations,
+            seconds: t0.elapsed().as_secs_f64(),
+        });
+    }
     // Beyond the support band the result is the input DEM; within it the correction fades.
     Zip::from(&mut z)
         .and(&obj.support)
         .and(pr.dem)
         .par_for_each(|z, &s, &d| *z = d + s * (*z - d));
-    let mut albedo = final_albedo(pr, w, &obj.dct, z.view(), params)?;
+    let mut albedo = final_albedo(pr, w, &obj.dct, z.view(), params.final_albedo_sigma, params)?;
+    if multi.iter().any(|&c| c > 0.0) {
+        let fine = final_albedo(
+            pr,
+            w,
+            &obj.dct,
+            z.view(),
+            params.multi_final_albedo_sigma,
+            params,
+        )?;
+        albedo = blend(&fine, &albedo, &multi);
+    }
     let photo = obj.photo(z.view(), albedo.view());
     // Off every image's footprint the albedo would only be the smoothing's fill: no data.
     let mut seen = Array2::from_elem(z.dim(), false);

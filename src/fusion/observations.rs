@@ -78,6 +78,27 @@ impl Weights {
         n
     }
 
+    /// c(x) = min(1, Σ_k u_k/max_k u_k − 1), u_k = w_k/ν_k (the edge ramp and incidence taper):
+    /// 0 where one observation carries the pixel (or none), 1 where a second one carries it in
+    /// full, continuous across the edge ramps.
+    pub fn multiplicity(&self) -> Array2<f64> {
+        let dim = self.weight[0].dim();
+        let mut sum = Array2::<f64>::zeros(dim);
+        let mut top = Array2::<f64>::zeros(dim);
+        for (w, &nu) in self.weight.iter().zip(&self.noise) {
+            Zip::from(&mut sum)
+                .and(&mut top)
+                .and(w)
+                .for_each(|s, t, &w| {
+                    *s += w / nu;
+                    *t = t.max(w / nu);
+                });
+        }
+        Zip::from(&sum)
+            .and(&top)
+            .map_collect(|&s, &t| if t > 0.0 { (s / t - 1.0).min(1.0) } else { 0.0 })
+    }
+
     /// True where at least one observation is usable.
     pub fn any(&self) -> Array2<bool> {
         let mut a = self.usable[0].clone();
