@@ -350,3 +350,62 @@ impl PipelineBench {
         )
     }
 }
+
+/// `sfsfuse bench --observations N`: the whole fusion (all albedo stages) of one scene seen
+/// by 1, 2, …, N observations under the demo's Suns, every observation covering every pixel,
+/// timed in one run; cost per observation relative to one.
+#[derive(Debug, Clone, Serialize)]
+pub struct ObservationsBench {
+    pub size: usize,
+    pub threads: usize,
+    /// (observations, seconds, seconds / the one-observation seconds, elevation RMSE m).
+    pub runs: Vec<(usize, f64, f64, f64)>,
+}
+
+pub fn run_observations(size: usize, max: usize, progress: &Progress) -> Result<ObservationsBench> {
+    let max = max.clamp(1, crate::synth::DEMO_SUNS.len());
+    let mut runs: Vec<(usize, f64, f64, f64)> = Vec::new();
+    progress.steps("observations", max as u64);
+    for n in 1..=max {
+        let spec = SceneSpec {
+            size,
+            ..SceneSpec::default()
+        }
+        .with_observations(&crate::synth::DEMO_SUNS[..n], &[], false);
+        let scene = generate(&spec);
+        let t0 = Instant::now();
+        let f = fuse(&scene.problem(), &FusionParams::default())?;
+        let secs = t0.elapsed().as_secs_f64();
+        let one = runs.first().map_or(secs, |r| r.1);
+        runs.push((
+            n,
+            secs,
+            secs / one,
+            crate::synth::rmse(&f.height, &scene.truth_height),
+        ));
+        progress.step(&format!("{n} observation(s): {secs:.2} s"));
+    }
+    progress.finish();
+    Ok(ObservationsBench {
+        size,
+        threads: rayon::current_num_threads(),
+        runs,
+    })
+}
+
+impl ObservationsBench {
+    pub fn table(&self) -> String {
+        let mut s = format!(
+            "fusion of one {0}×{0} px scene seen by 1…{1} observations (every pixel covered by all), {2} threads\n  observations   seconds   × one   elevation RMSE\n",
+            self.size,
+            self.runs.len(),
+            self.threads
+        );
+        for (n, secs, ratio, rmse) in &self.runs {
+            s.push_str(&format!(
+                "  {n:>12}   {secs:>7.2}   {ratio:>5.2}   {rmse:>8.2} m\n"
+            ));
+        }
+        s
+    }
+}

@@ -197,6 +197,10 @@ enum Command {
         /// Tile size for `--pipeline`.
         #[arg(long, default_value_t = 512)]
         tile: usize,
+        /// Benchmark the fusion's cost against the number of observations instead: one scene
+        /// seen by 1 … N observations (at most 6).
+        #[arg(long, conflicts_with = "pipeline", value_parser = clap::value_parser!(u8).range(1..=6))]
+        observations: Option<u8>,
         /// Print JSON instead of a table.
         #[arg(long)]
         json: bool,
@@ -426,6 +430,18 @@ fn run(cli: Cli) -> Result<(), sfsfuse::Error> {
                 p.truth_albedo.display()
             );
             emit(json, &p, table);
+        }
+        Command::Bench {
+            size,
+            json,
+            observations: Some(n),
+            progress,
+            ..
+        } => {
+            let progress = progress_of(progress);
+            let report = sfsfuse::bench::run_observations(size, n as usize, &progress)?;
+            drop(progress);
+            emit(json, &report, report.table());
         }
         Command::Bench {
             size,

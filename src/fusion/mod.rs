@@ -486,7 +486,23 @@ pub fn render(pr: &Problem, k: usize, z: ArrayView2<f64>, rho: ArrayView2<f64>) 
     out
 }
 
-/// Masked Gaussian of the per-pixel (joint) albedo on surface `z`.
+/// Masked Gaussians, one per σ of `sigmas`, of the per-pixel (joint) albedo on surface `z`
+/// (one inversion for all of them).
+fn albedo_maps(
+    pr: &Problem,
+    w: &Weights,
+    dct: &Dct2d,
+    z: ArrayView2<f64>,
+    sigmas: &[f64],
+) -> Result<Vec<Array2<f64>>, FusionError> {
+    let (raw, ok, _) = observations::invert_albedo(pr, w, z);
+    sigmas
+        .iter()
+        .map(|&s| spectral::masked_gaussian(dct, &raw, &ok, s).ok_or(FusionError::NoObservations))
+        .collect()
+}
+
+/// The masked Gaussian of width `sigma` of the per-pixel (joint) albedo on surface `z`.
 fn albedo_map(
     pr: &Problem,
     w: &Weights,
@@ -494,25 +510,21 @@ fn albedo_map(
     z: ArrayView2<f64>,
     sigma: f64,
 ) -> Result<Array2<f64>, FusionError> {
-    let (raw, ok, _) = observations::invert_albedo(pr, w, z);
-    spectral::masked_gaussian(dct, &raw, &ok, sigma).ok_or(FusionError::NoObservations)
+    Ok(albedo_maps(pr, w, dct, z, &[sigma])?.remove(0))
 }
 
-/// The final albedo: the per-pixel joint inversion on the final surface, smoothed by
-/// `final_albedo_sigma` where it is defined; pixels without an inversion (shadow, no data) take
-/// the wider last-stage estimate (σ_ρ of the last stage), which draws on more context.
+/// The final albedo: the per-pixel joint inversion on the final surface (`raw`, defined where
+/// `ok`, weighted by `strength` = Σ_k w_k (I_k/g_k)²: dim pixels near the terminator amplify
+/// slope errors into albedo errors by ∂w/∂R ∝ 1/R), smoothed by `sigma` where it is defined;
+/// pixels without an inversion (shadow, no data) take the wider last-stage estimate (σ_ρ of
+/// the last stage), which draws on more context.
 fn final_albedo(
-    pr: &Problem,
-    w: &Weights,
     dct: &Dct2d,
-    z: ArrayView2<f64>,
+    (raw, ok, strength): &(Array2<f64>, Array2<bool>, Array2<f64>),
     sigma: f64,
     params: &FusionParams,
 ) -> Result<Array2<f64>, FusionError> {
-    // Each inversion is weighted by Σ_k w_k (I_k/g_k)²: dim pixels (near the terminator)
-    // amplify slope errors into albedo errors by ∂w/∂R ∝ 1/R.
-    let (raw, ok, strength) = observations::invert_albedo(pr, w, z);
-    let fine = spectral::weighted_gaussian(dct, &raw, &strength, sigma)
+    let fine = spectral::weighted_gaussian(dct, raw, strength, sigma)
         .ok_or(FusionError::NoObservations)?;
     let wide_sigma = params
         .albedo_sigmas
@@ -521,10 +533,10 @@ fn final_albedo(
         .unwrap_or(sigma)
         .max(sigma);
     let wide =
-        spectral::masked_gaussian(dct, &raw, &ok, wide_sigma).ok_or(FusionError::NoObservations)?;
+        spectral::masked_gaussian(dct, raw, ok, wide_sigma).ok_or(FusionError::NoObservations)?;
     Ok(Zip::from(&fine)
         .and(&wide)
-        .and(&ok)
+        .and(ok)
         .map_collect(|&f, &w, &k| if k { f } else { w }))
 }
 
@@ -624,9 +636,14 @@ pub fn fuse(pr: &Problem, params: &FusionParams) -> Result<Fusion, FusionError> 
     let multi = w.multiplicity();
     if let (Some(&last), true) = (params.albedo_sigmas.last(), multi.iter().any(|&c| c > 0.0)) {
         let t0 = Instant::now();
-        let coarse = albedo_map(pr, w, &obj.dct, z.view(), last)?;
-        let fine = albedo_map(pr, w, &obj.dct, z.view(), params.multi_albedo_sigma)?;
-        let rho = blend(&fine, &coarse, &multi);
+        let maps = albedo_maps(
+            pr,
+            w,
+            &obj.dct,
+            z.view(),
+            &[params.multi_albedo_sigma, last],
+        )?;
+        let rho = blend(&maps[0], &maps[1], &multi);
         let iterations = minimise(&obj, &mut z, rho.view(), params, &mut |_| {});
         stages.push(StageReport {
             sigma_rho: params.multi_albedo_sigma,
@@ -639,16 +656,10 @@ pub fn fuse(pr: &Problem, params: &FusionParams) -> Result<Fusion, FusionError> 
         .and(&obj.support)
         .and(pr.dem)
         .par_for_each(|z, &s, &d| *z = d + s * (*z - d));
-    let mut albedo = final_albedo(pr, w, &obj.dct, z.view(), params.final_albedo_sigma, params)?;
+    let inverted = observations::invert_albedo(pr, w, z.view());
+    let mut albedo = final_albedo(&obj.dct, &inverted, params.final_albedo_sigma, params)?;
     if multi.iter().any(|&c| c > 0.0) {
-        let fine = final_albedo(
-            pr,
-            w,
-            &obj.dct,
-            z.view(),
-            params.multi_final_albedo_sigma,
-            params,
-        )?;
+        let fine = final_albedo(&obj.dct, &inverted, params.multi_final_albedo_sigma, params)?;
         albedo = blend(&fine, &albedo, &multi);
     }
     let photo = obj.photo(z.view(), albedo.view());

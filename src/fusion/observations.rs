@@ -280,11 +280,15 @@ fn median(v: &mut [f64]) -> Option<f64> {
     })
 }
 
+/// The most pixels a pair of observations is sampled at for its gain ratio.
+pub const GAIN_SAMPLES: usize = 1 << 16;
+
 /// Fewest overlapping pixels from which a pair of observations informs the gains.
 pub const MIN_OVERLAP: usize = 50;
 
 /// The gains g_k, from where observations overlap on surface `z`: for each pair (j, k) the
-/// median over their common usable pixels of ln(I_k/g_k) − ln R_k(ρ_j), ρ_j inverted from
+/// median over their common usable pixels (every `stride`-th row and column, at most about
+/// [`GAIN_SAMPLES`]) of ln(I_k/g_k) − ln R_k(ρ_j), ρ_j inverted from
 /// I_j/g_j, is the error of ln g_k − ln g_j; the logs are corrected by least squares over the
 /// pairs (weighted by overlap size) with the first observation of each connected group fixed,
 /// three times over (R is not linear in ρ for Hapke). Observations overlapping no other keep
@@ -297,6 +301,9 @@ pub fn estimate_gains(pr: &Problem, usable: &[Array2<bool>], z: ArrayView2<f64>)
     }
     let (p, q) = super::ops::gradient(z, pr.spacing);
     let model: &dyn ReflectanceModel = pr.model;
+    // Every `stride`-th row and column: at most ≈ GAIN_SAMPLES pixels per pair (a median needs
+    // no more, and each sample costs an albedo inversion).
+    let stride = ((z.len() as f64 / GAIN_SAMPLES as f64).sqrt().ceil() as usize).max(1);
     for _ in 0..3 {
         let g: Vec<f64> = log_g.iter().map(|l: &f64| l.exp()).collect();
         let mut pairs = Vec::new();
@@ -305,9 +312,10 @@ pub fn estimate_gains(pr: &Problem, usable: &[Array2<bool>], z: ArrayView2<f64>)
                 let (oj, ok) = (&pr.observations[j], &pr.observations[k]);
                 let rows: Vec<Vec<f64>> = (0..z.nrows())
                     .into_par_iter()
+                    .step_by(stride)
                     .map(|i| {
                         let mut out = Vec::new();
-                        for c in 0..z.ncols() {
+                        for c in (0..z.ncols()).step_by(stride) {
                             if !(usable[j][(i, c)] && usable[k][(i, c)]) {
                                 continue;
                             }
@@ -455,7 +463,11 @@ pub fn invert_albedo(
                         if den <= 0.0 {
                             break;
                         }
-                        r = (r + num / den).clamp(1e-6, 0.999);
+                        let step = num / den;
+                        r = (r + step).clamp(1e-6, 0.999);
+                        if step.abs() < 1e-7 {
+                            break;
+                        }
                     }
                 }
                 rrow[j] = r;
