@@ -69,10 +69,7 @@ fn number(path: &Path, obj: &Object, key: &str) -> Result<f64> {
 
 /// `key (line N)` for messages, where the keyword is in `obj`.
 fn at(obj: &Object, key: &str) -> String {
-    match obj.attribute(key) {
-        Some(a) => format!("{key} (line {})", a.line),
-        None => key.to_string(),
-    }
+    obj.at(key)
 }
 
 /// A numeric keyword that may be absent; present, it must be a finite number.

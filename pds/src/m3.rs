@@ -75,7 +75,7 @@ impl Observation {
             Some(m) => {
                 return Err(Error::invalid(
                     path,
-                    "INSTRUMENT_MODE_ID",
+                    &label.root.at("INSTRUMENT_MODE_ID"),
                     format!("{m} is neither GLOBAL nor TARGET"),
                 ))
             }
@@ -90,14 +90,14 @@ impl Observation {
             .ok_or_else(|| {
                 Error::invalid(
                     path,
-                    "SOLAR_DISTANCE",
-                    format!("{sd:?} is not a lunar Sun distance in AU"),
+                    &label.root.at("SOLAR_DISTANCE"),
+                    format!("{sd:?} is not a lunar Sun distance in AU (0.5 to 1.5)"),
                 )
             })?;
         if let Some(u) = sd.unit().filter(|u| !u.eq_ignore_ascii_case("AU")) {
             return Err(Error::invalid(
                 path,
-                "SOLAR_DISTANCE",
+                &label.root.at("SOLAR_DISTANCE"),
                 format!("unit <{u}>, expected <AU>"),
             ));
         }
@@ -199,14 +199,21 @@ fn part_of(path: &Path, label: &Label, part: &str) -> Result<Raster> {
     let image = holder
         .child(&img_obj)
         .ok_or_else(|| Error::missing(path, &format!("OBJECT = {img_obj} in {file_obj}")))?;
-    let record_bytes = holder
-        .get("RECORD_BYTES")
-        .and_then(|v| v.as_i64())
-        .ok_or_else(|| Error::missing(path, &format!("RECORD_BYTES in {file_obj}")))?;
-    let records = holder
-        .get("FILE_RECORDS")
-        .and_then(|v| v.as_i64())
-        .ok_or_else(|| Error::missing(path, &format!("FILE_RECORDS in {file_obj}")))?;
+    let count = |key: &str| -> Result<i64> {
+        let v = holder
+            .get(key)
+            .ok_or_else(|| Error::missing(path, &format!("{key} in {file_obj}")))?;
+        match v.as_i64() {
+            Some(n) if n >= 1 => Ok(n),
+            _ => Err(Error::invalid(
+                path,
+                &format!("{} in {file_obj}", holder.at(key)),
+                format!("{v:?} is not a positive integer"),
+            )),
+        }
+    };
+    let record_bytes = count("RECORD_BYTES")?;
+    let records = count("FILE_RECORDS")?;
     let (data, offset) = resolve(path, holder, &img_obj, Some(record_bytes.max(0) as u64))?;
     let r = Raster::from_object(path, image, data, offset)?;
     let line_bytes = (r.samples * r.bands * r.sample_type.bytes()) as i64;

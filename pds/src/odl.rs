@@ -114,6 +114,14 @@ impl Object {
             .map(|a| &a.value)
     }
     /// The attribute record (with its line) named `key`.
+    /// `KEY (line N)` for messages, where the keyword is in this object; `KEY` otherwise.
+    pub fn at(&self, key: &str) -> String {
+        match self.attribute(key) {
+            Some(a) => format!("{key} (line {})", a.line),
+            None => key.to_string(),
+        }
+    }
+
     pub fn attribute(&self, key: &str) -> Option<&Attribute> {
         self.attributes
             .iter()

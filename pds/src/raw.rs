@@ -96,13 +96,14 @@ fn positive(label: &Path, obj: &Object, key: &str) -> Result<usize> {
     let v = obj
         .get(key)
         .ok_or_else(|| Error::missing(label, &format!("{key} in OBJECT {}", obj.name)))?;
+    let at = obj.at(key);
     let n = v
         .as_i64()
-        .ok_or_else(|| Error::invalid(label, key, format!("{v:?} is not an integer")))?;
+        .ok_or_else(|| Error::invalid(label, &at, format!("{v:?} is not an integer")))?;
     if n <= 0 {
-        return Err(Error::invalid(label, key, format!("{n} must be positive")));
+        return Err(Error::invalid(label, &at, format!("{n} must be positive")));
     }
-    usize::try_from(n).map_err(|_| Error::invalid(label, key, "too large"))
+    usize::try_from(n).map_err(|_| Error::invalid(label, &at, "too large"))
 }
 
 impl Raster {
@@ -121,14 +122,20 @@ impl Raster {
             .get("SAMPLE_TYPE")
             .and_then(|v| v.as_str())
             .ok_or_else(|| Error::missing(label, "SAMPLE_TYPE"))?;
-        let bits = obj
-            .get("SAMPLE_BITS")
-            .and_then(|v| v.as_i64())
-            .ok_or_else(|| Error::missing(label, "SAMPLE_BITS"))?;
+        let bits = match obj.get("SAMPLE_BITS") {
+            None => return Err(Error::missing(label, "SAMPLE_BITS")),
+            Some(v) => v.as_i64().ok_or_else(|| {
+                Error::invalid(
+                    label,
+                    &obj.at("SAMPLE_BITS"),
+                    format!("{v:?} is not an integer"),
+                )
+            })?,
+        };
         let sample_type = SampleType::from_label(kind, bits).ok_or_else(|| {
             Error::invalid(
                 label,
-                "SAMPLE_TYPE",
+                &obj.at("SAMPLE_TYPE"),
                 format!("{kind} with SAMPLE_BITS = {bits} is not supported"),
             )
         })?;
@@ -140,7 +147,7 @@ impl Raster {
             Some(s) => {
                 return Err(Error::invalid(
                     label,
-                    "BAND_STORAGE_TYPE",
+                    &obj.at("BAND_STORAGE_TYPE"),
                     format!("{s} is not supported"),
                 ))
             }

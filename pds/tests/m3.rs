@@ -153,6 +153,67 @@ fn a_missing_or_truncated_part_is_named() {
     std::fs::remove_dir_all(&dir).unwrap();
 }
 
+/// Every label value the reader uses is checked where it is read: a value that is not a
+/// number, or out of its range, is refused naming the keyword and its line.
+#[test]
+fn bad_label_values_are_refused_with_keyword_and_line() {
+    let Some(data) = test_data() else { return };
+    let src = data.join("m3_l1b_crops/reverseDescending");
+    let dir = std::env::temp_dir().join(format!("pds-m3-values-{}", std::process::id()));
+    std::fs::create_dir_all(&dir).unwrap();
+    for e in std::fs::read_dir(&src).unwrap() {
+        let p = e.unwrap().path();
+        std::fs::copy(&p, dir.join(p.file_name().unwrap())).unwrap();
+    }
+    let lbl = dir.join(SETS[2].1);
+    let original = std::fs::read_to_string(&lbl).unwrap();
+    let cases = [
+        (
+            "RECORD_BYTES = 3648",
+            "RECORD_BYTES = abc",
+            "RECORD_BYTES (line 49) in RDN_FILE",
+        ),
+        (
+            "RECORD_BYTES = 3648",
+            "RECORD_BYTES = -98",
+            "RECORD_BYTES (line 49) in RDN_FILE",
+        ),
+        (
+            "  FILE_RECORDS = 5",
+            "  FILE_RECORDS = 0",
+            "FILE_RECORDS (line 50) in RDN_FILE",
+        ),
+        ("    LINES = 5", "    LINES = 0", "LINES (line 52)"),
+        (
+            "    SAMPLE_BITS = 32",
+            "    SAMPLE_BITS = x32",
+            "SAMPLE_BITS (line 55)",
+        ),
+        (
+            "SOLAR_DISTANCE = 0.984326066205 <AU>",
+            "SOLAR_DISTANCE = 7 <AU>",
+            "SOLAR_DISTANCE (line 29)",
+        ),
+        (
+            "SOLAR_DISTANCE = 0.984326066205 <AU>",
+            "SOLAR_DISTANCE = far",
+            "SOLAR_DISTANCE (line 29)",
+        ),
+        (
+            "INSTRUMENT_MODE_ID = GLOBAL",
+            "INSTRUMENT_MODE_ID = ZOOM",
+            "INSTRUMENT_MODE_ID (line 30)",
+        ),
+    ];
+    for (from, to, want) in cases {
+        assert!(original.contains(from), "{from:?} not in the label");
+        std::fs::write(&lbl, original.replacen(from, to, 1)).unwrap();
+        let e = Observation::open(&lbl).unwrap_err().to_string();
+        assert!(e.contains(want) && e.contains(SETS[2].1), "{to}: {e}");
+    }
+    std::fs::remove_dir_all(&dir).unwrap();
+}
+
 #[test]
 fn solar_spectrum_table() {
     let Some(data) = test_data() else { return };
