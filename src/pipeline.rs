@@ -19,7 +19,7 @@
 //! deterministic, and the mosaic sums tiles in id order.
 
 use crate::error::{Error, Result};
-use crate::export::{write_tiff, BandInfo, CogWriter, Container};
+use crate::export::{BandInfo, CogWriter, Container, SampleFormat};
 use crate::fusion::{self, Directions, FusionParams, Problem, StageReport};
 use crate::grid::{Crs, Grid, Projector};
 use crate::ingest::{self, SwathIndex};
@@ -1336,6 +1336,15 @@ fn product_metadata(o: &Orbital, inputs: &Inputs, plan: &Plan) -> Vec<(&'static 
     ]
 }
 
+/// How a layer is stored: the mask and the observation counts are whole numbers (Byte), the
+/// rest float32.
+fn sample_format(l: Layer) -> SampleFormat {
+    match l {
+        Layer::Mask | Layer::Observations => SampleFormat::Byte,
+        _ => SampleFormat::Float32,
+    }
+}
+
 fn layer_info(l: Layer, lunar: bool) -> (&'static str, &'static str) {
     match l {
         Layer::Dem if lunar => ("fused height above the 1737.4 km sphere", "m"),
@@ -1577,7 +1586,15 @@ fn mosaic(
         };
         writers.push((
             k,
-            CogWriter::create(&path, Some(&plan.grid), cols, rows, &info, Container::Auto)?,
+            CogWriter::create_as(
+                &path,
+                Some(&plan.grid),
+                cols,
+                rows,
+                &info,
+                Container::Auto,
+                sample_format(l),
+            )?,
         ));
         outputs.push(path);
     }
@@ -1855,15 +1872,21 @@ fn run_lab(l: &Lab, wf: &Workflow, progress: &Progress) -> Result<RunSummary> {
             .expect("every layer exists");
         let (description, unit) = layer_info(layer, false);
         let path = out.join(format!("{}.tif", layer.name()));
-        write_tiff(
+        let mut w = CogWriter::create_as(
             &path,
-            layers[k].view(),
+            None,
+            layers[k].ncols(),
+            layers[k].nrows(),
             &BandInfo {
                 description,
                 unit,
                 metadata: &meta,
             },
+            Container::Auto,
+            sample_format(layer),
         )?;
+        w.push(layers[k].view())?;
+        w.finish()?;
         outputs.push(path);
     }
     let files = vec![l.inputs.image.clone(), l.inputs.depth.clone()];

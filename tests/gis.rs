@@ -295,6 +295,56 @@ fn gdal_reads_crs_geotransform_nodata_and_values_and_validates_the_cog() {
     std::fs::remove_dir_all(&dir).unwrap();
 }
 
+/// A Byte band (the `mask` and `observations` layers): GDAL reads it as Byte with no-data 255,
+/// the values exactly, and the COG validator accepts it.
+#[test]
+#[ignore = "needs GDAL (gdal-bin, python3-gdal); .ci/run runs it"]
+fn gdal_reads_byte_bands_as_byte_cogs() {
+    let gdalinfo = external_tool("gdalinfo", "gdal-bin");
+    let dir = scratch("gdal-byte");
+    let grid = test_grid(crss()[0]);
+    let a = Array2::from_shape_fn((grid.rows, grid.cols), |(r, c)| {
+        if r == 3 && c == 4 {
+            f64::NAN
+        } else {
+            ((r / 7 + c / 11) % 4) as f64
+        }
+    });
+    let p = dir.join("count.tif");
+    let mut w = sfsfuse::export::CogWriter::create_as(
+        &p,
+        Some(&grid),
+        grid.cols,
+        grid.rows,
+        &BandInfo {
+            description: "observations",
+            unit: "",
+            metadata: &[],
+        },
+        Container::Auto,
+        sfsfuse::export::SampleFormat::Byte,
+    )
+    .unwrap();
+    w.push(a.view()).unwrap();
+    w.finish().unwrap();
+    let j: serde_json::Value =
+        serde_json::from_str(&run(Command::new(&gdalinfo).arg("-json").arg(&p))).unwrap();
+    let band = &j["bands"][0];
+    assert_eq!(band["type"], "Byte");
+    assert_eq!(band["noDataValue"], 255.0);
+    assert_eq!(band["overviews"].as_array().unwrap().len(), 2);
+    assert_eq!(j["metadata"]["IMAGE_STRUCTURE"]["LAYOUT"], "COG");
+    let ps = grid.crs.proj_string();
+    let (_, v) = gdal_python(&p, grid.crs.iau_2015().unwrap_or(&ps));
+    for (x, y) in v.iter().zip(a.iter()) {
+        let want = if y.is_nan() { 255.0 } else { *y };
+        assert_eq!(*x as f64, want);
+    }
+    let out = run(Command::new("/usr/bin/python3").arg(COG_VALIDATOR).arg(&p));
+    assert!(out.contains("is a valid cloud optimized GeoTIFF"), "{out}");
+    std::fs::remove_dir_all(&dir).unwrap();
+}
+
 /// The optional GDAL writer (`--features gdal`) meets the same bar, and its files read back
 /// exactly with the tiff crate too.
 #[cfg(feature = "gdal")]

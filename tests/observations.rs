@@ -21,9 +21,9 @@ fn fused(spec: &SceneSpec) -> (Scene, Fusion) {
 }
 
 /// Two Suns 120° apart in azimuth, then three; the second observation 5 % brighter and the
-/// third 3 % darker than the first (calibration differences). The bars are 0.65× and
-/// 0.55× the better single image; this scene measures 0.67× and 0.57× (docs/science.md), and
-/// the test holds what is reached so that it cannot slip back.
+/// third 3 % darker than the first (calibration differences). The bars: elevation RMSE ≤ 0.65×
+/// the better single image with two, ≤ 0.55× with three (this scene: 0.646× and 0.529×,
+/// docs/science.md), albedo RMSE ≤ 0.008, gains recovered.
 #[test]
 fn two_and_three_illuminations_beat_the_better_single_image() {
     let spec = base();
@@ -66,8 +66,9 @@ fn two_and_three_illuminations_beat_the_better_single_image() {
     }
     let (_, h2, b2) = results[0];
     let (_, h3, b3) = results[1];
-    assert!(h2 <= 0.70 * b2, "two: {h2:.2} m vs {b2:.2} m");
-    assert!(h3 <= 0.60 * b3, "three: {h3:.2} m vs {b3:.2} m");
+    assert!(h2 <= 0.65 * b2, "two: {h2:.2} m vs {b2:.2} m");
+    assert!(h3 <= 0.55 * b3, "three: {h3:.2} m vs {b3:.2} m");
+    assert!(h3 <= 5.0, "three: {h3:.2} m > 5 m");
     assert!(h3 < h2, "a third Sun must help: {h3:.2} m vs {h2:.2} m");
 }
 
@@ -101,7 +102,7 @@ fn overlapping_strips_are_better_in_the_overlap_and_show_no_edge() {
         assert!(one <= 10.0 && 2.0 * one <= input, "{one:.2} m");
     }
     assert!(
-        overlap <= 0.75 * 0.5 * (left + right),
+        overlap <= 0.70 * 0.5 * (left + right),
         "overlap {overlap:.2} m vs {left:.2} / {right:.2} m"
     );
     // Where both strips cover a pixel, both are counted; outside, one.

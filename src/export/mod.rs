@@ -2,7 +2,9 @@
 //!
 //! One float32 band, 256 × 256 tiles, DEFLATE with the floating-point predictor (TIFF Technical
 //! Note 3, Predictor = 3), NaN as no-data (`GDAL_NODATA = "nan"`), internal overviews (2 × 2
-//! means of the valid pixels) down to one tile, and GeoKeys for the lunar CRS (docs/gis.md).
+//! means of the valid pixels) down to one tile, and GeoKeys for the lunar CRS (docs/gis.md);
+//! or one Byte band of whole numbers ([`SampleFormat::Byte`]: horizontal predictor, 255 as
+//! no-data, nearest overviews) for counts and masks.
 //!
 //! Layout (GDAL's COG definition, checked by GDAL's `validate_cloud_optimized_geotiff.py`):
 //! header; GDAL's structural-metadata "ghost" block right after it (`LAYOUT=IFDS_BEFORE_DATA`,
@@ -42,6 +44,23 @@ pub struct BandInfo<'a> {
     /// Extra dataset-level metadata items (name, value), e.g. the tool version.
     pub metadata: &'a [(&'a str, String)],
 }
+
+/// How a band's samples are stored.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Default)]
+pub enum SampleFormat {
+    /// IEEE float32, NaN as no-data (`GDAL_NODATA = nan`), the floating-point predictor
+    /// (TIFF Technical Note 3, Predictor = 3), overviews the mean of each 2 × 2 block's valid
+    /// pixels.
+    #[default]
+    Float32,
+    /// Unsigned 8-bit whole numbers 0–254 (counts, classes), [`BYTE_NODATA`] as no-data,
+    /// horizontal differencing (Predictor = 2), overviews the first valid pixel of each 2 × 2
+    /// block (nearest: a count or a class is never averaged).
+    Byte,
+}
+
+/// The no-data value of [`SampleFormat::Byte`] bands.
+pub const BYTE_NODATA: u8 = 255;
 
 /// Which TIFF container to write.
 #[derive(Debug, Clone, Copy, PartialEq, Eq, Default)]
@@ -124,6 +143,7 @@ pub struct CogWriter {
     grid: Option<Grid>,
     info: OwnedInfo,
     container: Container,
+    format: SampleFormat,
     levels: Vec<Level>,
     stats: Stats,
     done: bool,
@@ -213,7 +233,8 @@ struct Level {
 }
 
 impl CogWriter {
-    /// A writer for a `width × height` band to `path` (`grid` = None: no GeoTIFF tags).
+    /// A writer for a `width × height` float32 band to `path` (`grid` = None: no GeoTIFF
+    /// tags).
     pub fn create(
         path: &Path,
         grid: Option<&Grid>,
@@ -221,6 +242,27 @@ impl CogWriter {
         height: usize,
         info: &BandInfo,
         container: Container,
+    ) -> Result<Self> {
+        Self::create_as(
+            path,
+            grid,
+            width,
+            height,
+            info,
+            container,
+            SampleFormat::Float32,
+        )
+    }
+
+    /// [`CogWriter::create`] with a choice of sample format.
+    pub fn create_as(
+        path: &Path,
+        grid: Option<&Grid>,
+        width: usize,
+        height: usize,
+        info: &BandInfo,
+        container: Container,
+        format: SampleFormat,
     ) -> Result<Self> {
         if width == 0 || height == 0 || width > u32::MAX as usize || height > u32::MAX as usize {
             return Err(Error::Usage(format!(
@@ -268,6 +310,7 @@ impl CogWriter {
                     .collect(),
             },
             container,
+            format,
             levels,
             stats: Stats::default(),
             done: false,
@@ -288,6 +331,18 @@ impl CogWriter {
                 l.w
             )));
         }
+        if self.format == SampleFormat::Byte {
+            if let Some(((r, c), x)) = rows
+                .indexed_iter()
+                .find(|(_, x)| !(x.is_nan() || (x.fract() == 0.0 && (0.0..255.0).contains(*x))))
+            {
+                return Err(Error::Usage(format!(
+                    "{}: {x} at row {}, column {c} is not a whole number 0–254 for a Byte band",
+                    self.path.display(),
+                    l.rows_in + r
+                )));
+            }
+        }
         let v: Vec<f32> = rows.iter().map(|&x| x as f32).collect();
         self.stats.add(&v);
         self.push_level(0, v, rows.nrows())
@@ -307,12 +362,14 @@ impl CogWriter {
             let take = buffered.min(TILE);
             let band: Vec<f32> = lv.buf.drain(..take * lv.w).collect();
             let band = Array2::from_shape_vec((take, lv.w), band).expect("band shape");
-            for t in compress_level(band.view()) {
+            let format = self.format;
+            let lv = &mut self.levels[k];
+            for t in compress_level(band.view(), format) {
                 lv.file.write_all(&t).map_err(|e| Error::io(&lv.tmp, e))?;
                 lv.sizes.push(t.len() as u64);
             }
             if k + 1 < self.levels.len() {
-                let half = halve(band.view());
+                let half = halve(band.view(), format);
                 let n = half.nrows();
                 self.push_level(k + 1, half.into_raw_vec_and_offset().0, n)?;
             }
@@ -365,10 +422,14 @@ impl CogWriter {
         let grid = self.grid;
         let xml = gdal_metadata(&info, &self.stats);
         let main = |k: usize| (k == 0).then_some((grid.as_ref(), xml.as_str()));
+        let format = self.format;
         let mut ifd_pos = Vec::new();
         for (k, l) in self.levels.iter().enumerate() {
             ifd_pos.push(pos);
-            pos += ifd_size(&level_tags(k, (l.h, l.w), &l.sizes, main(k), &w, &[]), &w);
+            pos += ifd_size(
+                &level_tags(k, (l.h, l.w), &l.sizes, main(k), &w, &[], format),
+                &w,
+            );
             pos += pos % 2;
         }
         // Data: smallest overview first, full resolution last.
@@ -395,7 +456,7 @@ impl CogWriter {
             head.extend_from_slice(&ghost);
             for (k, l) in self.levels.iter().enumerate() {
                 pad_to(&mut head, ifd_pos[k]);
-                let tags = level_tags(k, (l.h, l.w), &l.sizes, main(k), &w, &offsets[k]);
+                let tags = level_tags(k, (l.h, l.w), &l.sizes, main(k), &w, &offsets[k], format);
                 let next = ifd_pos.get(k + 1).copied().unwrap_or(0);
                 write_ifd(&mut head, &tags, ifd_pos[k], next, &w);
             }
@@ -462,9 +523,19 @@ fn pad_to(out: &mut Vec<u8>, pos: u64) {
     out.resize(pos as usize, 0);
 }
 
-/// The next overview: each pixel the mean of the valid (non-NaN) pixels of its 2 × 2 block.
-fn halve(a: ArrayView2<f32>) -> Array2<f32> {
+/// The next overview: each pixel the mean of the valid (non-NaN) pixels of its 2 × 2 block
+/// (float32), or the first valid pixel in row order (Byte).
+fn halve(a: ArrayView2<f32>, format: SampleFormat) -> Array2<f32> {
     let (h, w) = a.dim();
+    if format == SampleFormat::Byte {
+        return Array2::from_shape_fn((h.div_ceil(2), w.div_ceil(2)), |(r, c)| {
+            (2 * r..(2 * r + 2).min(h))
+                .flat_map(|i| (2 * c..(2 * c + 2).min(w)).map(move |j| (i, j)))
+                .map(|ij| a[ij])
+                .find(|v| !v.is_nan())
+                .unwrap_or(f32::NAN)
+        });
+    }
     Array2::from_shape_fn((h.div_ceil(2), w.div_ceil(2)), |(r, c)| {
         let (mut s, mut n) = (0.0f64, 0u32);
         for i in 2 * r..(2 * r + 2).min(h) {
@@ -486,7 +557,7 @@ fn halve(a: ArrayView2<f32>) -> Array2<f32> {
 
 /// Every tile of one level, DEFLATE-compressed after the floating-point predictor; tiles at the
 /// right and bottom edges are padded with no-data.
-fn compress_level(a: ArrayView2<f32>) -> Vec<Vec<u8>> {
+fn compress_level(a: ArrayView2<f32>, format: SampleFormat) -> Vec<Vec<u8>> {
     let (h, w) = a.dim();
     let (ty, tx) = (h.div_ceil(TILE), w.div_ceil(TILE));
     (0..ty * tx)
@@ -506,7 +577,10 @@ fn compress_level(a: ArrayView2<f32>) -> Vec<Vec<u8>> {
                         *v = a[(r, c0 + c)];
                     }
                 }
-                raw.extend_from_slice(&float_predictor(&row));
+                match format {
+                    SampleFormat::Float32 => raw.extend_from_slice(&float_predictor(&row)),
+                    SampleFormat::Byte => raw.extend_from_slice(&byte_predictor(&row)),
+                }
             }
             let mut z = ZlibEncoder::new(Vec::new(), Compression::new(6));
             z.write_all(&raw).expect("writing to memory");
@@ -530,6 +604,20 @@ fn float_predictor(row: &[f32]) -> Vec<u8> {
         b[j] = b[j].wrapping_sub(b[j - 1]);
     }
     b
+}
+
+/// TIFF's horizontal predictor (Predictor = 2) on one row of bytes (NaN → [`BYTE_NODATA`]):
+/// each byte minus its left neighbour, modulo 256.
+fn byte_predictor(row: &[f32]) -> Vec<u8> {
+    let b: Vec<u8> = row
+        .iter()
+        .map(|&v| if v.is_nan() { BYTE_NODATA } else { v as u8 })
+        .collect();
+    let mut out = b.clone();
+    for j in 1..b.len() {
+        out[j] = b[j].wrapping_sub(b[j - 1]);
+    }
+    out
 }
 
 /// Offsets are 4 bytes (classic TIFF) or 8 (BigTIFF).
@@ -594,8 +682,14 @@ fn level_tags(
     main: Option<(Option<&Grid>, &str)>,
     width: &Width,
     offsets: &[u64],
+    format: SampleFormat,
 ) -> Vec<Entry> {
     let n = sizes.len();
+    let byte_nodata = BYTE_NODATA.to_string();
+    let (bits, predictor, sample_format, nodata) = match format {
+        SampleFormat::Float32 => (32, 3, 3, "nan"),
+        SampleFormat::Byte => (8, 2, 1, byte_nodata.as_str()),
+    };
     let offsets: Vec<u64> = if offsets.is_empty() {
         vec![0; n]
     } else {
@@ -605,12 +699,12 @@ fn level_tags(
         longs(254, &[u32::from(level > 0)]),
         longs(256, &[w as u32]),
         longs(257, &[h as u32]),
-        shorts(258, &[32]),
+        shorts(258, &[bits]),
         shorts(259, &[8]),
         shorts(262, &[1]),
         shorts(277, &[1]),
         shorts(284, &[1]),
-        shorts(317, &[3]),
+        shorts(317, &[predictor]),
         shorts(322, &[TILE as u16]),
         shorts(323, &[TILE as u16]),
         if width.big {
@@ -624,8 +718,8 @@ fn level_tags(
             longs(324, &offsets.iter().map(|&x| x as u32).collect::<Vec<_>>())
         },
         longs(325, &sizes.iter().map(|&t| t as u32).collect::<Vec<_>>()),
-        shorts(339, &[3]),
-        ascii(42113, "nan"),
+        shorts(339, &[sample_format]),
+        ascii(42113, nodata),
     ];
     if let Some((grid, xml)) = main {
         if let Some(grid) = grid {
@@ -846,12 +940,86 @@ mod tests {
             vec![1.0, 3.0, 5.0, f32::NAN, 2.0, 7.0, 4.0, 4.0, f32::NAN],
         )
         .unwrap();
-        let h = halve(a.view());
+        let h = halve(a.view(), SampleFormat::Float32);
         assert_eq!(h.dim(), (2, 2));
         assert_eq!(h[(0, 0)], 2.0);
         assert_eq!(h[(0, 1)], 6.0);
         assert_eq!(h[(1, 0)], 4.0);
         assert!(h[(1, 1)].is_nan());
+        // Byte bands (counts, classes): the first valid pixel, never a mean.
+        let b = halve(a.view(), SampleFormat::Byte);
+        assert_eq!(b[(0, 0)], 1.0);
+        assert_eq!(b[(0, 1)], 5.0);
+        assert_eq!(b[(1, 0)], 4.0);
+        assert!(b[(1, 1)].is_nan());
+    }
+
+    #[test]
+    fn byte_predictor_differences_bytes_and_marks_no_data() {
+        assert_eq!(
+            byte_predictor(&[3.0, 5.0, 2.0, f32::NAN]),
+            vec![3, 2, 253, 253]
+        );
+    }
+
+    /// A Byte band round-trips through the tiff crate with its no-data value, and values that
+    /// do not fit are refused naming the file and the pixel.
+    #[test]
+    fn byte_bands_round_trip_and_refuse_what_does_not_fit() {
+        let dir = std::env::temp_dir().join(format!("sfsfuse-byte-{}", std::process::id()));
+        std::fs::create_dir_all(&dir).unwrap();
+        let path = dir.join("count.tif");
+        let a = Array2::from_shape_fn((300, 270), |(i, j)| {
+            if i == 7 && j == 9 {
+                f64::NAN
+            } else {
+                ((i + 2 * j) % 5) as f64
+            }
+        });
+        let info = BandInfo {
+            description: "a count",
+            unit: "",
+            metadata: &[],
+        };
+        let mut w = CogWriter::create_as(
+            &path,
+            None,
+            270,
+            300,
+            &info,
+            Container::Auto,
+            SampleFormat::Byte,
+        )
+        .unwrap();
+        w.push(a.view()).unwrap();
+        w.finish().unwrap();
+        let r = read_tiff(&path).unwrap();
+        assert_eq!(r.nodata, Some(255.0));
+        assert_eq!(r.images, 2);
+        for ((i, j), &v) in r.data.indexed_iter() {
+            let want = if (i, j) == (7, 9) { 255.0 } else { a[(i, j)] };
+            assert_eq!(v, want, "({i}, {j})");
+        }
+        let mut w = CogWriter::create_as(
+            &path,
+            None,
+            2,
+            1,
+            &info,
+            Container::Auto,
+            SampleFormat::Byte,
+        )
+        .unwrap();
+        let e = w
+            .push(Array2::from_elem((1, 2), 2.5).view())
+            .unwrap_err()
+            .to_string();
+        assert!(
+            e.contains("count.tif") && e.contains("2.5") && e.contains("row 0"),
+            "{e}"
+        );
+        drop(w);
+        std::fs::remove_dir_all(&dir).unwrap();
     }
 
     #[test]

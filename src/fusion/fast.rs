@@ -41,7 +41,8 @@ fn data_normal(
     out
 }
 
-/// Preconditioned CG for (Dᵀ(H + M)D + 2K + H_Q)Δ = −g in DCT coefficients (K the tie's
+/// Preconditioned CG for (Dᵀ(H + M)D + 2K + H_Q + H_R)Δ (H_R the DEM term's relief field,
+/// [`Objective::relief_hessian`]) = −g in DCT coefficients (K the tie's
 /// per-pixel weight); returns (Δ, iterations). Without a tie no term sees the mean height, which
 /// stays the DEM's; with one, the mean is solved for too.
 fn newton_step(
@@ -65,7 +66,13 @@ fn newton_step(
     let cy = spectral::central_symbol(ny);
     let tie = obj.tie.as_ref().map(|k| 2.0 * ops::sum(k.view()) / n);
     let mut minv = spectral::separable(&cy, &cx, |sy, sx| (ax * sx + ay * sy) / e2);
-    minv += hq;
+    if obj.dem_relief.is_some() {
+        // The relief field lowers δ where several observations overlap: precondition with
+        // its mean.
+        minv += &obj.quadratic_hessian_with(obj.delta * (1.0 - obj.mean_relief()));
+    } else {
+        minv += hq;
+    }
     minv += tie.unwrap_or(0.0);
     minv.mapv_inplace(|m| if m > 0.0 { 1.0 / m } else { 0.0 });
     let fixed_mean = tie.is_none();
@@ -79,6 +86,9 @@ fn newton_step(
             .and(hq)
             .and(d)
             .par_for_each(|o, &h, &x| *o += h * x);
+        if let Some(rh) = obj.relief_hessian(d) {
+            out.scaled_add(obj.delta, &rh);
+        }
         if fixed_mean {
             out[(0, 0)] = 0.0;
         }

@@ -187,6 +187,9 @@ pub struct FusionParams {
     pub multi_albedo_sigma: f64,
     /// σ of the final albedo map where c(x) = 1 (blended by c with `final_albedo_sigma`).
     pub multi_final_albedo_sigma: f64,
+    /// Where several observations carry a pixel, δ is lowered to δ × this (blended by the
+    /// multi-coverage c(x); [`objective::Objective::with_multi_delta`]); 1 keeps δ everywhere.
+    pub multi_delta_factor: f64,
 }
 
 impl Default for FusionParams {
@@ -209,6 +212,7 @@ impl Default for FusionParams {
             edge_ramp_px: 16.0,
             multi_albedo_sigma: 1.0,
             multi_final_albedo_sigma: 0.7,
+            multi_delta_factor: 0.3,
         }
     }
 }
@@ -367,7 +371,13 @@ fn validate(pr: &Problem, params: &FusionParams) -> Result<(), FusionError> {
         }
     }
     let sel = &pr.selection;
-    let checks: [(&'static str, f64, bool, &'static str); 14] = [
+    let checks: [(&'static str, f64, bool, &'static str); 15] = [
+        (
+            "multi_delta_factor",
+            params.multi_delta_factor,
+            params.multi_delta_factor > 0.0 && params.multi_delta_factor <= 1.0,
+            "must be in (0, 1]",
+        ),
         (
             "multi_albedo_sigma",
             params.multi_albedo_sigma,
@@ -614,7 +624,8 @@ fn objective<'a, 'p>(
         pr.dem_psf_sigma,
         scale,
         w,
-    ))
+    )
+    .with_multi_delta(params.multi_delta_factor))
 }
 
 /// Run the whole fusion: albedo stages, each followed by a surface solve.

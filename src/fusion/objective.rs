@@ -116,6 +116,10 @@ pub struct Objective<'a, 'p> {
     pub support: Array2<f64>,
     /// κ(x)/ε², the tie's per-pixel weight; `None` when the image covers every pixel.
     pub tie: Option<Array2<f64>>,
+    /// r(x) = (1 − f)·c(x): where several observations carry a pixel (multi-coverage c of
+    /// [`Weights::multiplicity`]) the DEM term's weight there is δ·(1 − r), down to δ·f
+    /// ([`Objective::with_multi_delta`]); `None`: δ everywhere.
+    pub dem_relief: Option<Array2<f64>>,
 }
 
 impl<'a, 'p> Objective<'a, 'p> {
@@ -189,7 +193,89 @@ impl<'a, 'p> Objective<'a, 'p> {
             weights,
             support,
             tie,
+            dem_relief: None,
         }
+    }
+
+    /// Lower the DEM term's weight to δ·`factor` where several observations carry a pixel,
+    /// blended by their multi-coverage c(x): δ(x) = δ·(1 − (1 − factor)·c(x)). With two or more
+    /// Suns the image fixes the slopes in every direction, and the DEM's own errors inside
+    /// the σ_DEM passband (track offsets, noise) are then the largest left (docs/science.md,
+    /// "Several observations"). No effect where one observation carries a pixel.
+    pub fn with_multi_delta(mut self, factor: f64) -> Self {
+        let c = self.weights.multiplicity();
+        if factor < 1.0 && c.iter().any(|&c| c > 0.0) {
+            self.dem_relief = Some(c.mapv(|c| (1.0 - factor) * c));
+        }
+        self
+    }
+
+    /// u = IDCT(ĝ_s·ẑ − ĝ_σ·T̂): the field whose forward-difference gradient E_DEM measures.
+    fn dem_residual(&self, zh: &Array2<f64>) -> Array2<f64> {
+        self.dct.inverse(
+            &Zip::from(&self.gs)
+                .and(zh)
+                .and(&self.dem_target)
+                .map_collect(|&g, &z, &t| g * z - t),
+        )
+    }
+
+    /// Σ r·|D u|²/ε² (the part of E_DEM the relief field takes away; r on an edge is the mean
+    /// of its two pixels) and, when `grad`, its gradient with respect to u, 2Dᵀ(r∘Du)/ε².
+    fn relief_term(
+        &self,
+        r: &Array2<f64>,
+        u: &Array2<f64>,
+        grad: bool,
+    ) -> (f64, Option<Array2<f64>>) {
+        let (ny, nx) = u.dim();
+        let e2 = self.problem.spacing * self.problem.spacing;
+        // Weighted differences on the edges to the east (fx) and to the south (fy) of each
+        // pixel, 0 past the last column or row (Neumann).
+        let mut fx = Array2::<f64>::zeros((ny, nx));
+        let mut fy = Array2::<f64>::zeros((ny, nx));
+        let mut sum = Array2::<f64>::zeros((ny, nx));
+        Zip::indexed(&mut fx)
+            .and(&mut fy)
+            .and(&mut sum)
+            .par_for_each(|(i, j), fx, fy, sum| {
+                if j + 1 < nx {
+                    let d = u[(i, j + 1)] - u[(i, j)];
+                    *fx = 0.5 * (r[(i, j)] + r[(i, j + 1)]) * d;
+                    *sum += *fx * d;
+                }
+                if i + 1 < ny {
+                    let d = u[(i + 1, j)] - u[(i, j)];
+                    *fy = 0.5 * (r[(i, j)] + r[(i + 1, j)]) * d;
+                    *sum += *fy * d;
+                }
+                *sum /= e2;
+            });
+        let g = grad.then(|| {
+            Zip::indexed(&fx).par_map_collect(|(i, j), &x| {
+                let west = if j > 0 { fx[(i, j - 1)] } else { 0.0 };
+                let north = if i > 0 { fy[(i - 1, j)] } else { 0.0 };
+                2.0 * (west - x + north - fy[(i, j)]) / e2
+            })
+        });
+        (ops::sum(sum.view()), g)
+    }
+
+    /// The relief part of the quadratic Hessian applied to DCT coefficients d̂:
+    /// −ĝ_s·DCT(2Dᵀ(r∘D IDCT(ĝ_s d̂))/ε²) (to be multiplied by δ); `None` without relief.
+    pub fn relief_hessian(&self, d: &Array2<f64>) -> Option<Array2<f64>> {
+        let r = self.dem_relief.as_ref()?;
+        let u = self.dct.inverse(&(&self.gs * d));
+        let (_, g) = self.relief_term(r, &u, true);
+        let gh = self.dct.forward(&g.expect("asked for"));
+        Some(Zip::from(&gh).and(&self.gs).map_collect(|&x, &g| -g * x))
+    }
+
+    /// The mean of r(x) (0 without relief): the preconditioner uses δ·(1 − mean r).
+    pub fn mean_relief(&self) -> f64 {
+        self.dem_relief
+            .as_ref()
+            .map_or(0.0, |r| ops::sum(r.view()) / r.len() as f64)
     }
 
     /// E_tie at `z`.
@@ -348,7 +434,11 @@ impl<'a, 'p> Objective<'a, 'p> {
             .and(zh)
             .and(&self.dem_hat)
             .map_collect(|&l, &z, &t| l * (z - t) * (z - t));
-        (ops::sum(dem.view()), ops::sum(reg.view()))
+        let mut dem = ops::sum(dem.view());
+        if let Some(r) = &self.dem_relief {
+            dem -= self.relief_term(r, &self.dem_residual(zh), false).0;
+        }
+        (dem, ops::sum(reg.view()))
     }
 
     /// Everything the solvers need at one iterate: photometric state, ẑ and the energy.
@@ -394,6 +484,14 @@ impl<'a, 'p> Objective<'a, 'p> {
             .and(zh)
             .and(&self.dem_hat)
             .for_each(|o, &l, &z, &d| *o += 2.0 * l * self.eta * (z - d));
+        if let Some(r) = &self.dem_relief {
+            let (_, gu) = self.relief_term(r, &self.dem_residual(zh), true);
+            let gh = self.dct.forward(&gu.expect("asked for"));
+            Zip::from(&mut quad_hat)
+                .and(&gh)
+                .and(&self.gs)
+                .for_each(|o, &x, &g| *o -= self.delta * g * x);
+        }
         let mut g = data + self.dct.inverse(&quad_hat);
         if let Some(k) = &self.tie {
             Zip::from(&mut g)
@@ -405,11 +503,17 @@ impl<'a, 'p> Objective<'a, 'p> {
         g
     }
 
-    /// Diagonal of the quadratic terms' Hessian in the DCT basis: 2(λ/ε²)(δĝ_s² + η).
+    /// Diagonal of the quadratic terms' Hessian in the DCT basis without the relief field:
+    /// 2(λ/ε²)(δĝ_s² + η).
     pub fn quadratic_hessian(&self) -> Array2<f64> {
+        self.quadratic_hessian_with(self.delta)
+    }
+
+    /// 2(λ/ε²)(δ'ĝ_s² + η) for a given δ'.
+    pub fn quadratic_hessian_with(&self, delta: f64) -> Array2<f64> {
         Zip::from(&self.lam)
             .and(&self.gs)
-            .map_collect(|&l, &g| 2.0 * l * (self.delta * g * g + self.eta))
+            .map_collect(|&l, &g| 2.0 * l * (delta * g * g + self.eta))
     }
 }
 
@@ -578,7 +682,8 @@ mod tests {
             4.0,
         );
         assert!(w.weight[1][(3, 9)] > 0.0 && w.weight[1][(3, 9)] < 0.7);
-        let obj = Objective::new(&pr, 3.0, 0.2, 1.2, 1.5, 0.03, w);
+        let obj = Objective::new(&pr, 3.0, 0.2, 1.2, 1.5, 0.03, w).with_multi_delta(0.3);
+        assert!(obj.dem_relief.as_ref().unwrap()[(5, 15)] > 0.5);
         assert_gradient_matches(&obj, &z, &[(3, 4), (6, 9), (5, 15), (11, 25), (0, 29)]);
     }
 
