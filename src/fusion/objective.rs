@@ -547,6 +547,17 @@ mod tests {
     use crate::fusion::Directions;
     use crate::photometry::Hapke;
 
+    /// A smooth surface z and a different smooth DEM, metres.
+    fn surfaces(ny: usize, nx: usize) -> (Array2<f64>, Array2<f64>) {
+        let z = Array2::from_shape_fn((ny, nx), |(i, j)| {
+            30.0 * (0.4 * i as f64).sin() + 20.0 * (0.3 * j as f64).cos()
+        });
+        let dem = Array2::from_shape_fn((ny, nx), |(i, j)| {
+            25.0 * (0.35 * i as f64).sin() + 0.5 * j as f64
+        });
+        (z, dem)
+    }
+
     /// Every finite pixel usable, unit gains, no edge ramps.
     fn weights_of(pr: &Problem, scale: f64) -> Weights {
         let k = pr.observations.len();
@@ -581,12 +592,7 @@ mod tests {
     #[test]
     fn gradient_matches_finite_differences() {
         let (ny, nx) = (12, 10);
-        let z = Array2::from_shape_fn((ny, nx), |(i, j)| {
-            30.0 * (0.4 * i as f64).sin() + 20.0 * (0.3 * j as f64).cos()
-        });
-        let dem = Array2::from_shape_fn((ny, nx), |(i, j)| {
-            25.0 * (0.35 * i as f64).sin() + 0.5 * j as f64
-        });
+        let (z, dem) = surfaces(ny, nx);
         let image =
             Array2::from_shape_fn((ny, nx), |(i, j)| 0.03 + 0.002 * ((i * 3 + j) % 5) as f64);
         let model = Hapke::moon();
@@ -608,12 +614,7 @@ mod tests {
     #[test]
     fn gradient_matches_finite_differences_where_the_image_ends() {
         let (ny, nx) = (12, 30);
-        let z = Array2::from_shape_fn((ny, nx), |(i, j)| {
-            30.0 * (0.4 * i as f64).sin() + 20.0 * (0.3 * j as f64).cos()
-        });
-        let dem = Array2::from_shape_fn((ny, nx), |(i, j)| {
-            25.0 * (0.35 * i as f64).sin() + 0.5 * j as f64
-        });
+        let (z, dem) = surfaces(ny, nx);
         let image = Array2::from_shape_fn((ny, nx), |(i, j)| {
             if j >= 20 {
                 f64::NAN
@@ -642,12 +643,7 @@ mod tests {
     #[test]
     fn gradient_matches_finite_differences_with_two_observations() {
         let (ny, nx) = (12, 30);
-        let z = Array2::from_shape_fn((ny, nx), |(i, j)| {
-            30.0 * (0.4 * i as f64).sin() + 20.0 * (0.3 * j as f64).cos()
-        });
-        let dem = Array2::from_shape_fn((ny, nx), |(i, j)| {
-            25.0 * (0.35 * i as f64).sin() + 0.5 * j as f64
-        });
+        let (z, dem) = surfaces(ny, nx);
         let strip = |lo: usize, hi: usize, g: f64| {
             Array2::from_shape_fn((ny, nx), |(i, j)| {
                 if j < lo || j >= hi {

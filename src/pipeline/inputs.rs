@@ -1,0 +1,247 @@
+//! The run's opened inputs: M3 observations, DEM products (LOLA GDR or GeoTIFF) with their
+//! effective resolution, the solar table (checked against the observations' mode), the model.
+
+use super::*;
+
+/// The opened inputs of an orbital run.
+pub(super) struct Inputs {
+    pub(super) obs: Vec<Observation>,
+    pub(super) lola: Vec<Dem>,
+    pub(super) solar: SolarSpectrum,
+    pub(super) model: Box<dyn ReflectanceModel>,
+}
+
+impl Inputs {
+    /// Fetch what `[fetch]` lists (cached files are not downloaded again), then open.
+    pub(super) fn open(o: &Orbital, progress: &Progress) -> Result<Self> {
+        if let Some(f) = &o.fetch {
+            progress.stage("fetching inputs");
+            crate::fetch::fetch(&f.products, &f.directory, &f.sources, progress)?;
+            progress.finish();
+        }
+        let obs: Vec<Observation> = o
+            .inputs
+            .m3
+            .iter()
+            .map(|p| Observation::open(p))
+            .collect::<std::result::Result<_, _>>()?;
+        let solar = SolarSpectrum::read(&o.inputs.solar_spectrum)?;
+        check_solar_mode(&solar, &obs)?;
+        Ok(Inputs {
+            obs,
+            lola: o
+                .inputs
+                .lola
+                .iter()
+                .map(|p| Dem::open(p))
+                .collect::<Result<_>>()?,
+            solar,
+            model: o.photometry.build(),
+        })
+    }
+
+    /// Every file the run reads.
+    pub(super) fn files(&self) -> Result<Vec<PathBuf>> {
+        let mut v = Vec::new();
+        for o in &self.obs {
+            v.push(o.label_path.clone());
+            v.push(o.rdn.path.clone());
+            for part in ["LOC", "OBS"] {
+                v.push(o.part(part)?.path);
+            }
+        }
+        for d in &self.lola {
+            match d {
+                Dem::Pds(d) => v.extend([d.label_path.clone(), d.raster.path.clone()]),
+                Dem::GeoTiff(d) => v.push(d.path.clone()),
+            }
+        }
+        v.push(self.solar.path.clone());
+        v.dedup();
+        Ok(v)
+    }
+}
+
+/// The solar table must follow the observations' band sampling: M3's GLOBAL and TARGET modes
+/// have different bands, and a table of the other mode gives the wrong irradiance for the
+/// band (its band passes differ) without any other sign.
+pub(super) fn check_solar_mode(solar: &SolarSpectrum, obs: &[Observation]) -> Result<()> {
+    let Some(table) = solar.mode() else {
+        return Ok(());
+    };
+    let name = |m: pds::m3::Mode| match m {
+        pds::m3::Mode::Global => "GLOBAL",
+        pds::m3::Mode::Target => "TARGET",
+    };
+    for o in obs {
+        if o.mode != table {
+            return Err(Error::Usage(format!(
+                "{} is a {}-mode solar spectrum table ({} rows) but {} has INSTRUMENT_MODE_ID = {}: give [inputs] solar_spectrum the {} table (M3{}20110224_RFL_SOLAR_SPEC.TAB)",
+                solar.path.display(),
+                name(table),
+                solar.rows.len(),
+                o.label_path.display(),
+                name(o.mode),
+                name(o.mode),
+                if o.mode == pds::m3::Mode::Global { "G" } else { "T" }
+            )));
+        }
+    }
+    Ok(())
+}
+
+/// An input DEM: a LOLA GDR (PDS3 label) or a GeoTIFF on the Moon sphere.
+pub(super) enum Dem {
+    Pds(LolaDem),
+    GeoTiff(ingest::GeoTiffDem),
+}
+
+impl Dem {
+    /// `.tif`/`.tiff` is a GeoTIFF; anything else a PDS3 label.
+    pub(super) fn open(p: &Path) -> Result<Dem> {
+        let ext = p
+            .extension()
+            .and_then(|e| e.to_str())
+            .unwrap_or("")
+            .to_ascii_lowercase();
+        Ok(if ext == "tif" || ext == "tiff" {
+            Dem::GeoTiff(ingest::GeoTiffDem::open(p)?)
+        } else {
+            Dem::Pds(LolaDem::open(p)?)
+        })
+    }
+
+    pub(super) fn on_grid(
+        &self,
+        geo: &crate::grid::Geographic,
+        method: crate::grid::Interpolation,
+    ) -> Result<Array2<f64>> {
+        match self {
+            Dem::Pds(d) => ingest::lola_on_grid(d, geo, method),
+            Dem::GeoTiff(d) => ingest::geotiff_on_grid(d, geo, method),
+        }
+    }
+
+    /// Pixel size, metres.
+    pub(super) fn pixel_m(&self) -> f64 {
+        match self {
+            Dem::Pds(d) => d.map_scale_m,
+            Dem::GeoTiff(d) => d.pixel_m(),
+        }
+    }
+
+    /// The spacing of the independent heights behind the DEM at latitude `lat` (degrees), and
+    /// why. A LOLA-only GDR (`LDEM_*`) is gridded from altimeter tracks and interpolated
+    /// between them: where its pixels are finer than the gaps between tracks, MAP_SCALE
+    /// overstates its resolution. The gaps are about [`LOLA_TRACK_GAP_M`] at the equator and
+    /// shrink with cos(latitude) as the polar orbits converge. Other DEMs (SLDEM2015, merged
+    /// with stereo and not interpolated; GeoTIFFs) are taken at their pixel size.
+    pub(super) fn effective_resolution(&self, lat: f64) -> (f64, String) {
+        let pixel = self.pixel_m();
+        let Dem::Pds(d) = self else {
+            return (pixel, "GeoTIFF pixel size".into());
+        };
+        let id = d
+            .label
+            .get("PRODUCT_ID")
+            .and_then(|v| v.as_str())
+            .map(str::to_string)
+            .or_else(|| {
+                d.label_path
+                    .file_stem()
+                    .map(|s| s.to_string_lossy().into_owned())
+            })
+            .unwrap_or_default()
+            .to_ascii_uppercase();
+        if !id.starts_with("LDEM") {
+            return (pixel, format!("{id}: MAP_SCALE"));
+        }
+        let gap = LOLA_TRACK_GAP_M * lat.to_radians().cos().abs();
+        if gap > pixel {
+            (
+                gap,
+                format!("{id}: LOLA track gap {LOLA_TRACK_GAP_M} m × cos(latitude {lat:.2}°), coarser than MAP_SCALE {pixel:.1} m"),
+            )
+        } else {
+            (
+                pixel,
+                format!("{id}: MAP_SCALE (coarser than the LOLA track gap {gap:.0} m)"),
+            )
+        }
+    }
+}
+
+/// Typical gap between LOLA ground tracks at the equator, metres: after years of polar orbits
+/// the tracks still leave kilometre-scale gaps at low latitudes that gridded products fill by
+/// interpolation (docs/science.md, "The DEM's effective resolution").
+pub const LOLA_TRACK_GAP_M: f64 = 1000.0;
+
+/// Every observation whose swath reaches `grid`, on it (`index` of [`Plan::swaths`]), in input
+/// order with its index: reflectance NaN where the geometry is not finite; observations
+/// without a finite pixel are left out.
+pub(super) fn observations_on(
+    o: &Orbital,
+    inputs: &Inputs,
+    swaths: &[SwathIndex],
+    grid: &Grid,
+    pr: &Projector,
+    geo: &crate::grid::Geographic,
+) -> Result<Vec<(usize, ingest::ImageOnGrid)>> {
+    let mut shots = Vec::new();
+    for (k, (obs, index)) in inputs.obs.iter().zip(swaths).enumerate() {
+        if index.lines_for(grid).is_none() {
+            continue;
+        }
+        let mut img = ingest::m3_on_grid(
+            obs,
+            &inputs.solar,
+            o.inputs.wavelength_nm,
+            grid,
+            pr,
+            geo,
+            Some(index),
+        )?;
+        Zip::from(&mut img.reflectance)
+            .and(&img.sun)
+            .and(&img.view)
+            .for_each(|r, s, v| {
+                if !(s[2].is_finite() && v[2].is_finite()) {
+                    *r = f64::NAN;
+                }
+            });
+        if img.reflectance.iter().any(|r| r.is_finite()) {
+            shots.push((k, img));
+        }
+    }
+    Ok(shots)
+}
+
+/// The fusion's view of [`observations_on`]'s images.
+pub(super) fn fusion_observations(
+    shots: &[(usize, ingest::ImageOnGrid)],
+) -> Vec<fusion::Observation<'_>> {
+    shots
+        .iter()
+        .map(|(_, img)| fusion::Observation {
+            image: img.reflectance.view(),
+            sun: Directions::PerPixel(img.sun.clone()),
+            view: Directions::PerPixel(img.view.clone()),
+        })
+        .collect()
+}
+
+/// The DEM on the grid's points: at each, the first product that covers it (NaN where none).
+pub(super) fn dem_on(o: &Orbital, inputs: &Inputs, geo: &crate::grid::Geographic) -> Array2<f64> {
+    let mut dem = Array2::from_elem(geo.lon.dim(), f64::NAN);
+    for d in &inputs.lola {
+        let Ok(h) = d.on_grid(geo, o.grid.dem_interpolation) else {
+            continue;
+        };
+        Zip::from(&mut dem).and(&h).for_each(|a, &b| {
+            if a.is_nan() {
+                *a = b;
+            }
+        });
+    }
+    dem
+}

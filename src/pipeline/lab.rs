@@ -1,0 +1,211 @@
+//! Laboratory workflows: an intensity image and a range-scan depth map on one pixel grid.
+
+use super::*;
+
+/// Read a single-band raster (TIFF or PNG) for lab mode.
+pub(super) fn read_raster(path: &Path) -> Result<Array2<f64>> {
+    let ext = path
+        .extension()
+        .and_then(|e| e.to_str())
+        .unwrap_or("")
+        .to_ascii_lowercase();
+    match ext.as_str() {
+        "tif" | "tiff" => Ok(crate::export::read_tiff(path)?.data),
+        "png" => crate::quicklook::read_png(path),
+        _ => Err(Error::Usage(format!(
+            "{}: give a .tif/.tiff or .png raster",
+            path.display()
+        ))),
+    }
+}
+
+/// Fill holes (NaN) in a depth map with the mean of their valid 8-neighbours, repeatedly,
+/// inward from the hole's edge (deterministic: each sweep reads the previous sweep).
+pub(super) fn fill_holes(a: &mut Array2<f64>) -> usize {
+    let (h, w) = a.dim();
+    let holes = a.iter().filter(|v| !v.is_finite()).count();
+    for _ in 0..h.max(w) {
+        let prev = a.clone();
+        let mut left = 0;
+        for r in 0..h {
+            for c in 0..w {
+                if prev[(r, c)].is_finite() {
+                    continue;
+                }
+                let (mut s, mut n) = (0.0, 0);
+                for dr in -1isize..=1 {
+                    for dc in -1isize..=1 {
+                        let (rr, cc) = (r as isize + dr, c as isize + dc);
+                        if (0..h as isize).contains(&rr) && (0..w as isize).contains(&cc) {
+                            let v = prev[(rr as usize, cc as usize)];
+                            if v.is_finite() {
+                                s += v;
+                                n += 1;
+                            }
+                        }
+                    }
+                }
+                if n > 0 {
+                    a[(r, c)] = s / n as f64;
+                } else {
+                    left += 1;
+                }
+            }
+        }
+        if left == 0 {
+            break;
+        }
+    }
+    holes
+}
+
+pub(super) fn run_lab(l: &Lab, wf: &Workflow, progress: &Progress) -> Result<RunSummary> {
+    let out = &l.output.directory;
+    std::fs::create_dir_all(out).map_err(|e| Error::io(out, e))?;
+    progress.stage("reading the image and the depth map");
+    let image = read_raster(&l.inputs.image)?;
+    let mut depth = read_raster(&l.inputs.depth)?;
+    if image.dim() != depth.dim() {
+        return Err(Error::Usage(format!(
+            "{} is {:?} pixels but {} is {:?}: the image and the depth map must share one pixel grid",
+            l.inputs.image.display(),
+            image.dim(),
+            l.inputs.depth.display(),
+            depth.dim()
+        )));
+    }
+    if let Some(nd) = l.inputs.depth_nodata {
+        depth.mapv_inplace(|v| if v == nd { f64::NAN } else { v });
+    }
+    depth.mapv_inplace(|v| v * l.inputs.depth_scale);
+    if depth.iter().all(|v| !v.is_finite()) {
+        return Err(Error::Usage(format!(
+            "{}: the depth map has no valid value",
+            l.inputs.depth.display()
+        )));
+    }
+    let filled = fill_holes(&mut depth);
+    if filled > 0 {
+        progress.note(&format!(
+            "depth map: {filled} missing values filled from their neighbours"
+        ));
+    }
+    let model = l.photometry.build();
+    if let ModelSpec::Hapke(_) = l.photometry {
+        progress.note("lab workflow with the Hapke model: intensities must be bidirectional reflectance (sr⁻¹)");
+    }
+    let d = |x: crate::workflow::Direction| crate::synth::direction(x.zenith_deg, x.azimuth_deg);
+    let problem = Problem::single(
+        image.view(),
+        Directions::Uniform(d(l.illumination.light)),
+        Directions::Uniform(d(l.illumination.view)),
+        depth.view(),
+        l.inputs.pixel_size_m,
+        l.inputs.depth_psf_sigma_px,
+        model.as_ref(),
+    );
+    progress.stage("fusing");
+    let t0 = Instant::now();
+    let params: &FusionParams = &l.solver;
+    let f = fusion::fuse(&problem, params)?;
+    let seconds = t0.elapsed().as_secs_f64();
+    progress.finish();
+    let mask = f.photometric.mapv(|b| if b { 0.0 } else { 1.0 });
+    let layers = [
+        f.height.clone(),
+        f.albedo.clone(),
+        f.residual.clone(),
+        mask,
+        depth.clone(),
+        image.clone(),
+        f.observations.mapv(f64::from),
+    ];
+    let meta = [("SFSFUSE_VERSION", env!("CARGO_PKG_VERSION").to_string())];
+    let mut outputs = Vec::new();
+    for &layer in &l.output.layers {
+        let k = TILE_LAYERS
+            .iter()
+            .position(|&x| x == layer)
+            .expect("every layer exists");
+        let (description, unit) = layer_info(layer, false);
+        let path = out.join(format!("{}.tif", layer.name()));
+        let mut w = CogWriter::create_as(
+            &path,
+            None,
+            layers[k].ncols(),
+            layers[k].nrows(),
+            &BandInfo {
+                description,
+                unit,
+                metadata: &meta,
+            },
+            Container::Auto,
+            sample_format(layer),
+        )?;
+        w.push(layers[k].view())?;
+        w.finish()?;
+        outputs.push(path);
+    }
+    let files = vec![l.inputs.image.clone(), l.inputs.depth.clone()];
+    let (rows, cols) = image.dim();
+    let record = RunRecord {
+        tool: "sfsfuse",
+        version: env!("CARGO_PKG_VERSION"),
+        workflow: wf,
+        inputs: checksums(&files, progress)?,
+        grid: None,
+        crs_wkt: None,
+        halo: None,
+        intensity_scale: None,
+        dem_psf_sigma: None,
+        resolution_source: None,
+        dem_resolution_m: None,
+        dem_resolution_source: None,
+        sigma_dem: None,
+        threads: rayon::current_num_threads(),
+        tiles: vec![TileRecord {
+            id: 0,
+            key: String::new(),
+            core: Window {
+                r0: 0,
+                c0: 0,
+                rows,
+                cols,
+            },
+            ext: Window {
+                r0: 0,
+                c0: 0,
+                rows,
+                cols,
+            },
+            status: "fused".into(),
+            photometric_pixels: f.photometric.iter().filter(|&&b| b).count(),
+            sanity: TileSums::default(),
+            // A lab run writes no tile file.
+            layers_sha256: String::new(),
+            iterations: f.iterations(),
+            seconds,
+            stages: f.stages.clone(),
+        }],
+        sanity: None,
+        observations: Vec::new(),
+        metrics: {
+            let mut m = MetricsAcc::new();
+            m.add(&layers);
+            m.finish()
+        },
+        outputs: outputs.clone(),
+    };
+    let path = write_record(out, &record)?;
+    Ok(RunSummary {
+        output_directory: out.clone(),
+        tiles_total: 1,
+        tiles_run: 1,
+        tiles_skipped: 0,
+        mosaic: true,
+        outputs,
+        record: Some(path),
+        sanity: None,
+        seconds: 0.0,
+    })
+}

@@ -1,0 +1,534 @@
+//! Step 3, the mosaic: blend the tiles band by band into COGs, the quick look and the run
+//! record (`run.json`), with the products' metadata.
+
+use super::*;
+
+/// Rows the mosaic blends at a time.
+pub(super) const MOSAIC_BAND: usize = 256;
+
+/// What a GIS user sees of each layer.
+/// Longest side of a run's quick-look panels, pixels.
+pub(super) const QUICKLOOK_SIDE: usize = 480;
+
+/// The run's quick look (`quicklook.png`): the image, hillshades of the input and the fused
+/// DEM, the albedo, dem − input_dem and the residual, each titled, with colour bars and a
+/// scale bar, from block means of the products (`thumbs` in [`TILE_LAYERS`] order).
+pub(super) fn write_quicklook(
+    path: &Path,
+    thumbs: &[Thumbnail],
+    spacing: f64,
+    nm: f64,
+) -> Result<()> {
+    use crate::quicklook::{
+        diverging, diverging_ramp, grey, grey_ramp, hillshade, quantiles, rgb, scale_bar,
+        write_sheet, ColourBar, Panel,
+    };
+    let [dem, albedo, residual, _, input, image] = [0, 1, 2, 3, 4, 5].map(|k| thumbs[k].means());
+    let pixel = spacing * thumbs[0].factor as f64;
+    let stretched = |a: &Array2<f64>, title: String, digits: usize| {
+        let r = quantiles(a, 0.01, 0.99).unwrap_or((0.0, 1.0));
+        Panel {
+            title,
+            picture: grey(a, r),
+            bar: Some(ColourBar {
+                ramp: grey_ramp,
+                low: format!("{:.*}", digits, r.0),
+                high: format!("{:.*}", digits, r.1),
+            }),
+        }
+    };
+    // Hillshades cannot take no-data: fill it with the input DEM (the fused DEM has none).
+    let filled = |a: &Array2<f64>| {
+        Zip::from(a)
+            .and(&input)
+            .map_collect(|&v, &i| if v.is_finite() { v } else { i })
+    };
+    let mut input_shade = rgb(&hillshade(&filled(&input), pixel));
+    scale_bar(&mut input_shade, pixel);
+    let change = Zip::from(&dem).and(&input).map_collect(|&a, &b| a - b);
+    let limit = quantiles(&change.mapv(f64::abs), 0.0, 0.99)
+        .map_or(1.0, |q| q.1)
+        .max(0.01);
+    let panels = [
+        stretched(&image, format!("image I at {nm} nm, sr-1"), 4),
+        Panel {
+            title: "input DEM, light az 315 el 45".into(),
+            picture: input_shade,
+            bar: None,
+        },
+        Panel {
+            title: "fused DEM, same light".into(),
+            picture: rgb(&hillshade(&filled(&dem), pixel)),
+            bar: None,
+        },
+        stretched(&albedo, "albedo".into(), 3),
+        Panel {
+            title: "dem - input_dem, m".into(),
+            picture: diverging(&change, limit),
+            bar: Some(ColourBar {
+                ramp: diverging_ramp,
+                low: format!("-{limit:.1}"),
+                high: format!("+{limit:.1}"),
+            }),
+        },
+        stretched(&residual, "residual |I-R|, sr-1".into(), 4),
+    ];
+    write_sheet(path, &panels, 3)
+}
+
+/// The dataset metadata of a run's products: software, inputs by product ID, wavelength,
+/// photometric model, solver parameters and the DEM widths the tiles used.
+pub(super) fn product_metadata(
+    o: &Orbital,
+    inputs: &Inputs,
+    plan: &Plan,
+) -> Vec<(&'static str, String)> {
+    let id = |label: &pds::Label, path: &Path| {
+        label
+            .get("PRODUCT_ID")
+            .and_then(|v| v.as_str())
+            .map(str::to_string)
+            .unwrap_or_else(|| {
+                path.file_stem()
+                    .map(|s| s.to_string_lossy().into_owned())
+                    .unwrap_or_default()
+            })
+    };
+    let m3: Vec<String> = inputs
+        .obs
+        .iter()
+        .map(|ob| id(&ob.label, &ob.label_path))
+        .collect();
+    let dems: Vec<String> = inputs
+        .lola
+        .iter()
+        .map(|d| match d {
+            Dem::Pds(d) => id(&d.label, &d.label_path),
+            Dem::GeoTiff(g) => g
+                .path
+                .file_name()
+                .map(|s| s.to_string_lossy().into_owned())
+                .unwrap_or_default(),
+        })
+        .collect();
+    let solver = FusionParams {
+        sigma_dem: plan.sigma_dem,
+        ..o.solver.clone()
+    };
+    let join = |v: &[f64]| {
+        v.iter()
+            .map(|x| format!("{x}"))
+            .collect::<Vec<_>>()
+            .join(",")
+    };
+    vec![
+        ("SFSFUSE_VERSION", env!("CARGO_PKG_VERSION").to_string()),
+        ("M3_PRODUCT_IDS", m3.join(",")),
+        ("DEM_PRODUCT_IDS", dems.join(",")),
+        ("WAVELENGTH_NM", format!("{}", o.inputs.wavelength_nm)),
+        (
+            "PHOTOMETRIC_MODEL",
+            serde_json::to_string(&o.photometry).expect("models serialise"),
+        ),
+        (
+            "SOLVER_PARAMETERS",
+            serde_json::to_string(&solver).expect("parameters serialise"),
+        ),
+        ("DEM_PSF_SIGMA_PX", format!("{}", plan.dem_psf_sigma)),
+        ("M3_GAINS", join(&plan.gains)),
+        ("M3_NOISE_WEIGHTS", join(&plan.noise_weights)),
+        (
+            "DEM_EFFECTIVE_RESOLUTION_M",
+            format!("{}", plan.dem_resolution_m),
+        ),
+    ]
+}
+
+/// How a layer is stored: the mask and the observation counts are whole numbers (Byte), the
+/// rest float32.
+pub(super) fn sample_format(l: Layer) -> SampleFormat {
+    match l {
+        Layer::Mask | Layer::Observations => SampleFormat::Byte,
+        _ => SampleFormat::Float32,
+    }
+}
+
+pub(super) fn layer_info(l: Layer, lunar: bool) -> (&'static str, &'static str) {
+    match l {
+        Layer::Dem if lunar => ("fused height above the 1737.4 km sphere", "m"),
+        Layer::Dem => ("fused height", "m"),
+        Layer::Albedo => (
+            "albedo (Hapke single-scattering albedo w for the Hapke model)",
+            "",
+        ),
+        Layer::Residual => (
+            "|I/g - R| at the solution (w-weighted RMS over the observations used); no data without photometric information",
+            "sr-1",
+        ),
+        Layer::Mask => (
+            "1 = no photometric information (shadow or no image), 0 = fused from shading",
+            "",
+        ),
+        Layer::InputDem if lunar => (
+            "input DEM resampled to the grid, height above the 1737.4 km sphere",
+            "m",
+        ),
+        Layer::InputDem => ("input depth map as height", "m"),
+        Layer::Image if lunar => (
+            "observed reflectance I on the grid (first observation covering each pixel)",
+            "sr-1",
+        ),
+        Layer::Image => ("intensity image", ""),
+        Layer::Observations => (
+            "number of observations that carried photometric information at the pixel",
+            "",
+        ),
+    }
+}
+
+#[derive(Debug, Clone, Serialize)]
+pub(super) struct InputFile {
+    pub(super) path: PathBuf,
+    pub(super) bytes: u64,
+    pub(super) sha256: String,
+}
+
+#[derive(Debug, Clone, Serialize)]
+pub(super) struct Metrics {
+    pub(super) pixels: usize,
+    pub(super) photometric_fraction: f64,
+    pub(super) residual_mean: f64,
+    /// RMS of (fused − input DEM), metres.
+    pub(super) height_change_rms_m: f64,
+    pub(super) height_min_m: f64,
+    pub(super) height_max_m: f64,
+    pub(super) albedo_mean: f64,
+}
+
+#[derive(Debug, Clone, Serialize)]
+pub(super) struct RunRecord<'a> {
+    pub(super) tool: &'static str,
+    pub(super) version: &'static str,
+    /// The workflow with every default filled in.
+    pub(super) workflow: &'a Workflow,
+    pub(super) inputs: Vec<InputFile>,
+    pub(super) grid: Option<Grid>,
+    pub(super) crs_wkt: Option<String>,
+    pub(super) halo: Option<usize>,
+    pub(super) intensity_scale: Option<f64>,
+    pub(super) dem_psf_sigma: Option<f64>,
+    /// Where the grid spacing came from; the DEM's effective resolution, its source, and the
+    /// σ_DEM the tiles used (orbital runs).
+    pub(super) resolution_source: Option<String>,
+    pub(super) dem_resolution_m: Option<f64>,
+    pub(super) dem_resolution_source: Option<String>,
+    pub(super) sigma_dem: Option<f64>,
+    pub(super) threads: usize,
+    pub(super) tiles: Vec<TileRecord>,
+    pub(super) metrics: Metrics,
+    /// Sanity figures for real data (orbital runs).
+    pub(super) sanity: Option<Sanity>,
+    /// Per M3 observation: gain, weight and how much of its footprint was photometric
+    /// (orbital runs).
+    pub(super) observations: Vec<ObservationRecord>,
+    pub(super) outputs: Vec<PathBuf>,
+}
+
+/// One observation's part in a run.
+#[derive(Debug, Clone, Serialize)]
+pub(super) struct ObservationRecord {
+    pub(super) label: PathBuf,
+    /// Radiometric gain g relative to the first observation of its overlapping group.
+    pub(super) gain: f64,
+    /// Noise weight ν (docs/science.md, "Several observations").
+    pub(super) noise_weight: f64,
+    /// Its pixels on the grid (its footprint).
+    pub(super) footprint_pixels: usize,
+    /// The share of its footprint where it carried photometric information.
+    pub(super) photometric_fraction: f64,
+}
+
+/// [`Metrics`] gathered band by band.
+#[derive(Default)]
+pub(super) struct MetricsAcc {
+    pub(super) n: usize,
+    pub(super) phot: usize,
+    pub(super) res: (f64, usize),
+    pub(super) alb: (f64, usize),
+    pub(super) dh2: f64,
+    pub(super) hmin: f64,
+    pub(super) hmax: f64,
+}
+
+impl MetricsAcc {
+    pub(super) fn new() -> Self {
+        MetricsAcc {
+            hmin: f64::INFINITY,
+            hmax: f64::NEG_INFINITY,
+            ..Default::default()
+        }
+    }
+
+    /// Add pixels: the layers in [`TILE_LAYERS`] order.
+    pub(super) fn add(&mut self, l: &[Array2<f64>; 7]) {
+        let [h, a, r, m, d, _, _] = l;
+        self.n += h.len();
+        self.phot += m.iter().filter(|&&v| v == 0.0).count();
+        for (x, acc) in [(r, &mut self.res), (a, &mut self.alb)] {
+            for &v in x.iter().filter(|v| v.is_finite()) {
+                acc.0 += v;
+                acc.1 += 1;
+            }
+        }
+        self.dh2 += h.iter().zip(d).map(|(a, b)| (a - b) * (a - b)).sum::<f64>();
+        self.hmin = h.iter().copied().fold(self.hmin, f64::min);
+        self.hmax = h.iter().copied().fold(self.hmax, f64::max);
+    }
+
+    pub(super) fn finish(&self) -> Metrics {
+        let mean = |(s, k): (f64, usize)| if k == 0 { f64::NAN } else { s / k as f64 };
+        Metrics {
+            pixels: self.n,
+            photometric_fraction: self.phot as f64 / self.n as f64,
+            residual_mean: mean(self.res),
+            height_change_rms_m: (self.dh2 / self.n as f64).sqrt(),
+            height_min_m: self.hmin,
+            height_max_m: self.hmax,
+            albedo_mean: mean(self.alb),
+        }
+    }
+}
+
+pub(super) fn checksums(files: &[PathBuf], progress: &Progress) -> Result<Vec<InputFile>> {
+    progress.steps("checksums", files.len() as u64);
+    let v = files
+        .iter()
+        .map(|f| {
+            let bytes = std::fs::metadata(f).map_err(|e| Error::io(f, e))?.len();
+            let sha256 = file_sha256(f)?;
+            progress.step(&format!("sha256 {}", f.display()));
+            Ok(InputFile {
+                path: f.clone(),
+                bytes,
+                sha256,
+            })
+        })
+        .collect::<Result<Vec<_>>>();
+    progress.finish();
+    v
+}
+
+/// Write `run.json` into `out`, atomically.
+pub(super) fn write_record(out: &Path, record: &RunRecord) -> Result<PathBuf> {
+    let path = out.join("run.json");
+    let text = serde_json::to_string_pretty(record).map_err(|e| json_err(&path, e))?;
+    write_atomic(&path, text.as_bytes())?;
+    Ok(path)
+}
+
+/// Blend every tile into the products and write the run record.
+pub(super) fn mosaic(
+    o: &Orbital,
+    wf: &Workflow,
+    inputs: &Inputs,
+    plan: &Plan,
+    progress: &Progress,
+) -> Result<(Vec<PathBuf>, PathBuf, Sanity)> {
+    let out = &o.output.directory;
+    let found: Vec<Option<(TileRecord, u64)>> = plan
+        .tiles
+        .iter()
+        .map(|t| done_tile(&tile_path(out, t.id), &plan.key, Some(progress)))
+        .collect();
+    let missing: Vec<usize> = plan
+        .tiles
+        .iter()
+        .zip(&found)
+        .filter(|(_, f)| f.is_none())
+        .map(|(t, _)| t.id)
+        .collect();
+    if !missing.is_empty() {
+        return Err(Error::Usage(format!(
+            "cannot mosaic: {} of {} tiles are missing, failed or damaged: {} (run them with --tile, then --mosaic)",
+            missing.len(),
+            plan.tiles.len(),
+            tile_spec(&missing, ", ")
+        )));
+    }
+    let (rows, cols) = (plan.grid.rows, plan.grid.cols);
+    let heads: Vec<(TileRecord, u64)> = found.into_iter().flatten().collect();
+    // What the products are, from the inputs and parameters only (no path, time or run key:
+    // the same inputs give the same files wherever the run writes them).
+    let meta = product_metadata(o, inputs, plan);
+    let mut writers = Vec::new();
+    let mut outputs = Vec::new();
+    for &l in &o.output.layers {
+        let k = TILE_LAYERS
+            .iter()
+            .position(|&x| x == l)
+            .expect("every layer is stored per tile");
+        let (description, unit) = layer_info(l, true);
+        let description = match (l, &o.photometry) {
+            (Layer::Albedo, ModelSpec::Hapke(_)) => format!(
+                "Hapke single-scattering albedo w at {} nm",
+                o.inputs.wavelength_nm
+            ),
+            _ => description.to_string(),
+        };
+        let mut items = meta.clone();
+        if matches!(l, Layer::Dem | Layer::InputDem) {
+            items.extend([
+                ("VERTICAL_REFERENCE", "sphere".to_string()),
+                (
+                    "REFERENCE_RADIUS_M",
+                    format!("{}", crate::grid::MOON_RADIUS_M),
+                ),
+                ("HEIGHT_KIND", "height above reference".to_string()),
+            ]);
+        }
+        let path = out.join(format!("{}.tif", l.name()));
+        let info = BandInfo {
+            description: &description,
+            unit,
+            metadata: &items,
+        };
+        writers.push((
+            k,
+            CogWriter::create_as(
+                &path,
+                Some(&plan.grid),
+                cols,
+                rows,
+                &info,
+                Container::Auto,
+                sample_format(l),
+            )?,
+        ));
+        outputs.push(path);
+    }
+    // Blend band by band: memory is one band of rows, whatever the region's size.
+    let mut stats = MetricsAcc::new();
+    // Block means of the layers the quick look shows, in TILE_LAYERS order.
+    let mut thumbs: Vec<Thumbnail> = (0..TILE_LAYERS.len())
+        .map(|_| Thumbnail::new(rows, cols, QUICKLOOK_SIDE))
+        .collect();
+    progress.steps("mosaic", rows.div_ceil(MOSAIC_BAND) as u64);
+    for b0 in (0..rows).step_by(MOSAIC_BAND) {
+        let b1 = (b0 + MOSAIC_BAND).min(rows);
+        let mut acc: Vec<Array2<f64>> = (0..TILE_LAYERS.len())
+            .map(|_| Array2::zeros((b1 - b0, cols)))
+            .collect();
+        let mut wsum = acc.clone();
+        for (t, (rec, data)) in plan.tiles.iter().zip(&heads) {
+            let e = rec.ext;
+            let (lo, hi) = (b0.max(e.r0), b1.min(e.r0 + e.rows));
+            if lo >= hi {
+                continue;
+            }
+            let w = Array2::from_shape_fn((hi - lo, e.cols), |(r, c)| {
+                tiling::weight(t, rows, cols, plan.blend as f64, lo + r, e.c0 + c)
+            });
+            let path = tile_path(out, t.id);
+            for k in 0..TILE_LAYERS.len() {
+                let v = read_tile_rows(&path, *data, &e, k, lo - e.r0, hi - e.r0)?;
+                let v = Array2::from_shape_vec((hi - lo, e.cols), v).expect("rows of the tile");
+                let mut a = acc[k].slice_mut(s![lo - b0..hi - b0, e.c0..e.c0 + e.cols]);
+                let mut ws = wsum[k].slice_mut(s![lo - b0..hi - b0, e.c0..e.c0 + e.cols]);
+                Zip::from(&mut a)
+                    .and(&mut ws)
+                    .and(&v)
+                    .and(&w)
+                    .for_each(|a, ws, &v, &w| {
+                        if w > 0.0 && v.is_finite() {
+                            *a += w * v as f64;
+                            *ws += w;
+                        }
+                    });
+            }
+        }
+        let mut layers: Vec<Array2<f64>> = acc
+            .iter()
+            .zip(&wsum)
+            .map(|(a, w)| {
+                Zip::from(a)
+                    .and(w)
+                    .map_collect(|&a, &w| if w > 0.0 { a / w } else { f64::NAN })
+            })
+            .collect();
+        // Mask: without photometric information where the blend says so by majority; the
+        // residual is no-data there.
+        layers[3].mapv_inplace(|m| if m >= 0.5 { 1.0 } else { 0.0 });
+        let mask = layers[3].clone();
+        Zip::from(&mut layers[2]).and(&mask).for_each(|r, &m| {
+            if m == 1.0 {
+                *r = f64::NAN;
+            }
+        });
+        // Observation counts: the nearest whole number across a blend.
+        layers[6].mapv_inplace(f64::round);
+        let layers: [Array2<f64>; 7] = layers.try_into().expect("seven layers");
+        stats.add(&layers);
+        for (t, l) in thumbs.iter_mut().zip(&layers) {
+            t.add(b0, l.view());
+        }
+        for (k, w) in &mut writers {
+            w.push(layers[*k].view())?;
+        }
+        progress.step(&format!("rows {b0}..{b1}"));
+    }
+    progress.finish();
+    progress.stage("writing GeoTIFFs");
+    for (_, w) in writers {
+        w.finish()?;
+    }
+    progress.finish();
+    let ql = out.join("quicklook.png");
+    write_quicklook(&ql, &thumbs, plan.grid.spacing, o.inputs.wavelength_nm)?;
+    outputs.push(ql);
+    let records: Vec<TileRecord> = heads.into_iter().map(|(r, _)| r).collect();
+    let mut sums = TileSums::default();
+    records.iter().for_each(|r| sums.add(&r.sanity));
+    let labels: Vec<String> = inputs
+        .obs
+        .iter()
+        .map(|o| o.label_path.display().to_string())
+        .collect();
+    let sanity = Sanity::from_sums(&sums, &labels);
+    let record = RunRecord {
+        tool: "sfsfuse",
+        version: env!("CARGO_PKG_VERSION"),
+        workflow: wf,
+        inputs: checksums(&inputs.files()?, progress)?,
+        grid: Some(plan.grid),
+        crs_wkt: Some(plan.grid.crs.wkt()),
+        halo: Some(plan.halo),
+        intensity_scale: Some(plan.intensity_scale),
+        dem_psf_sigma: Some(plan.dem_psf_sigma),
+        resolution_source: Some(plan.resolution_source.clone()),
+        dem_resolution_m: Some(plan.dem_resolution_m),
+        dem_resolution_source: Some(plan.dem_resolution_source.clone()),
+        sigma_dem: Some(plan.sigma_dem),
+        threads: rayon::current_num_threads(),
+        tiles: records,
+        metrics: stats.finish(),
+        sanity: Some(sanity.clone()),
+        observations: inputs
+            .obs
+            .iter()
+            .enumerate()
+            .map(|(k, ob)| ObservationRecord {
+                label: ob.label_path.clone(),
+                gain: plan.gains.get(k).copied().unwrap_or(1.0),
+                noise_weight: plan.noise_weights.get(k).copied().unwrap_or(1.0),
+                footprint_pixels: sanity.observations.get(k).map_or(0, |o| o.footprint_pixels),
+                photometric_fraction: sanity
+                    .observations
+                    .get(k)
+                    .map_or(0.0, |o| o.photometric_fraction),
+            })
+            .collect(),
+        outputs: outputs.clone(),
+    };
+    let path = write_record(out, &record)?;
+    Ok((outputs, path, sanity))
+}

@@ -1,0 +1,395 @@
+//! Step 1, the plan (`plan.json`): grid, tiles, swath index, the run-wide intensity scale,
+//! the observations' gains and noise weights, and the DEM's widths.
+
+use super::*;
+
+/// The plan of an orbital run (see the module documentation).
+#[derive(Debug, Clone, Serialize, Deserialize)]
+pub struct Plan {
+    pub version: String,
+    pub key: String,
+    pub grid: Grid,
+    pub halo: usize,
+    /// Blend half-width, pixels ([`tiling::weight`]).
+    pub blend: usize,
+    pub tiles: Vec<Tile>,
+    /// Ī: mean valid reflectance on the grid, sr⁻¹.
+    pub intensity_scale: f64,
+    /// Swath pixels behind Ī.
+    pub intensity_pixels: usize,
+    /// σ of the input DEM's point spread on the grid, pixels.
+    pub dem_psf_sigma: f64,
+    /// Where the grid spacing came from (`[grid] resolution_m` or the observation's ground
+    /// sample distance).
+    pub resolution_source: String,
+    /// The first DEM's effective resolution, metres, and where it came from.
+    pub dem_resolution_m: f64,
+    pub dem_resolution_source: String,
+    /// σ_DEM the tiles solve with, pixels (`[solver] sigma_dem`, or from the DEM's effective
+    /// resolution).
+    pub sigma_dem: f64,
+    /// One per M3 observation, in input order.
+    pub swaths: Vec<SwathIndex>,
+    /// Radiometric gain g_k of each observation, relative to the first of its overlapping
+    /// group (1 where it overlaps no other).
+    #[serde(default)]
+    pub gains: Vec<f64>,
+    /// Noise weight ν_k of each observation (docs/science.md, "Several observations").
+    #[serde(default)]
+    pub noise_weights: Vec<f64>,
+}
+
+/// The most pixels the gain estimate looks at: the run's grid is decimated to at most this.
+pub(super) const GAIN_PIXELS: usize = 1 << 20;
+
+/// The gains of the observations, estimated once for the whole run (tiles must agree on them)
+/// by [`fusion::observations::estimate_gains`] on the grid decimated to at most
+/// [`GAIN_PIXELS`], over the input DEM.
+pub(super) fn run_gains(
+    o: &Orbital,
+    inputs: &Inputs,
+    grid: &Grid,
+    swaths: &[SwathIndex],
+    scale: f64,
+) -> Result<Vec<f64>> {
+    let f = ((grid.rows * grid.cols) as f64 / GAIN_PIXELS as f64)
+        .sqrt()
+        .ceil()
+        .max(1.0) as usize;
+    let coarse = Grid {
+        rows: grid.rows.div_ceil(f),
+        cols: grid.cols.div_ceil(f),
+        spacing: grid.spacing * f as f64,
+        ..*grid
+    };
+    let pr = projector(&coarse.crs)?;
+    let geo = coarse.geographic(&pr);
+    let shots = observations_on(o, inputs, swaths, &coarse, &pr, &geo)?;
+    let mut dem = dem_on(o, inputs, &geo);
+    fill_holes(&mut dem);
+    if !dem.iter().all(|v| v.is_finite()) {
+        // No DEM on the grid at all: the tiles will say so; gains cannot be estimated.
+        return Ok(vec![1.0; inputs.obs.len()]);
+    }
+    let problem = Problem {
+        observations: fusion_observations(&shots),
+        dem: dem.view(),
+        spacing: coarse.spacing,
+        dem_psf_sigma: 0.0,
+        model: inputs.model.as_ref(),
+        intensity_scale: Some(scale),
+        gains: None,
+        noise_weights: None,
+        selection: o.inputs.selection(),
+    };
+    let mut gains = vec![1.0; inputs.obs.len()];
+    if problem.observations.len() > 1 {
+        let w = fusion::observations::weights(
+            &problem,
+            vec![1.0; problem.observations.len()],
+            scale,
+            None,
+            o.solver.shadow_threshold,
+            0.0,
+        );
+        let g = fusion::observations::estimate_gains(&problem, &w.usable, dem.view());
+        for ((k, _), g) in shots.iter().zip(g) {
+            gains[*k] = g;
+        }
+    }
+    Ok(gains)
+}
+
+/// The grid spacing of an orbital workflow and where it came from.
+pub(super) fn resolution(o: &Orbital, inputs: &Inputs) -> Result<(f64, String)> {
+    if let Some(r) = o.grid.resolution_m {
+        return Ok((r, "[grid] resolution_m".into()));
+    }
+    let obs = &inputs.obs[0];
+    let gsd = ingest::ground_sample_distance(obs)?;
+    // Whole decimetres: a tidy grid that does not move with the last digits of LOC.
+    let res = (gsd * 10.0).round() / 10.0;
+    Ok((
+        res,
+        format!(
+            "ground sample distance of {} (LOC), {gsd:.2} m",
+            obs.label_path.display()
+        ),
+    ))
+}
+
+/// The grid of an orbital workflow with spacing `res`.
+pub(super) fn make_grid(o: &Orbital, inputs: &Inputs, res: f64) -> Result<Grid> {
+    let usage = |e: crate::grid::GridError| Error::Usage(format!("[grid]/[region]: {e}"));
+    match o.region.map(|r| r.kind()).transpose()? {
+        Some(RegionKind::LonLat(b)) => {
+            let (lon, lat) = b.centre();
+            Grid::covering(o.grid.crs((lat, lon)), &b, res).map_err(usage)
+        }
+        Some(RegionKind::Map([x0, x1, y0, y1])) => {
+            let crs = o.grid.crs((
+                o.grid.center_lat.unwrap_or(0.0),
+                o.grid.center_lon.unwrap_or(0.0),
+            ));
+            let (c0, c1) = ((x0 / res).floor(), (x1 / res).ceil());
+            let (r0, r1) = ((y0 / res).floor(), (y1 / res).ceil());
+            if (c1 - c0) * (r1 - r0) > crate::grid::MAX_PIXELS as f64 {
+                return Err(Error::Usage(format!("[region]: {} × {} pixels at {res} m is more than one run can hold ({}); use a coarser resolution or a smaller region", r1 - r0, c1 - c0, crate::grid::MAX_PIXELS)));
+            }
+            Grid::new(
+                crs,
+                (r1 - r0) as usize,
+                (c1 - c0) as usize,
+                c0 * res,
+                r1 * res,
+                res,
+            )
+            .map_err(usage)
+        }
+        None => {
+            // The whole swath of the first observation.
+            let obs = &inputs.obs[0];
+            let loc = obs.part("LOC")?;
+            let (lon, lat) = (
+                loc.read_band(0, 0, loc.lines)?,
+                loc.read_band(1, 0, loc.lines)?,
+            );
+            let fin: Vec<(f64, f64)> = lon
+                .iter()
+                .zip(&lat)
+                .filter(|(a, b)| a.is_finite() && b.is_finite())
+                .map(|(&a, &b)| (a, b))
+                .collect();
+            if fin.is_empty() {
+                return Err(Error::Usage(format!(
+                    "{}: LOC has no valid longitude/latitude",
+                    obs.label_path.display()
+                )));
+            }
+            // Longitudes in the half-turn that keeps the swath together.
+            let spread = |shift: f64| {
+                let v = fin.iter().map(|p| (p.0 + shift).rem_euclid(360.0));
+                let (a, b) = v.fold((f64::MAX, f64::MIN), |m, x| (m.0.min(x), m.1.max(x)));
+                (a - shift, b - shift)
+            };
+            let (a0, b0) = spread(0.0);
+            let (a1, b1) = spread(180.0);
+            let (lo0, lo1) = if b0 - a0 <= b1 - a1 {
+                (a0, b0)
+            } else {
+                (a1, b1)
+            };
+            let (la0, la1) = fin
+                .iter()
+                .fold((f64::MAX, f64::MIN), |m, p| (m.0.min(p.1), m.1.max(p.1)));
+            let centre = (0.5 * (la0 + la1), 0.5 * (lo0 + lo1));
+            let crs = o.grid.crs(centre);
+            let pr = crs.projector().map_err(usage)?;
+            let (mut x0, mut x1, mut y0, mut y1) = (f64::MAX, f64::MIN, f64::MAX, f64::MIN);
+            for &(a, b) in &fin {
+                if let Some((x, y)) = pr.forward(a, b) {
+                    (x0, x1, y0, y1) = (x0.min(x), x1.max(x), y0.min(y), y1.max(y));
+                }
+            }
+            let (c0, c1) = ((x0 / res).floor(), (x1 / res).ceil());
+            let (r0, r1) = ((y0 / res).floor(), (y1 / res).ceil());
+            Grid::new(
+                crs,
+                (r1 - r0).max(1.0) as usize,
+                (c1 - c0).max(1.0) as usize,
+                c0 * res,
+                r1 * res,
+                res,
+            )
+            .map_err(usage)
+        }
+    }
+}
+
+/// Make the plan, or load it when one with the same key exists.
+pub(super) fn plan(
+    o: &Orbital,
+    wf: &Workflow,
+    inputs: &Inputs,
+    progress: &Progress,
+) -> Result<Plan> {
+    let out = &o.output.directory;
+    let key = run_key(wf, &inputs.files()?)?;
+    let path = out.join("plan.json");
+    if let Ok(text) = std::fs::read_to_string(&path) {
+        if let Ok(p) = serde_json::from_str::<Plan>(&text) {
+            if p.key == key {
+                progress.note(&format!("plan: reusing {}", path.display()));
+                return Ok(p);
+            }
+        }
+        progress.note(&format!(
+            "plan: {} belongs to other inputs or parameters; planning anew",
+            path.display()
+        ));
+    }
+    progress.stage("planning: grid, swath index, intensity scale");
+    let (res, resolution_source) = resolution(o, inputs)?;
+    let grid = make_grid(o, inputs, res)?;
+    let half_moon = std::f64::consts::PI * crate::grid::MOON_RADIUS_M;
+    let (w, h) = (
+        grid.cols as f64 * grid.spacing,
+        grid.rows as f64 * grid.spacing,
+    );
+    if w > half_moon || h > half_moon {
+        return Err(Error::Usage(format!(
+            "[region]: {:.0} × {:.0} km is more than half the Moon's circumference ({:.0} km) across: not a region one locally metric grid can hold; split it",
+            w / 1e3,
+            h / 1e3,
+            half_moon / 1e3
+        )));
+    }
+    let pr = projector(&grid.crs)?;
+    let mut swaths = Vec::new();
+    let (mut sum, mut count) = (0.0, 0usize);
+    let mut means = Vec::new();
+    let mut why = Vec::new();
+    for obs in &inputs.obs {
+        let s = ingest::survey(obs, &inputs.solar, o.inputs.wavelength_nm, &grid, &pr)?;
+        sum += s.sum;
+        count += s.count;
+        means.push((s.count > 0).then(|| s.sum / s.count as f64));
+        why.push(if s.on_grid == 0 {
+            format!(
+                "{}: no pixel of its swath falls on the grid (region)",
+                obs.label_path.display()
+            )
+        } else {
+            format!(
+                "{}: {} of its pixels fall on the grid, {} refused ({})",
+                obs.label_path.display(),
+                s.on_grid,
+                s.refused.total(),
+                s.refused.describe()
+            )
+        });
+        swaths.push(s.index);
+    }
+    if count == 0 {
+        return Err(Error::Usage(format!(
+            "no usable M3 pixel on the grid ({} × {} px at {} m): {}. Check [region] against the observations' coverage, and the observations' radiance and OBS geometry",
+            grid.rows,
+            grid.cols,
+            grid.spacing,
+            why.join("; ")
+        )));
+    }
+    let centre_lat = pr
+        .inverse(
+            grid.x0 + 0.5 * grid.cols as f64 * grid.spacing,
+            grid.y0 - 0.5 * grid.rows as f64 * grid.spacing,
+        )
+        .map_or(0.0, |(_, lat)| lat);
+    let (dem_resolution_m, dem_resolution_source) = match o.inputs.dem_resolution_m {
+        Some(r) => (r, "[inputs] dem_resolution_m".to_string()),
+        None => inputs.lola[0].effective_resolution(centre_lat),
+    };
+    let factor = dem_resolution_m / grid.spacing;
+    let dem_psf_sigma = o
+        .inputs
+        .dem_psf_sigma_px
+        .unwrap_or(fusion::dem_psf_sigma(factor));
+    let sigma_dem = if o.sigma_dem_given {
+        o.solver.sigma_dem
+    } else {
+        fusion::dem_sigma(factor)
+    };
+    let params = FusionParams {
+        sigma_dem,
+        ..o.solver.clone()
+    };
+    let halo = o
+        .tiling
+        .halo
+        .unwrap_or_else(|| crate::workflow::auto_halo(&params, dem_psf_sigma));
+    let n_tiles = grid.rows.div_ceil(o.tiling.tile_size) * grid.cols.div_ceil(o.tiling.tile_size);
+    if n_tiles > MAX_TILES {
+        return Err(Error::Usage(format!(
+            "[tiling]: {} × {} px in tiles of {} px makes {n_tiles} tiles, more than {MAX_TILES}: raise tile_size or shrink [region]",
+            grid.rows, grid.cols, o.tiling.tile_size
+        )));
+    }
+    let tiles = tiling::layout(grid.rows, grid.cols, o.tiling.tile_size, halo);
+    let blend = o.tiling.blend.unwrap_or(halo / 2).min(halo);
+    let intensity_scale = sum / count as f64;
+    let gains = if inputs.obs.len() > 1 {
+        progress.stage("planning: radiometric gains where observations overlap");
+        run_gains(o, inputs, &grid, &swaths, intensity_scale)?
+    } else {
+        vec![1.0]
+    };
+    // ν_k = (Ī/Ī_k)², Ī_k the observation's mean reflectance over its pixels on the grid,
+    // corrected by its gain (fusion::observations); 1 for a single observation.
+    let noise_weights = if inputs.obs.len() > 1 {
+        means
+            .iter()
+            .zip(&gains)
+            .map(|(m, g)| m.map_or(1.0, |m| (intensity_scale * g / m).powi(2)))
+            .collect()
+    } else {
+        vec![1.0]
+    };
+    let p = Plan {
+        version: env!("CARGO_PKG_VERSION").into(),
+        key,
+        grid,
+        halo,
+        blend,
+        tiles,
+        intensity_scale,
+        intensity_pixels: count,
+        gains,
+        noise_weights,
+        dem_psf_sigma,
+        resolution_source,
+        dem_resolution_m,
+        dem_resolution_source,
+        sigma_dem,
+        swaths,
+    };
+    std::fs::create_dir_all(out).map_err(|e| Error::io(out, e))?;
+    write_atomic(
+        &path,
+        serde_json::to_string_pretty(&p)
+            .expect("plans serialise")
+            .as_bytes(),
+    )?;
+    progress.finish();
+    progress.note(&format!(
+        "plan: {} × {} px at {} m ({}; {}), {} tiles of {} px + {} px halo, Ī = {:.5} sr⁻¹ over {} px; DEM resolution {:.0} m ({}), σ_B {:.2} px, σ_DEM {:.2} px",
+        p.grid.rows,
+        p.grid.cols,
+        p.grid.spacing,
+        p.resolution_source,
+        p.grid.crs.name(),
+        p.tiles.len(),
+        o.tiling.tile_size,
+        p.halo,
+        p.intensity_scale,
+        p.intensity_pixels,
+        p.dem_resolution_m,
+        p.dem_resolution_source,
+        p.dem_psf_sigma,
+        p.sigma_dem
+    ));
+    if p.gains.len() > 1 {
+        let list = |v: &[f64]| {
+            v.iter()
+                .map(|x| format!("{x:.4}"))
+                .collect::<Vec<_>>()
+                .join(", ")
+        };
+        progress.note(&format!(
+            "plan: {} observations, gains {} (relative to the first of each overlapping group), noise weights {}",
+            p.gains.len(),
+            list(&p.gains),
+            list(&p.noise_weights)
+        ));
+    }
+    Ok(p)
+}

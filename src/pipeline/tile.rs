@@ -1,0 +1,261 @@
+//! Step 2, tiles: ingest a window of every input, fuse it, write its layers and record in one
+//! atomic, checksummed `.sfstile` file; find and verify finished tiles.
+
+use super::*;
+
+/// A finished tile's record (the header of its file, and a row of the run record).
+#[derive(Debug, Clone, Serialize, Deserialize)]
+pub struct TileRecord {
+    pub id: usize,
+    pub key: String,
+    pub core: Window,
+    pub ext: Window,
+    /// "fused", or "no_image" where no pixel of the tile carries an observation (the tile
+    /// then keeps the input DEM).
+    pub status: String,
+    pub photometric_pixels: usize,
+    /// Sums behind the run's sanity figures, over the core's pixels.
+    #[serde(default)]
+    pub sanity: TileSums,
+    /// SHA-256 of the layer bytes that follow the header: a tile whose layers do not match
+    /// is damaged and is recomputed, never mosaicked.
+    #[serde(default)]
+    pub layers_sha256: String,
+    pub iterations: usize,
+    pub seconds: f64,
+    pub stages: Vec<StageReport>,
+}
+
+/// Layers stored per tile, in file order: every layer a workflow can ask for.
+pub(super) const TILE_LAYERS: [Layer; 7] = Layer::ALL;
+pub(super) const TILE_MAGIC: &[u8; 8] = b"SFSTILE1";
+
+pub(super) fn tile_path(out: &Path, id: usize) -> PathBuf {
+    out.join("tiles").join(format!("tile_{id:05}.sfstile"))
+}
+
+/// Read a tile file's header and where its layers start; `None` when absent, unreadable, of
+/// the wrong size or not of this plan.
+pub(super) fn tile_header(path: &Path, key: &str) -> Option<(TileRecord, u64)> {
+    let mut f = std::fs::File::open(path).ok()?;
+    let mut head = [0u8; 16];
+    f.read_exact(&mut head).ok()?;
+    if &head[..8] != TILE_MAGIC {
+        return None;
+    }
+    let n = u64::from_le_bytes(head[8..16].try_into().ok()?) as usize;
+    if n > 64 << 20 {
+        return None;
+    }
+    let mut json = vec![0u8; n];
+    f.read_exact(&mut json).ok()?;
+    let r: TileRecord = serde_json::from_slice(&json).ok()?;
+    let want = 16 + n as u64 + (TILE_LAYERS.len() * r.ext.len() * 4) as u64;
+    let len = f.metadata().ok()?.len();
+    (r.key == key && len == want).then_some((r, 16 + n as u64))
+}
+
+/// A finished tile of this plan whose layers match their checksum: its header and where its
+/// layers start. `None` when absent, of another plan, or damaged — a damaged tile is reported
+/// through `progress` when one is given, so that its recomputation does not go unexplained.
+pub(super) fn done_tile(
+    path: &Path,
+    key: &str,
+    progress: Option<&Progress>,
+) -> Option<(TileRecord, u64)> {
+    let (r, data) = tile_header(path, key)?;
+    let digest = (|| -> std::io::Result<String> {
+        use std::io::{Seek, SeekFrom};
+        let mut f = std::fs::File::open(path)?;
+        f.seek(SeekFrom::Start(data))?;
+        let mut h = Sha256::new();
+        std::io::copy(&mut f, &mut h)?;
+        Ok(h.finalize().iter().map(|b| format!("{b:02x}")).collect())
+    })();
+    match digest {
+        Ok(d) if d == r.layers_sha256 => Some((r, data)),
+        _ => {
+            if let Some(p) = progress {
+                p.note(&format!(
+                    "{}: its layers do not match the checksum in its header (a damaged file): recomputing it",
+                    path.display()
+                ));
+            }
+            None
+        }
+    }
+}
+
+/// Rows `r0..r1` (of the tile's ext window) of layer `k` of a tile file whose layers start at
+/// byte `data`.
+pub(super) fn read_tile_rows(
+    path: &Path,
+    data: u64,
+    ext: &Window,
+    k: usize,
+    r0: usize,
+    r1: usize,
+) -> Result<Vec<f32>> {
+    use std::os::unix::fs::FileExt;
+    let f = std::fs::File::open(path).map_err(|e| Error::io(path, e))?;
+    let mut buf = vec![0u8; (r1 - r0) * ext.cols * 4];
+    let at = data + ((k * ext.len() + r0 * ext.cols) * 4) as u64;
+    f.read_exact_at(&mut buf, at)
+        .map_err(|e| Error::io(path, e))?;
+    Ok(buf
+        .chunks_exact(4)
+        .map(|c| f32::from_le_bytes([c[0], c[1], c[2], c[3]]))
+        .collect())
+}
+
+/// Run one tile and write its file atomically.
+pub(super) fn run_tile(
+    o: &Orbital,
+    inputs: &Inputs,
+    plan: &Plan,
+    tile: &Tile,
+) -> Result<TileRecord> {
+    let t0 = Instant::now();
+    let e = tile.ext;
+    let grid = plan
+        .grid
+        .window(e.r0 as isize, e.c0 as isize, e.rows, e.cols);
+    let pr = projector(&grid.crs)?;
+    let geo = grid.geographic(&pr);
+    let dim = (e.rows, e.cols);
+    // Every observation that reaches the tile; the `image` layer shows the first one that
+    // covers a pixel.
+    let shots = observations_on(o, inputs, &plan.swaths, &grid, &pr, &geo)?;
+    let mut image = Array2::from_elem(dim, f64::NAN);
+    for (_, img) in &shots {
+        Zip::from(&mut image)
+            .and(&img.reflectance)
+            .for_each(|i, &r| {
+                if i.is_nan() {
+                    *i = r;
+                }
+            });
+    }
+    // The DEM: the first product that covers a pixel.
+    let dem = dem_on(o, inputs, &geo);
+    if let Some(((r, c), _)) = dem.indexed_iter().find(|(_, v)| !v.is_finite()) {
+        let (lon, lat) = (geo.lon[(r, c)], geo.lat[(r, c)]);
+        return Err(Error::Usage(format!(
+            "tile {}: no LOLA DEM of [inputs] lola covers grid pixel ({}, {}) at lon {lon:.4}, lat {lat:.4} (with the interpolation's support): add a DEM that covers the region or shrink [region]",
+            tile.id,
+            e.r0 + r,
+            e.c0 + c
+        )));
+    }
+    let ids: Vec<usize> = shots.iter().map(|(k, _)| *k).collect();
+    let per_obs = |v: &[f64]| {
+        ids.iter()
+            .map(|&k| v.get(k).copied().unwrap_or(1.0))
+            .collect()
+    };
+    let problem = Problem {
+        observations: fusion_observations(&shots),
+        dem: dem.view(),
+        spacing: grid.spacing,
+        dem_psf_sigma: plan.dem_psf_sigma,
+        model: inputs.model.as_ref(),
+        intensity_scale: Some(plan.intensity_scale),
+        gains: Some(per_obs(&plan.gains)),
+        noise_weights: Some(per_obs(&plan.noise_weights)),
+        selection: o.inputs.selection(),
+    };
+    let params = FusionParams {
+        sigma_dem: plan.sigma_dem,
+        ..o.solver.clone()
+    };
+    let core = (
+        tile.core.r0 - e.r0,
+        tile.core.r0 - e.r0 + tile.core.rows,
+        tile.core.c0 - e.c0,
+        tile.core.c0 - e.c0 + tile.core.cols,
+    );
+    let n_obs = inputs.obs.len();
+    let fused = if problem.observations.is_empty() {
+        Err(fusion::FusionError::NoObservations)
+    } else {
+        fusion::fuse(&problem, &params)
+    };
+    let (status, layers, stages, photometric, sanity) = match fused {
+        Ok(mut f) => {
+            f.height = fusion::anchor(
+                &f.height,
+                dem.view(),
+                f.support.view(),
+                plan.halo as f64 / 3.0,
+            );
+            let sanity = TileSums::of_tile(&problem, &f, &f.height, &ids, n_obs, core);
+            let n = f.photometric.iter().filter(|&&b| b).count();
+            let mask = f.photometric.mapv(|b| if b { 0.0 } else { 1.0 });
+            (
+                "fused",
+                [
+                    f.height,
+                    f.albedo,
+                    f.residual,
+                    mask,
+                    dem.clone(),
+                    image.clone(),
+                    f.observations.mapv(f64::from),
+                ],
+                f.stages,
+                n,
+                sanity,
+            )
+        }
+        Err(fusion::FusionError::NoObservations) => {
+            let nan = Array2::from_elem(dim, f64::NAN);
+            (
+                "no_image",
+                [
+                    dem.clone(),
+                    nan.clone(),
+                    nan,
+                    Array2::ones(dim),
+                    dem.clone(),
+                    image.clone(),
+                    Array2::zeros(dim),
+                ],
+                Vec::new(),
+                0,
+                TileSums::no_image(tile.core.rows * tile.core.cols, n_obs),
+            )
+        }
+        Err(err) => return Err(Error::Usage(format!("tile {}: {err}", tile.id))),
+    };
+    let mut data = Vec::with_capacity(layers.len() * e.len() * 4);
+    for l in &layers {
+        for &v in l.iter() {
+            data.extend_from_slice(&(v as f32).to_le_bytes());
+        }
+    }
+    let record = TileRecord {
+        layers_sha256: sha256_hex(&data),
+        id: tile.id,
+        key: plan.key.clone(),
+        core: tile.core,
+        ext: e,
+        status: status.into(),
+        photometric_pixels: photometric,
+        sanity,
+        iterations: stages
+            .iter()
+            .map(|s| s.iterations.len().saturating_sub(1))
+            .sum(),
+        seconds: t0.elapsed().as_secs_f64(),
+        stages,
+    };
+    let json = serde_json::to_vec(&record).expect("records serialise");
+    let mut bytes = Vec::with_capacity(16 + json.len() + data.len());
+    bytes.extend_from_slice(TILE_MAGIC);
+    bytes.extend_from_slice(&(json.len() as u64).to_le_bytes());
+    bytes.extend_from_slice(&json);
+    bytes.extend_from_slice(&data);
+    let path = tile_path(&o.output.directory, tile.id);
+    write_atomic(&path, &bytes)?;
+    Ok(record)
+}
