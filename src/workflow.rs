@@ -275,7 +275,8 @@ pub enum Layer {
     Albedo,
     /// |I − R| at the solution; no data where the pixel carried no photometric information.
     Residual,
-    /// 1 where the pixel carried no photometric information (shadow, no image), else 0.
+    /// Codes (Byte): 0 fused from shading, 1 seen by an observation but not photometric
+    /// (shadow, refused pixel), 2 seen by none (the input DEM).
     Mask,
     /// The input DEM on the grid, for comparison.
     InputDem,

@@ -669,6 +669,26 @@ fn a_region_wider_than_the_swath_keeps_the_input_dem_off_the_image() {
     );
     assert!(o["label"].as_str().unwrap().ends_with("_L1B.LBL"));
     assert!(o["correlation_fused_dem"].as_f64() > o["correlation_input_dem"].as_f64());
+    // The mask says why (Byte codes): 2 off the image, 0 on it, 1 where the image is in
+    // cast shadow; no residual wherever it is not 0.
+    let mask = read_tiff(&out.join("mask.tif")).unwrap();
+    let residual = read_tiff(&out.join("residual.tif")).unwrap().data;
+    assert_eq!(mask.nodata, Some(255.0));
+    let count = |code: f64, cols: std::ops::Range<usize>| {
+        mask.data
+            .indexed_iter()
+            .filter(|((_, j), &m)| cols.contains(j) && m == code)
+            .count()
+    };
+    assert_eq!(count(2.0, 0..c0 - 1), p.grid.rows * (c0 - 1));
+    assert_eq!(count(2.0, c1 + 1..n), p.grid.rows * (n - c1 - 1));
+    let inside = p.grid.rows * (c1 - c0 - 4);
+    let fused = count(0.0, c0 + 2..c1 - 2);
+    assert!(fused > inside * 9 / 10, "{fused} of {inside}");
+    assert_eq!(fused + count(1.0, c0 + 2..c1 - 2), inside);
+    for (m, r) in mask.data.iter().zip(&residual) {
+        assert_eq!(*m == 0.0, r.is_finite());
+    }
     std::fs::remove_dir_all(&dir).unwrap();
 }
 

@@ -110,7 +110,7 @@ pub(super) fn run_lab(l: &Lab, wf: &Workflow, progress: &Progress) -> Result<Run
     let f = fusion::fuse(&problem, params)?;
     let seconds = t0.elapsed().as_secs_f64();
     progress.finish();
-    let mask = f.photometric.mapv(|b| if b { 0.0 } else { 1.0 });
+    let mask = mask_codes(&f.photometric, &image);
     let layers = [
         f.height.clone(),
         f.albedo.clone(),

@@ -58,8 +58,8 @@ use lab::*;
 use mosaic::*;
 pub use plan::Plan;
 use plan::*;
-pub use tile::TileRecord;
 use tile::*;
+pub use tile::{TileRecord, MASK_FUSED, MASK_NOT_PHOTOMETRIC, MASK_NO_IMAGE};
 
 /// What `run` is asked to do.
 #[derive(Debug, Clone, Default)]

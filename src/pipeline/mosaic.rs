@@ -166,7 +166,7 @@ pub(super) fn layer_info(l: Layer, lunar: bool) -> (&'static str, &'static str) 
             "sr-1",
         ),
         Layer::Mask => (
-            "1 = no photometric information (shadow or no image), 0 = fused from shading",
+            "0 = fused from shading, 1 = seen but not photometric (shadow, refused pixel), 2 = no image (input DEM)",
             "",
         ),
         Layer::InputDem if lunar => (
@@ -455,12 +455,13 @@ pub(super) fn mosaic(
                     .map_collect(|&a, &w| if w > 0.0 { a / w } else { f64::NAN })
             })
             .collect();
-        // Mask: without photometric information where the blend says so by majority; the
-        // residual is no-data there.
-        layers[3].mapv_inplace(|m| if m >= 0.5 { 1.0 } else { 0.0 });
+        // Mask codes: the nearest whole number across a blend (tiles agree on whether an
+        // image sees a pixel, so only 0 and 1 ever meet, and a tie counts as not
+        // photometric); the residual is no-data wherever the code is not 0.
+        layers[3].mapv_inplace(f64::round);
         let mask = layers[3].clone();
         Zip::from(&mut layers[2]).and(&mask).for_each(|r, &m| {
-            if m == 1.0 {
+            if m != MASK_FUSED {
                 *r = f64::NAN;
             }
         });

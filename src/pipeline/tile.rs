@@ -30,6 +30,29 @@ pub struct TileRecord {
 pub(super) const TILE_LAYERS: [Layer; 7] = Layer::ALL;
 pub(super) const TILE_MAGIC: &[u8; 8] = b"SFSTILE1";
 
+/// `mask` codes: fused from shading.
+pub const MASK_FUSED: f64 = 0.0;
+/// `mask` codes: an observation sees the pixel but gave no photometric information there
+/// (cast shadow, a refused or too-dark pixel, outside the incidence window).
+pub const MASK_NOT_PHOTOMETRIC: f64 = 1.0;
+/// `mask` codes: no observation sees the pixel; the height is the input DEM's (within the
+/// support band, its faded correction).
+pub const MASK_NO_IMAGE: f64 = 2.0;
+
+/// The `mask` layer from where the fusion was photometric and the image (NaN where no
+/// observation sees the pixel).
+pub(super) fn mask_codes(photometric: &Array2<bool>, image: &Array2<f64>) -> Array2<f64> {
+    Zip::from(photometric).and(image).map_collect(|&p, &i| {
+        if p {
+            MASK_FUSED
+        } else if i.is_finite() {
+            MASK_NOT_PHOTOMETRIC
+        } else {
+            MASK_NO_IMAGE
+        }
+    })
+}
+
 pub(super) fn tile_path(out: &Path, id: usize) -> PathBuf {
     out.join("tiles").join(format!("tile_{id:05}.sfstile"))
 }
@@ -190,7 +213,7 @@ pub(super) fn run_tile(
             );
             let sanity = TileSums::of_tile(&problem, &f, &f.height, &ids, n_obs, core);
             let n = f.photometric.iter().filter(|&&b| b).count();
-            let mask = f.photometric.mapv(|b| if b { 0.0 } else { 1.0 });
+            let mask = mask_codes(&f.photometric, &image);
             (
                 "fused",
                 [
@@ -215,7 +238,7 @@ pub(super) fn run_tile(
                     dem.clone(),
                     nan.clone(),
                     nan,
-                    Array2::ones(dim),
+                    Array2::from_elem(dim, MASK_NO_IMAGE),
                     dem.clone(),
                     image.clone(),
                     Array2::zeros(dim),
