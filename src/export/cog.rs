@@ -153,6 +153,7 @@ impl CogWriter {
         let v: Vec<f32> = rows.iter().map(|&x| x as f32).collect();
         self.stats.add(&v);
         self.push_level(0, v, rows.nrows())
+            .map_err(|e| final_name(&self.path, e))
     }
 
     pub(super) fn push_level(&mut self, k: usize, rows: Vec<f32>, n: usize) -> Result<()> {
@@ -185,7 +186,7 @@ impl CogWriter {
 
     /// Write the file (see the type's documentation).
     pub fn finish(mut self) -> Result<()> {
-        let res = self.assemble();
+        let res = self.assemble().map_err(|e| final_name(&self.path, e));
         self.cleanup();
         res
     }
@@ -311,6 +312,19 @@ impl Drop for CogWriter {
     /// An abandoned writer leaves no temporary behind.
     fn drop(&mut self) {
         self.cleanup();
+    }
+}
+
+/// An I/O error on one of the writer's temporaries, reported against the file the caller asked
+/// for (a full disk while writing `residual.tif` names `residual.tif`; the temporaries are
+/// removed).
+pub(super) fn final_name(path: &Path, e: Error) -> Error {
+    match e {
+        Error::Io { source, .. } => Error::Io {
+            path: path.to_path_buf(),
+            source,
+        },
+        e => e,
     }
 }
 
@@ -682,6 +696,34 @@ mod tests {
         assert_eq!(b[(0, 1)], 5.0);
         assert_eq!(b[(1, 0)], 4.0);
         assert!(b[(1, 1)].is_nan());
+    }
+
+    /// An I/O failure on a temporary is reported against the file asked for, and nothing is
+    /// left behind: here the final assembly's temporary cannot be created (a directory is in
+    /// its place), as a full disk or a lost mount would fail it.
+    #[test]
+    fn write_errors_name_the_final_file() {
+        let dir = std::env::temp_dir().join(format!("sfsfuse-cogerr-{}", std::process::id()));
+        std::fs::create_dir_all(&dir).unwrap();
+        let path = dir.join("residual.tif");
+        let blocker = crate::raster::tmp_name(&path);
+        std::fs::create_dir_all(&blocker).unwrap();
+        let info = BandInfo {
+            description: "x",
+            unit: "",
+            metadata: &[],
+        };
+        let mut w = CogWriter::create(&path, None, 3, 2, &info, Container::Auto).unwrap();
+        w.push(Array2::from_elem((2, 3), 1.0).view()).unwrap();
+        let e = w.finish().unwrap_err();
+        match &e {
+            Error::Io { path: p, .. } => assert_eq!(p, &path, "{e}"),
+            other => panic!("not an I/O error: {other}"),
+        }
+        std::fs::remove_dir(&blocker).unwrap();
+        let left: Vec<_> = std::fs::read_dir(&dir).unwrap().collect();
+        assert!(left.is_empty(), "{left:?}");
+        std::fs::remove_dir_all(&dir).unwrap();
     }
 
     #[test]
