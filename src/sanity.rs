@@ -123,13 +123,7 @@ impl TileSums {
             all: Sums::default(),
             observations: vec![Sums::default(); observations],
         };
-        let mut seen = Array2::from_elem(dem.dim(), false);
-        for o in &problem.observations {
-            let img = o.image.slice(s![r0..r1, c0..c1]);
-            ndarray::Zip::from(&mut seen)
-                .and(&img)
-                .for_each(|s, &v| *s |= v.is_finite());
-        }
+        let seen = problem.footprint().slice_move(s![r0..r1, c0..c1]);
         for ((i, j), &d) in dem.indexed_iter() {
             let class = if seen[(i, j)] {
                 0

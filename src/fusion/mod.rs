@@ -76,7 +76,32 @@ pub struct Problem<'a> {
     pub selection: Selection,
 }
 
+impl Observation<'_> {
+    /// Σ I/g over the valid (finite, positive) pixels, and their count.
+    pub fn valid_sum(&self, gain: f64) -> (f64, usize) {
+        self.image.fold((0.0, 0), |(s, n), &v| {
+            if v.is_finite() && v > 0.0 {
+                (s + v / gain, n + 1)
+            } else {
+                (s, n)
+            }
+        })
+    }
+}
+
 impl<'a> Problem<'a> {
+    /// The footprint: where at least one image has a value (cast shadow included: the image
+    /// sees the surface there, E_I just has no gradient to give).
+    pub fn footprint(&self) -> Array2<bool> {
+        let mut seen = Array2::from_elem(self.dem.dim(), false);
+        for o in &self.observations {
+            Zip::from(&mut seen)
+                .and(&o.image)
+                .for_each(|s, &v| *s |= v.is_finite());
+        }
+        seen
+    }
+
     /// A problem with one image, everything else by default.
     pub fn single(
         image: ArrayView2<'a, f64>,
@@ -562,13 +587,7 @@ fn blend(a: &Array2<f64>, b: &Array2<f64>, c: &Array2<f64>) -> Array2<f64> {
 fn mean_intensity(pr: &Problem, gains: &[f64]) -> (f64, usize) {
     let (mut s, mut n) = (0.0, 0usize);
     for (o, &g) in pr.observations.iter().zip(gains) {
-        let (so, no) = o.image.fold((0.0, 0usize), |(s, n), &v| {
-            if v.is_finite() && v > 0.0 {
-                (s + v / g, n + 1)
-            } else {
-                (s, n)
-            }
-        });
+        let (so, no) = o.valid_sum(g);
         s += so;
         n += no;
     }
@@ -675,17 +694,13 @@ pub fn fuse(pr: &Problem, params: &FusionParams) -> Result<Fusion, FusionError> 
     }
     let photo = obj.photo(z.view(), albedo.view());
     // Off every image's footprint the albedo would only be the smoothing's fill: no data.
-    let mut seen = Array2::from_elem(z.dim(), false);
-    for o in &pr.observations {
-        Zip::from(&mut seen)
-            .and(&o.image)
-            .for_each(|s, &v| *s |= v.is_finite());
-    }
-    Zip::from(&mut albedo).and(&seen).for_each(|a, &s| {
-        if !s {
-            *a = f64::NAN;
-        }
-    });
+    Zip::from(&mut albedo)
+        .and(&pr.footprint())
+        .for_each(|a, &s| {
+            if !s {
+                *a = f64::NAN;
+            }
+        });
     // The weighted RMS of the residuals over the observations used at a pixel.
     let mut sq = Array2::<f64>::zeros(z.dim());
     let mut sw = Array2::<f64>::zeros(z.dim());

@@ -145,14 +145,7 @@ impl<'a, 'p> Objective<'a, 'p> {
         let gs = &gd * &gb;
         let dem_hat = dct.forward(&problem.dem.to_owned());
         let (r0, r1) = support::band(sigma_dem);
-        // The footprint is where the image has a value at all: cast shadow is part of it (the
-        // image does see the surface there; E_I just has no gradient to give).
-        let mut covered = Array2::from_elem((ny, nx), false);
-        for o in &problem.observations {
-            Zip::from(&mut covered)
-                .and(&o.image)
-                .for_each(|c, &v| *c |= v.is_finite());
-        }
+        let covered = problem.footprint();
         let support = support::support(&covered, r0, r1);
         let (dem_target, tie) = if covered.iter().all(|&c| c) {
             (&gd * &dem_hat, None)

@@ -66,18 +66,6 @@ pub struct Weights {
 }
 
 impl Weights {
-    /// How many observations a pixel uses.
-    pub fn count(&self) -> Array2<u8> {
-        let dim = self.usable[0].dim();
-        let mut n = Array2::<u8>::zeros(dim);
-        for u in &self.usable {
-            Zip::from(&mut n)
-                .and(u)
-                .for_each(|n, &u| *n = n.saturating_add(u as u8));
-        }
-        n
-    }
-
     /// c(x) = min(1, Σ_k u_k/max_k u_k − 1), u_k = w_k/ν_k (the edge ramp and incidence taper):
     /// 0 where one observation carries the pixel (or none), 1 where a second one carries it in
     /// full, continuous across the edge ramps.
@@ -97,15 +85,6 @@ impl Weights {
         Zip::from(&sum)
             .and(&top)
             .map_collect(|&s, &t| if t > 0.0 { (s / t - 1.0).min(1.0) } else { 0.0 })
-    }
-
-    /// True where at least one observation is usable.
-    pub fn any(&self) -> Array2<bool> {
-        let mut a = self.usable[0].clone();
-        for u in &self.usable[1..] {
-            Zip::from(&mut a).and(u).for_each(|a, &u| *a |= u);
-        }
-        a
     }
 }
 
@@ -192,13 +171,7 @@ pub fn weights(
             .iter()
             .zip(&gains)
             .map(|(o, &g)| {
-                let (s, n) = o.image.fold((0.0, 0usize), |(s, n), &v| {
-                    if v.is_finite() && v > 0.0 {
-                        (s + v / g, n + 1)
-                    } else {
-                        (s, n)
-                    }
-                });
+                let (s, n) = o.valid_sum(g);
                 if n == 0 {
                     1.0
                 } else {
