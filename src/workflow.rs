@@ -251,7 +251,7 @@ pub struct Tiling {
     /// (albedo stages, σ_DEM, the DEM's point spread), the least the issue allows.
     pub halo: Option<usize>,
     /// Half-width, pixels, of the band around each core edge where neighbouring tiles are
-    /// blended; at most the halo. Absent = halo / 2.
+    /// blended; at most the halo. Absent = halo / 4.
     pub blend: Option<usize>,
 }
 
@@ -571,21 +571,33 @@ fn validate_layers(layers: &[Layer]) -> std::result::Result<(), String> {
     Ok(())
 }
 
-/// ⌈3 × the largest Gaussian σ the solver applies⌉ (albedo stages, final albedo, σ_DEM
-/// combined with the DEM's point spread `dem_psf`), at least 8 pixels. It also covers the
-/// photometric support band (3 σ_DEM, [`crate::fusion::support::band`]).
-pub fn auto_halo(p: &FusionParams, dem_psf: f64) -> usize {
+/// The smallest halo a tile gets, pixels: the anchoring to the reference (σ = halo/4) must
+/// stay wider than the coarse reference's blocks.
+pub const MIN_HALO: usize = 32;
+
+/// ⌈4 × the largest Gaussian σ a tile applies⌉ (its albedo stages, final albedo, σ_DEM
+/// combined with the DEM's point spread `dem_psf`), at least [`MIN_HALO`] pixels: with the
+/// default blend of halo/4, every pixel a tile contributes to the mosaic is ≥ 3σ inside its
+/// window. It also covers the photometric support band (3 σ_DEM,
+/// [`crate::fusion::support::band`]). With a coarse reference (`reference`,
+/// [`crate::fusion::pyramid`]) the first albedo stage is the plan's, solved over the whole
+/// region, and does not count.
+pub fn auto_halo(p: &FusionParams, dem_psf: f64, reference: bool) -> usize {
     let dem = p
         .sigma_dem
         .hypot(dem_psf)
         .max(crate::fusion::support::band(p.sigma_dem).1 / 3.0);
-    let largest = p
-        .albedo_sigmas
+    let stages = if reference {
+        p.albedo_sigmas.get(1..).unwrap_or(&[])
+    } else {
+        &p.albedo_sigmas[..]
+    };
+    let largest = stages
         .iter()
         .copied()
         .chain([p.final_albedo_sigma, dem])
         .fold(0.0f64, f64::max);
-    ((3.0 * largest).ceil() as usize).max(8)
+    ((4.0 * largest).ceil() as usize).max(MIN_HALO)
 }
 
 #[cfg(test)]
@@ -624,10 +636,13 @@ directory = "out"
             (Some(-13.0), Some(357.0))
         );
         // The halo depends on the DEM (σ_DEM, its point spread): the plan sets it. With a DEM
-        // 4× coarser the largest σ is the first albedo stage, 100 px.
+        // 4× coarser the largest σ is the first albedo stage, 100 px, when tiles solve it;
+        // with the plan's coarse reference it is the second, 8 px, and the halo its minimum.
         assert_eq!(o.tiling.halo, None);
         assert!(!o.sigma_dem_given);
-        assert_eq!(auto_halo(&o.solver, crate::fusion::dem_psf_sigma(4.0)), 300);
+        let psf = crate::fusion::dem_psf_sigma(4.0);
+        assert_eq!(auto_halo(&o.solver, psf, false), 400);
+        assert_eq!(auto_halo(&o.solver, psf, true), MIN_HALO);
         let given = MINIMAL.replace("[output]", "[solver]\nsigma_dem = 5.0\n[output]");
         let Workflow::Orbital(g) =
             Workflow::parse(&given, Path::new("w.toml"), Path::new(".")).unwrap()

@@ -52,7 +52,9 @@ fn synthetic_products_through_run_meet_the_accuracy_bar() {
     let rec: serde_json::Value =
         serde_json::from_slice(&std::fs::read(out.join("run.json")).unwrap()).unwrap();
     assert_eq!(rec["workflow"]["solver"]["delta"], 50.0);
-    assert_eq!(rec["halo"], 300);
+    // The plan's coarse reference stands for the first albedo stage: the halo covers the
+    // second (4 × 8 px).
+    assert_eq!(rec["halo"], 32);
     let inputs = rec["inputs"].as_array().unwrap();
     assert_eq!(inputs.len(), 7);
     let lbl = inputs
@@ -81,7 +83,8 @@ fn synthetic_products_through_run_meet_the_accuracy_bar() {
 fn tiled_and_single_tile_runs_agree_without_seams() {
     let p = scene_products(384, 4);
     let dir = scratch("seams");
-    // Narrower albedo stages than the defaults so the halo (3 × 30 px) leaves interior tiles.
+    // Three albedo stages: the plan's reference stands for the first, the tiles solve two (halo
+    // 4 × 10 px).
     let solver = "[solver]\nalbedo_sigmas = [30.0, 10.0, 4.0]";
     let single = dir.join("single");
     let tiled = dir.join("tiled");

@@ -11,6 +11,7 @@ pub mod objective;
 pub mod observations;
 pub mod ops;
 mod paper;
+pub mod pyramid;
 pub mod support;
 
 pub use objective::Energy;
@@ -215,6 +216,9 @@ pub struct FusionParams {
     /// Where several observations carry a pixel, δ is lowered to δ × this (blended by the
     /// multi-coverage c(x); [`objective::Objective::with_multi_delta`]); 1 keeps δ everywhere.
     pub multi_delta_factor: f64,
+    /// The first albedo stage is solved on the grid block-averaged by this factor and its
+    /// correction z − z_DEM interpolated back ([`pyramid`]); 1 solves it on the full grid.
+    pub coarse_factor: usize,
 }
 
 impl Default for FusionParams {
@@ -225,7 +229,7 @@ impl Default for FusionParams {
             delta: 50.0,
             eta: 0.1,
             sigma_dem: 3.0,
-            albedo_sigmas: vec![100.0, 10.0, 4.0],
+            albedo_sigmas: vec![100.0, 8.0],
             final_albedo_sigma: 1.5,
             shadow_threshold: 0.1,
             max_iterations: 30,
@@ -238,6 +242,7 @@ impl Default for FusionParams {
             multi_albedo_sigma: 1.0,
             multi_final_albedo_sigma: 0.7,
             multi_delta_factor: 0.3,
+            coarse_factor: 4,
         }
     }
 }
@@ -538,7 +543,7 @@ fn albedo_maps(
 }
 
 /// The masked Gaussian of width `sigma` of the per-pixel (joint) albedo on surface `z`.
-fn albedo_map(
+pub(crate) fn albedo_map(
     pr: &Problem,
     w: &Weights,
     dct: &Dct2d,
@@ -595,7 +600,7 @@ fn mean_intensity(pr: &Problem, gains: &[f64]) -> (f64, usize) {
 }
 
 /// Validate the problem and set up its energy: gains, Ī and the per-observation weights.
-fn objective<'a, 'p>(
+pub(crate) fn objective<'a, 'p>(
     pr: &'a Problem<'p>,
     params: &FusionParams,
 ) -> Result<Objective<'a, 'p>, FusionError> {
@@ -647,13 +652,63 @@ fn objective<'a, 'p>(
     .with_multi_delta(params.multi_delta_factor))
 }
 
-/// Run the whole fusion: albedo stages, each followed by a surface solve.
+/// Run the whole fusion: albedo stages, each followed by a surface solve. With
+/// `params.coarse_factor` = f > 1 the whole fusion first runs on the grid block-averaged by f
+/// ([`pyramid::reference`]) and the stages after the first start from its result.
 pub fn fuse(pr: &Problem, params: &FusionParams) -> Result<Fusion, FusionError> {
     let obj = objective(pr, params)?;
-    let w = &obj.weights;
     let mut z = pr.dem.to_owned();
     let mut stages = Vec::new();
-    for &sigma in &params.albedo_sigmas {
+    let mut sigmas = &params.albedo_sigmas[..];
+    if let Some(f) = coarse_factor(pr.dem.dim(), params) {
+        let coarse = pyramid::coarsen(pr, f);
+        let w = &obj.weights;
+        let cp = coarse.problem(pr, obj.scale, &w.gains, &w.noise);
+        let (correction, stage) = pyramid::reference(&cp, params, f)?;
+        z += &pyramid::upsample(correction.view(), f, z.dim());
+        stages.push(stage);
+        sigmas = &sigmas[1..];
+    }
+    fine_stages(pr, obj, params, z, sigmas, stages)
+}
+
+/// The fusion's stages after the first, from `start` (in a tiled run, the input DEM plus the
+/// plan's coarse reference correction over the whole region, [`pyramid::reference`]).
+pub fn fuse_from(
+    pr: &Problem,
+    params: &FusionParams,
+    start: Array2<f64>,
+) -> Result<Fusion, FusionError> {
+    let obj = objective(pr, params)?;
+    if start.dim() != pr.dem.dim() {
+        return Err(FusionError::Shape {
+            image: start.dim(),
+            dem: pr.dem.dim(),
+        });
+    }
+    let sigmas = params.albedo_sigmas.get(1..).unwrap_or(&[]);
+    fine_stages(pr, obj, params, start, sigmas, Vec::new())
+}
+
+/// The factor of the coarse first stage for a grid of `dim`: `params.coarse_factor`, or
+/// `None` when it is 1, there is no albedo stage, or the coarse grid would be under 8 × 8.
+pub fn coarse_factor((ny, nx): (usize, usize), params: &FusionParams) -> Option<usize> {
+    let f = params.coarse_factor;
+    (f > 1 && !params.albedo_sigmas.is_empty() && ny / f >= 8 && nx / f >= 8).then_some(f)
+}
+
+/// The albedo stages of widths `sigmas` from surface `z`, then the support taper, the final
+/// albedo and the layers.
+fn fine_stages(
+    pr: &Problem,
+    obj: Objective,
+    params: &FusionParams,
+    mut z: Array2<f64>,
+    sigmas: &[f64],
+    mut stages: Vec<StageReport>,
+) -> Result<Fusion, FusionError> {
+    let w = &obj.weights;
+    for &sigma in sigmas {
         let t0 = Instant::now();
         let rho = albedo_map(pr, w, &obj.dct, z.view(), sigma)?;
         let iterations = minimise(&obj, &mut z, rho.view(), params, &mut |_| {});
@@ -765,7 +820,7 @@ fn start(
     (it, log)
 }
 
-fn minimise(
+pub(crate) fn minimise(
     obj: &Objective,
     z: &mut Array2<f64>,
     rho: ArrayView2<f64>,

@@ -50,6 +50,7 @@ mod inputs;
 mod lab;
 mod mosaic;
 mod plan;
+mod reference;
 mod tile;
 
 pub use inputs::LOLA_TRACK_GAP_M;
@@ -58,6 +59,8 @@ use lab::*;
 use mosaic::*;
 pub use plan::Plan;
 use plan::*;
+pub use reference::ReferenceInfo;
+use reference::*;
 use tile::*;
 pub use tile::{TileRecord, MASK_FUSED, MASK_NOT_PHOTOMETRIC, MASK_NO_IMAGE};
 
@@ -287,11 +290,15 @@ fn run_orbital(
     if !pending.is_empty() {
         let tiles = out.join("tiles");
         std::fs::create_dir_all(&tiles).map_err(|e| Error::io(&tiles, e))?;
+        let reference = match &plan.reference {
+            Some(info) => Some(reference::load(out, info)?),
+            None => None,
+        };
         progress.steps("tiles", pending.len() as u64);
         let results: Vec<Result<TileRecord>> = pending
             .par_iter()
             .map(|t| {
-                let r = run_tile(o, &inputs, &plan, t);
+                let r = run_tile(o, &inputs, &plan, reference.as_ref(), t);
                 if let Ok(rec) = &r {
                     progress.step(&format!(
                         "tile {} {} in {:.1} s ({} iterations)",

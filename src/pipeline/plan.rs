@@ -37,6 +37,10 @@ pub struct Plan {
     /// Noise weight ν_k of each observation (docs/science.md, "Several observations").
     #[serde(default)]
     pub noise_weights: Vec<f64>,
+    /// The coarse reference the tiles start from and anchor to (`reference.bin`); `None`: the
+    /// tiles solve every stage themselves ([`super::reference`]).
+    #[serde(default)]
+    pub reference: Option<ReferenceInfo>,
 }
 
 /// The most pixels the gain estimate looks at: the run's grid is decimated to at most this.
@@ -218,7 +222,11 @@ pub(super) fn plan(
     let path = out.join("plan.json");
     if let Ok(text) = std::fs::read_to_string(&path) {
         if let Ok(p) = serde_json::from_str::<Plan>(&text) {
-            if p.key == key {
+            let reference_ok = p
+                .reference
+                .as_ref()
+                .is_none_or(|r| super::reference::load(out, r).is_ok());
+            if p.key == key && reference_ok {
                 progress.note(&format!("plan: reusing {}", path.display()));
                 return Ok(p);
             }
@@ -303,10 +311,10 @@ pub(super) fn plan(
         sigma_dem,
         ..o.solver.clone()
     };
-    let halo = o
-        .tiling
-        .halo
-        .unwrap_or_else(|| crate::workflow::auto_halo(&params, dem_psf_sigma));
+    let reference_factor = super::reference::factor(&grid, &params);
+    let halo = o.tiling.halo.unwrap_or_else(|| {
+        crate::workflow::auto_halo(&params, dem_psf_sigma, reference_factor.is_some())
+    });
     let n_tiles = grid.rows.div_ceil(o.tiling.tile_size) * grid.cols.div_ceil(o.tiling.tile_size);
     if n_tiles > MAX_TILES {
         return Err(Error::Usage(format!(
@@ -315,7 +323,7 @@ pub(super) fn plan(
         )));
     }
     let tiles = tiling::layout(grid.rows, grid.cols, o.tiling.tile_size, halo);
-    let blend = o.tiling.blend.unwrap_or(halo / 2).min(halo);
+    let blend = o.tiling.blend.unwrap_or(halo / 4).min(halo);
     let intensity_scale = sum / count as f64;
     let gains = if inputs.obs.len() > 1 {
         progress.stage("planning: radiometric gains where observations overlap");
@@ -334,6 +342,22 @@ pub(super) fn plan(
     } else {
         vec![1.0]
     };
+    std::fs::create_dir_all(out).map_err(|e| Error::io(out, e))?;
+    let reference = match reference_factor {
+        Some(f) => {
+            progress.stage("planning: the coarse reference over the whole region");
+            let run = RunWide {
+                swaths: &swaths,
+                scale: intensity_scale,
+                gains: &gains,
+                noise_weights: &noise_weights,
+                dem_psf_sigma,
+                params: &params,
+            };
+            super::reference::build(o, inputs, &grid, &run, f)?
+        }
+        None => None,
+    };
     let p = Plan {
         version: env!("CARGO_PKG_VERSION").into(),
         key,
@@ -351,8 +375,8 @@ pub(super) fn plan(
         dem_resolution_source,
         sigma_dem,
         swaths,
+        reference,
     };
-    std::fs::create_dir_all(out).map_err(|e| Error::io(out, e))?;
     write_atomic(
         &path,
         serde_json::to_string_pretty(&p)
@@ -377,6 +401,12 @@ pub(super) fn plan(
         p.dem_psf_sigma,
         p.sigma_dem
     ));
+    if let Some(r) = &p.reference {
+        progress.note(&format!(
+            "plan: coarse reference on {} × {} px of {} × {} grid pixels ({} Gauss–Newton steps, {:.1} s)",
+            r.rows, r.cols, r.factor, r.factor, r.iterations, r.seconds
+        ));
+    }
     if p.gains.len() > 1 {
         let list = |v: &[f64]| {
             v.iter()

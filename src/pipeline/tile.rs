@@ -136,6 +136,7 @@ pub(super) fn run_tile(
     o: &Orbital,
     inputs: &Inputs,
     plan: &Plan,
+    reference: Option<&Array2<f64>>,
     tile: &Tile,
 ) -> Result<TileRecord> {
     let t0 = Instant::now();
@@ -187,10 +188,18 @@ pub(super) fn run_tile(
         noise_weights: Some(per_obs(&plan.noise_weights)),
         selection: o.inputs.selection(),
     };
+    // Without the plan's reference the tile solves every stage on its own window (the halo
+    // then covers the first stage's σ_ρ).
     let params = FusionParams {
         sigma_dem: plan.sigma_dem,
+        coarse_factor: 1,
         ..o.solver.clone()
     };
+    let start = plan
+        .reference
+        .as_ref()
+        .zip(reference)
+        .map(|(info, r)| start_on(r, info, &e, &dem));
     let core = (
         tile.core.r0 - e.r0,
         tile.core.r0 - e.r0 + tile.core.rows,
@@ -201,15 +210,21 @@ pub(super) fn run_tile(
     let fused = if problem.observations.is_empty() {
         Err(fusion::FusionError::NoObservations)
     } else {
-        fusion::fuse(&problem, &params)
+        match &start {
+            Some(z0) => fusion::fuse_from(&problem, &params, z0.clone()),
+            None => fusion::fuse(&problem, &params),
+        }
     };
     let (status, layers, stages, photometric, sanity) = match fused {
         Ok(mut f) => {
+            // The large scales come from the reference where there is one (the tile's own
+            // window cannot see them), else from the input DEM.
+            let level = start.as_ref().unwrap_or(&dem);
             f.height = fusion::anchor(
                 &f.height,
-                dem.view(),
+                level.view(),
                 f.support.view(),
-                plan.halo as f64 / 3.0,
+                plan.halo as f64 / 4.0,
             );
             let sanity = TileSums::of_tile(&problem, &f, &f.height, &ids, n_obs, core);
             let n = f.photometric.iter().filter(|&&b| b).count();

@@ -1,0 +1,214 @@
+//! Step 1b, the coarse reference (`reference.bin`): the whole fusion on the region
+//! block-averaged by f ([`fusion::pyramid`]), computed once in the plan. Tiles start their fine
+//! stages from it and anchor their large scales to it, so a tile's halo only has to cover the
+//! fine stages' widths (docs/science.md, "Coarse reference").
+//!
+//! The file: `SFSREF01`, rows and columns (u64 LE), then the correction z − z_DEM of every
+//! coarse pixel (f64 LE, row-major). Its SHA-256 is in the plan; a file that does not match is
+//! refused.
+
+use super::*;
+use crate::fusion::pyramid;
+
+/// The most coarse pixels the reference is solved on: beyond ≈ 1 MP of coarse pixels the block
+/// factor grows with the region, so the plan's memory does not.
+pub const REFERENCE_PIXELS: usize = 1 << 20;
+/// Fine pixels ingested at once while the reference's inputs are block-averaged.
+const BAND_PIXELS: usize = 1 << 21;
+const MAGIC: &[u8; 8] = b"SFSREF01";
+/// The reference's file in the output directory.
+pub(super) const REFERENCE_FILE: &str = "reference.bin";
+
+/// What the plan records of its reference.
+#[derive(Debug, Clone, Serialize, Deserialize)]
+pub struct ReferenceInfo {
+    /// Block factor f: the reference's pixel is f × f grid pixels.
+    pub factor: usize,
+    pub rows: usize,
+    pub cols: usize,
+    /// SHA-256 of `reference.bin`.
+    pub sha256: String,
+    /// Gauss–Newton steps over its stages, and the seconds it took (ingest included).
+    pub iterations: usize,
+    pub seconds: f64,
+}
+
+/// The block factor of a region's reference: `[solver] coarse_factor`, raised so that the
+/// coarse grid holds at most [`REFERENCE_PIXELS`]; `None` when the factor is 1 (tiles then
+/// solve every stage themselves), there is no albedo stage, or the coarse grid would be under
+/// 8 × 8 (a region of a few dozen pixels).
+pub(super) fn factor(grid: &Grid, params: &FusionParams) -> Option<usize> {
+    let f0 = params.coarse_factor;
+    if f0 <= 1 || params.albedo_sigmas.is_empty() {
+        return None;
+    }
+    let need = ((grid.rows * grid.cols) as f64 / REFERENCE_PIXELS as f64)
+        .sqrt()
+        .ceil() as usize;
+    let f = f0.max(need);
+    (grid.rows / f >= 8 && grid.cols / f >= 8).then_some(f)
+}
+
+/// The run-wide quantities a reference is solved with.
+pub(super) struct RunWide<'a> {
+    pub swaths: &'a [SwathIndex],
+    pub scale: f64,
+    pub gains: &'a [f64],
+    pub noise_weights: &'a [f64],
+    pub dem_psf_sigma: f64,
+    pub params: &'a FusionParams,
+}
+
+/// Build the reference of block `f` over `grid`, write it to the output directory and return
+/// its record; `Ok(None)` when no DEM reaches the grid at all (the tiles then say where) or no
+/// observation has a usable pixel.
+pub(super) fn build(
+    o: &Orbital,
+    inputs: &Inputs,
+    grid: &Grid,
+    run: &RunWide,
+    f: usize,
+) -> Result<Option<ReferenceInfo>> {
+    let t0 = Instant::now();
+    let (cr, cc) = pyramid::coarse_dim((grid.rows, grid.cols), f);
+    let n = inputs.obs.len();
+    let mut images = vec![Array2::from_elem((cr, cc), f64::NAN); n];
+    let mut suns = vec![Array2::from_elem((cr, cc), [f64::NAN; 3]); n];
+    let mut views = suns.clone();
+    let mut dem = Array2::from_elem((cr, cc), f64::NAN);
+    // Bands of whole blocks, so each band's block means are the grid's.
+    let band = (BAND_PIXELS / (grid.cols * f * f)).max(1);
+    for i0 in (0..cr).step_by(band) {
+        let i1 = (i0 + band).min(cr);
+        let (r0, r1) = (i0 * f, (i1 * f).min(grid.rows));
+        let win = grid.window(r0 as isize, 0, r1 - r0, grid.cols);
+        let pr = projector(&win.crs)?;
+        let geo = win.geographic(&pr);
+        for (k, img) in observations_on(o, inputs, run.swaths, &win, &pr, &geo)? {
+            let rows = s![i0..i1, ..];
+            images[k]
+                .slice_mut(rows)
+                .assign(&pyramid::block_mean(img.reflectance.view(), f));
+            suns[k]
+                .slice_mut(rows)
+                .assign(&pyramid::block_mean_vectors(img.sun.view(), f));
+            views[k]
+                .slice_mut(rows)
+                .assign(&pyramid::block_mean_vectors(img.view.view(), f));
+        }
+        dem.slice_mut(s![i0..i1, ..])
+            .assign(&pyramid::block_mean(dem_on(o, inputs, &geo).view(), f));
+    }
+    fill_holes(&mut dem);
+    if !dem.iter().all(|v| v.is_finite()) {
+        return Ok(None);
+    }
+    let keep: Vec<usize> = (0..n)
+        .filter(|&k| images[k].iter().any(|v| v.is_finite()))
+        .collect();
+    let per_obs = |v: &[f64]| -> Vec<f64> {
+        keep.iter()
+            .map(|&k| v.get(k).copied().unwrap_or(1.0))
+            .collect()
+    };
+    let problem = Problem {
+        observations: keep
+            .iter()
+            .map(|&k| fusion::Observation {
+                image: images[k].view(),
+                sun: Directions::PerPixel(suns[k].clone()),
+                view: Directions::PerPixel(views[k].clone()),
+            })
+            .collect(),
+        dem: dem.view(),
+        spacing: grid.spacing * f as f64,
+        dem_psf_sigma: run.dem_psf_sigma / f as f64,
+        model: inputs.model.as_ref(),
+        intensity_scale: Some(run.scale),
+        gains: Some(per_obs(run.gains)),
+        noise_weights: Some(per_obs(run.noise_weights)),
+        selection: o.inputs.selection(),
+    };
+    if problem.observations.is_empty() {
+        return Ok(None);
+    }
+    let (correction, stage) = match pyramid::reference(&problem, run.params, f) {
+        Ok(r) => r,
+        Err(fusion::FusionError::NoObservations) => return Ok(None),
+        Err(e) => {
+            return Err(Error::Usage(format!(
+                "the plan's coarse reference (grid block-averaged by {f}): {e}"
+            )))
+        }
+    };
+    let bytes = encode(&correction);
+    let path = o.output.directory.join(REFERENCE_FILE);
+    write_atomic(&path, &bytes)?;
+    Ok(Some(ReferenceInfo {
+        factor: f,
+        rows: cr,
+        cols: cc,
+        sha256: sha256_hex(&bytes),
+        iterations: stage.iterations.len(),
+        seconds: t0.elapsed().as_secs_f64(),
+    }))
+}
+
+fn encode(a: &Array2<f64>) -> Vec<u8> {
+    let mut bytes = Vec::with_capacity(24 + a.len() * 8);
+    bytes.extend_from_slice(MAGIC);
+    bytes.extend_from_slice(&(a.nrows() as u64).to_le_bytes());
+    bytes.extend_from_slice(&(a.ncols() as u64).to_le_bytes());
+    for v in a.iter() {
+        bytes.extend_from_slice(&v.to_le_bytes());
+    }
+    bytes
+}
+
+/// Read the reference of the plan, checked against its record.
+pub(super) fn load(out: &Path, info: &ReferenceInfo) -> Result<Array2<f64>> {
+    let path = out.join(REFERENCE_FILE);
+    let bytes = std::fs::read(&path).map_err(|e| Error::io(&path, e))?;
+    let bad = |why: &str| {
+        Error::Usage(format!(
+            "{}: {why}; run `sfsfuse run` again to plan anew",
+            path.display()
+        ))
+    };
+    if sha256_hex(&bytes) != info.sha256 {
+        return Err(bad(
+            "its SHA-256 is not the plan's (a damaged or foreign file)",
+        ));
+    }
+    if bytes.len() != 24 + info.rows * info.cols * 8 || &bytes[..8] != MAGIC {
+        return Err(bad("not a reference of this plan's size"));
+    }
+    let values = bytes[24..]
+        .chunks_exact(8)
+        .map(|c| f64::from_le_bytes(c.try_into().expect("8-byte chunks")))
+        .collect();
+    Array2::from_shape_vec((info.rows, info.cols), values)
+        .map_err(|_| bad("not a reference of this plan's size"))
+}
+
+/// The reference's surface on a tile's window `e`: the window's input DEM plus the coarse
+/// correction interpolated onto it ([`pyramid::upsample_window`]).
+pub(super) fn start_on(
+    reference: &Array2<f64>,
+    info: &ReferenceInfo,
+    e: &Window,
+    dem: &Array2<f64>,
+) -> Array2<f64> {
+    let f = info.factor;
+    let (y0, y1) = pyramid::coarse_span(f, info.rows, e.r0, e.rows);
+    let (x0, x1) = pyramid::coarse_span(f, info.cols, e.c0, e.cols);
+    let up = pyramid::upsample_window(
+        reference.slice(s![y0..y1, x0..x1]),
+        (y0, x0),
+        (info.rows, info.cols),
+        f,
+        (e.r0, e.c0),
+        dem.dim(),
+    );
+    dem + &up
+}
