@@ -299,10 +299,14 @@ pub fn run_pipeline(size: usize, tile_size: usize) -> Result<PipelineBench> {
         let t0 = Instant::now();
         let s = crate::pipeline::run(&wf, &crate::pipeline::Request::default(), &quiet)?;
         let secs = t0.elapsed().as_secs_f64();
-        let halo = match &wf {
-            Workflow::Orbital(o) => o.tiling.halo.unwrap_or(0),
-            Workflow::Lab(_) => 0,
-        };
+        // The halo the plan chose (the workflow leaves it to the plan), from the run record.
+        let halo = s
+            .record
+            .as_ref()
+            .and_then(|p| std::fs::read(p).ok())
+            .and_then(|b| serde_json::from_slice::<serde_json::Value>(&b).ok())
+            .and_then(|v| v["halo"].as_u64())
+            .unwrap_or(0) as usize;
         Ok((
             secs,
             if peak_ok { peak_mib() } else { None },

@@ -26,7 +26,11 @@ pub enum PhaseFunction {
 impl PhaseFunction {
     /// P(g) from cos g.
     pub fn eval(&self, cos_g: f64) -> f64 {
-        let hg = |b: f64| (1.0 - b * b) / (1.0 - 2.0 * b * cos_g + b * b).powf(1.5);
+        // t^1.5 as t·√t: the same value to rounding, several times cheaper than powf.
+        let hg = |b: f64| {
+            let t = 1.0 - 2.0 * b * cos_g + b * b;
+            (1.0 - b * b) / (t * t.sqrt())
+        };
         match *self {
             PhaseFunction::Hg2012 { b, c } => 0.5 * (1.0 + c) * hg(b) + 0.5 * (1.0 - c) * hg(-b),
             PhaseFunction::HgIsis { b, c } => (1.0 - c) * hg(-b) + c * hg(b),
@@ -127,13 +131,19 @@ impl Hapke {
         })
     }
 
-    /// B(g) = B0/(1 + tan(g/2)/h).
+    /// B(g) = B0/(1 + tan(g/2)/h), with tan(g/2) = √((1 − cos g)/(1 + cos g)) (no inverse
+    /// trigonometry: this runs once per pixel and evaluation where the geometry varies per
+    /// pixel).
     pub fn opposition(&self, cos_g: f64) -> f64 {
         if self.h == 0.0 {
             return 0.0;
         }
-        let g = cos_g.clamp(-1.0, 1.0).acos();
-        self.b0 / (1.0 + (0.5 * g).tan() / self.h)
+        let c = cos_g.clamp(-1.0, 1.0);
+        if c <= -1.0 {
+            return 0.0; // g = π: tan(g/2) is infinite
+        }
+        let tan_half = ((1.0 - c) / (1.0 + c)).sqrt();
+        self.b0 / (1.0 + tan_half / self.h)
     }
 
     /// The w-independent factors at one geometry: (μ0e, μe, S) as functions of (μ0, μ) — the
@@ -197,6 +207,28 @@ fn neg_exp<const N: usize>(a: Dual<N>) -> Dual<N> {
     }
 }
 
+/// tan θ̄, cot θ̄ and χ(θ̄) = 1/√(1 + π tan²θ̄), memoised per thread for the last θ̄ (one
+/// model per run: the tangent and root are then computed once, not per pixel).
+fn roughness_constants(tb: f64) -> (f64, f64, f64) {
+    use std::cell::Cell;
+    thread_local! {
+        static LAST: Cell<Option<(u64, (f64, f64, f64))>> = const { Cell::new(None) };
+    }
+    LAST.with(|c| match c.get() {
+        Some((k, v)) if k == tb.to_bits() => v,
+        _ => {
+            let tan_tb = tb.tan();
+            let v = (
+                tan_tb,
+                1.0 / tan_tb,
+                1.0 / (1.0 + PI * tan_tb * tan_tb).sqrt(),
+            );
+            c.set(Some((tb.to_bits(), v)));
+            v
+        }
+    })
+}
+
 /// The roughness correction (μ0e, μe, S) of Hapke 1984 as docs/photometry.md states it.
 fn roughness<const N: usize>(
     mu0: Dual<N>,
@@ -204,9 +236,7 @@ fn roughness<const N: usize>(
     cos_g: f64,
     tb: f64,
 ) -> (Dual<N>, Dual<N>, Dual<N>) {
-    let tan_tb = tb.tan();
-    let cot_tb = 1.0 / tan_tb;
-    let chi = 1.0 / (1.0 + PI * tan_tb * tan_tb).sqrt();
+    let (tan_tb, cot_tb, chi) = roughness_constants(tb);
     let (sin_i, sin_e) = (sin_from_cos(mu0), sin_from_cos(mu));
     let (e1i, e2i) = e1_e2(mu0, sin_i, cot_tb);
     let (e1e, e2e) = e1_e2(mu, sin_e, cot_tb);
