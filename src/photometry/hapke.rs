@@ -211,8 +211,9 @@ fn neg_exp<const N: usize>(a: Dual<N>) -> Dual<N> {
 /// model per run: the tangent and root are then computed once, not per pixel).
 fn roughness_constants(tb: f64) -> (f64, f64, f64) {
     use std::cell::Cell;
+    type Constants = (f64, f64, f64);
     thread_local! {
-        static LAST: Cell<Option<(u64, (f64, f64, f64))>> = const { Cell::new(None) };
+        static LAST: Cell<Option<(u64, Constants)>> = const { Cell::new(None) };
     }
     LAST.with(|c| match c.get() {
         Some((k, v)) if k == tb.to_bits() => v,
