@@ -55,6 +55,8 @@ fn synthetic_products_through_run_meet_the_accuracy_bar() {
     // The plan's coarse reference stands for the first albedo stage: the halo covers the
     // second (4 × 8 px).
     assert_eq!(rec["halo"], 32);
+    assert_eq!(rec["reference"]["factor"], 4);
+    assert_eq!(rec["reference"]["rows"], 64);
     let inputs = rec["inputs"].as_array().unwrap();
     assert_eq!(inputs.len(), 7);
     let lbl = inputs

@@ -223,6 +223,8 @@ pub(super) struct RunRecord<'a> {
     pub(super) dem_resolution_m: Option<f64>,
     pub(super) dem_resolution_source: Option<String>,
     pub(super) sigma_dem: Option<f64>,
+    /// The plan's coarse reference (orbital runs with one).
+    pub(super) reference: Option<ReferenceInfo>,
     pub(super) threads: usize,
     pub(super) tiles: Vec<TileRecord>,
     pub(super) metrics: Metrics,
@@ -509,6 +511,7 @@ pub(super) fn mosaic(
         dem_resolution_m: Some(plan.dem_resolution_m),
         dem_resolution_source: Some(plan.dem_resolution_source.clone()),
         sigma_dem: Some(plan.sigma_dem),
+        reference: plan.reference.clone(),
         threads: rayon::current_num_threads(),
         tiles: records,
         metrics: stats.finish(),
