@@ -372,8 +372,8 @@ impl<'a, 'p> Objective<'a, 'p> {
     /// |r_k| ≤ `min_residual`. Gauss–Newton drops this term, which is right where residuals are
     /// small but converges only linearly (halving the error each step) where the image is
     /// brighter than any slope can make R — there R sits at its maximum over the slopes,
-    /// ∂R/∂(p, q) = 0, and only this term sees the curvature. ∇²R is the central difference of
-    /// the analytic gradient over ±1e-5 in p and q.
+    /// ∂R/∂(p, q) = 0, and only this term sees the curvature. ∇²R is the forward difference of
+    /// the analytic gradient over 1e-6 in p and q.
     pub fn curvature(
         &self,
         z: ArrayView2<f64>,
@@ -394,14 +394,17 @@ impl<'a, 'p> Objective<'a, 'p> {
                 if !ph.used[(i, j)] || r.abs() <= min_residual {
                     return;
                 }
-                let h = 1e-5;
+                let h = 1e-6;
                 let (pp, qq, w) = (p[(i, j)], q[(i, j)], rho[(i, j)]);
                 let (sun, view) = (o.sun.at(i, j), o.view.at(i, j));
                 let at = |dp: f64, dq: f64| model.shade_observed(pp + dp, qq + dq, w, sun, view);
-                let (xp, xm, yp, ym) = (at(h, 0.0), at(-h, 0.0), at(0.0, h), at(0.0, -h));
-                let rxx = (xp.dr_dp - xm.dr_dp) / (2.0 * h);
-                let ryy = (yp.dr_dq - ym.dr_dq) / (2.0 * h);
-                let rxy = 0.25 * (xp.dr_dq - xm.dr_dq + yp.dr_dp - ym.dr_dp) / h;
+                // The analytic gradient at (p, q) is the photo's (a, b) × Ī: forward
+                // differences need two more evaluations where central ones needed four.
+                let (gx, gy) = (ph.a[(i, j)] * s, ph.b[(i, j)] * s);
+                let (xp, yp) = (at(h, 0.0), at(0.0, h));
+                let rxx = (xp.dr_dp - gx) / h;
+                let ryy = (yp.dr_dq - gy) / h;
+                let rxy = 0.5 * (xp.dr_dq - gy + yp.dr_dp - gx) / h;
                 let c = -2.0 * r / s;
                 let t = psd_part([c * rxx, c * rxy, c * ryy]);
                 let w = wk[(i, j)];
