@@ -300,16 +300,9 @@ fn gdal_reads_crs_geotransform_nodata_and_values_and_validates_the_cog() {
 #[test]
 #[ignore = "needs GDAL (gdal-bin, python3-gdal); .ci/run runs it"]
 fn gdal_reads_byte_bands_as_byte_cogs() {
-    let gdalinfo = external_tool("gdalinfo", "gdal-bin");
     let dir = scratch("gdal-byte");
     let grid = test_grid(crss()[0]);
-    let a = Array2::from_shape_fn((grid.rows, grid.cols), |(r, c)| {
-        if r == 3 && c == 4 {
-            f64::NAN
-        } else {
-            ((r / 7 + c / 11) % 4) as f64
-        }
-    });
+    let a = byte_pattern(&grid);
     let p = dir.join("count.tif");
     let mut w = sfsfuse::export::CogWriter::create_as(
         &p,
@@ -327,22 +320,39 @@ fn gdal_reads_byte_bands_as_byte_cogs() {
     .unwrap();
     w.push(a.view()).unwrap();
     w.finish().unwrap();
+    check_byte_cog(&p, &grid, &a);
+    std::fs::remove_dir_all(&dir).unwrap();
+}
+
+/// A count pattern with one no-data pixel, for the Byte writers.
+fn byte_pattern(grid: &Grid) -> Array2<f64> {
+    Array2::from_shape_fn((grid.rows, grid.cols), |(r, c)| {
+        if r == 3 && c == 4 {
+            f64::NAN
+        } else {
+            ((r / 7 + c / 11) % 4) as f64
+        }
+    })
+}
+
+/// GDAL reads `p` as a valid Byte COG with no-data 255, two overviews and the values of `a`.
+fn check_byte_cog(p: &Path, grid: &Grid, a: &Array2<f64>) {
+    let gdalinfo = external_tool("gdalinfo", "gdal-bin");
     let j: serde_json::Value =
-        serde_json::from_str(&run(Command::new(&gdalinfo).arg("-json").arg(&p))).unwrap();
+        serde_json::from_str(&run(Command::new(&gdalinfo).arg("-json").arg(p))).unwrap();
     let band = &j["bands"][0];
     assert_eq!(band["type"], "Byte");
     assert_eq!(band["noDataValue"], 255.0);
     assert_eq!(band["overviews"].as_array().unwrap().len(), 2);
     assert_eq!(j["metadata"]["IMAGE_STRUCTURE"]["LAYOUT"], "COG");
     let ps = grid.crs.proj_string();
-    let (_, v) = gdal_python(&p, grid.crs.iau_2015().unwrap_or(&ps));
+    let (_, v) = gdal_python(p, grid.crs.iau_2015().unwrap_or(&ps));
     for (x, y) in v.iter().zip(a.iter()) {
         let want = if y.is_nan() { 255.0 } else { *y };
         assert_eq!(*x as f64, want);
     }
-    let out = run(Command::new("/usr/bin/python3").arg(COG_VALIDATOR).arg(&p));
+    let out = run(Command::new("/usr/bin/python3").arg(COG_VALIDATOR).arg(p));
     assert!(out.contains("is a valid cloud optimized GeoTIFF"), "{out}");
-    std::fs::remove_dir_all(&dir).unwrap();
 }
 
 /// The optional GDAL writer (`--features gdal`) meets the same bar, and its files read back
@@ -369,6 +379,43 @@ fn gdal_cog_driver_output_passes_the_same_checks() {
         .map(|e| e.unwrap().file_name().into_string().unwrap())
         .collect();
     assert!(names.iter().all(|n| !n.ends_with(".tmp")), "{names:?}");
+    // Byte bands (counts, the mask): the same checks as the pure-Rust writer's, and the same
+    // values through the tiff crate.
+    let grid = test_grid(crss()[0]);
+    let b = byte_pattern(&grid);
+    let p = dir.join("count.tif");
+    let band = BandInfo {
+        description: "observations",
+        unit: "",
+        metadata: &[],
+    };
+    sfsfuse::export::gdal::write_geotiff_as(
+        &p,
+        &grid,
+        b.view(),
+        &band,
+        sfsfuse::export::SampleFormat::Byte,
+    )
+    .unwrap();
+    check_byte_cog(&p, &grid, &b);
+    let t = read_tiff(&p).unwrap();
+    assert_eq!(t.nodata, Some(255.0));
+    for (x, y) in t.data.iter().zip(b.iter()) {
+        assert!(x == y || (*x == 255.0 && y.is_nan()), "{x} against {y}");
+    }
+    let e = sfsfuse::export::gdal::write_geotiff_as(
+        &dir.join("bad.tif"),
+        &grid,
+        b.mapv(|v| v + 0.5).view(),
+        &band,
+        sfsfuse::export::SampleFormat::Byte,
+    )
+    .unwrap_err()
+    .to_string();
+    assert!(
+        e.contains("bad.tif") && e.contains("not a whole number"),
+        "{e}"
+    );
     std::fs::remove_dir_all(&dir).unwrap();
 }
 

@@ -1,12 +1,14 @@
 //! GeoTIFF/COG export through GDAL's own COG driver (cargo feature `gdal`, system libgdal).
 //!
-//! The band is built in GDAL's MEM driver (geotransform, CRS, NaN no-data, description, unit,
-//! metadata) and copied with the COG driver: DEFLATE, floating-point predictor, 256-px blocks,
-//! averaged internal overviews, BigTIFF when needed — the same layout as the pure-Rust writer
-//! in [`super`]. The CRS is given to GDAL by its IAU_2015 code where it has one, else as
+//! The band is built in GDAL's MEM driver (geotransform, CRS, no-data, description, unit,
+//! metadata, statistics) and copied with the COG driver: DEFLATE, 256-px blocks, BigTIFF when
+//! needed, and per [`SampleFormat`] the same choices as the pure-Rust writer in [`super`]:
+//! float32 with NaN no-data, the floating-point predictor and averaged overviews, or Byte with
+//! [`BYTE_NODATA`], horizontal differencing and nearest-neighbour overviews (a count or a class
+//! is never averaged). The CRS is given to GDAL by its IAU_2015 code where it has one, else as
 //! [`crate::grid::Crs::wkt`] (WKT2 on the IAU_2015:30100 Moon sphere). Written under a temporary name and renamed.
 
-use super::BandInfo;
+use super::{BandInfo, SampleFormat, BYTE_NODATA};
 use crate::error::{Error, Result};
 use crate::grid::Grid;
 use gdal::raster::{Buffer, RasterCreationOptions};
@@ -15,21 +17,46 @@ use gdal::{DriverManager, Metadata};
 use ndarray::ArrayView2;
 use std::path::Path;
 
-/// Write `data` on `grid` to `path` as a COG with GDAL.
+/// Write `data` on `grid` to `path` as a float32 COG with GDAL.
 pub fn write_geotiff(
     path: &Path,
     grid: &Grid,
     data: ArrayView2<f64>,
     info: &BandInfo,
 ) -> Result<()> {
+    write_geotiff_as(path, grid, data, info, SampleFormat::Float32)
+}
+
+/// [`write_geotiff`] with a choice of sample format. A Byte band takes whole numbers 0–254 and
+/// NaN (written as [`BYTE_NODATA`]); anything else is refused naming the pixel.
+pub fn write_geotiff_as(
+    path: &Path,
+    grid: &Grid,
+    data: ArrayView2<f64>,
+    info: &BandInfo,
+    format: SampleFormat,
+) -> Result<()> {
     let fail = |what: &str, e: gdal::errors::GdalError| {
         Error::Usage(format!("{}: GDAL {what}: {e}", path.display()))
     };
     super::check_shape(path, grid, data)?;
+    if format == SampleFormat::Byte {
+        if let Some(((r, c), x)) = data
+            .indexed_iter()
+            .find(|(_, x)| !(x.is_nan() || (x.fract() == 0.0 && (0.0..255.0).contains(*x))))
+        {
+            return Err(Error::Usage(format!(
+                "{}: {x} at row {r}, column {c} is not a whole number 0–254 for a Byte band",
+                path.display()
+            )));
+        }
+    }
     let mem = DriverManager::get_driver_by_name("MEM").map_err(|e| fail("MEM driver", e))?;
-    let mut ds = mem
-        .create_with_band_type::<f32, _>("", grid.cols, grid.rows, 1)
-        .map_err(|e| fail("create", e))?;
+    let mut ds = match format {
+        SampleFormat::Float32 => mem.create_with_band_type::<f32, _>("", grid.cols, grid.rows, 1),
+        SampleFormat::Byte => mem.create_with_band_type::<u8, _>("", grid.cols, grid.rows, 1),
+    }
+    .map_err(|e| fail("create", e))?;
     ds.set_geo_transform(&grid.geotransform())
         .map_err(|e| fail("geotransform", e))?;
     let srs = match grid.crs.iau_2015() {
@@ -44,7 +71,11 @@ pub fn write_geotiff(
     }
     {
         let mut band = ds.rasterband(1).map_err(|e| fail("band", e))?;
-        band.set_no_data_value(Some(f64::NAN))
+        let nodata = match format {
+            SampleFormat::Float32 => f64::NAN,
+            SampleFormat::Byte => f64::from(BYTE_NODATA),
+        };
+        band.set_no_data_value(Some(nodata))
             .map_err(|e| fail("no-data", e))?;
         band.set_description(info.description)
             .map_err(|e| fail("description", e))?;
@@ -65,20 +96,30 @@ pub fn write_geotiff(
             band.set_metadata_item(k, &v, "")
                 .map_err(|e| fail("statistics", e))?;
         }
-        band.write(
-            (0, 0),
-            (grid.cols, grid.rows),
-            &mut Buffer::new((grid.cols, grid.rows), values),
-        )
+        let size = (grid.cols, grid.rows);
+        match format {
+            SampleFormat::Float32 => band.write((0, 0), size, &mut Buffer::new(size, values)),
+            SampleFormat::Byte => {
+                let bytes = values
+                    .iter()
+                    .map(|&v| if v.is_nan() { BYTE_NODATA } else { v as u8 })
+                    .collect();
+                band.write((0, 0), size, &mut Buffer::new(size, bytes))
+            }
+        }
         .map_err(|e| fail("write", e))?;
     }
+    let resampling = match format {
+        SampleFormat::Float32 => "RESAMPLING=AVERAGE",
+        SampleFormat::Byte => "RESAMPLING=NEAREST",
+    };
     let cog = DriverManager::get_driver_by_name("COG").map_err(|e| fail("COG driver", e))?;
     let options = RasterCreationOptions::from_iter([
         "COMPRESS=DEFLATE",
         "PREDICTOR=YES",
         "BLOCKSIZE=256",
         "OVERVIEWS=AUTO",
-        "RESAMPLING=AVERAGE",
+        resampling,
         "BIGTIFF=IF_SAFER",
     ]);
     let tmp = crate::raster::tmp_name(path);
