@@ -130,11 +130,16 @@ pub fn score(scene: &Scene, f: &crate::fusion::Fusion) -> (f64, f64, f64) {
 /// the crater Alphonsus (13.4° S, 2.8° W), as in the seed, so the products open in a GIS at a
 /// real place with a real lunar CRS.
 pub fn demo_grid(spec: &SceneSpec) -> Result<Grid> {
+    grid_at(spec, -13.4, 357.2)
+}
+
+/// The scene's grid on a local stereographic projection centred at (`lat`, `lon`) degrees.
+pub fn grid_at(spec: &SceneSpec, lat: f64, lon: f64) -> Result<Grid> {
     let half = spec.size as f64 * spec.spacing / 2.0;
     Grid::new(
         Crs::Stereographic {
-            lat_0: -13.4,
-            lon_0: 357.2,
+            lat_0: lat,
+            lon_0: lon,
         },
         spec.size,
         spec.size,
@@ -143,6 +148,26 @@ pub fn demo_grid(spec: &SceneSpec) -> Result<Grid> {
         spec.spacing,
     )
     .map_err(|e| Error::Usage(e.to_string()))
+}
+
+/// `LAT/LON` in degrees: latitude within ±80 (the stereographic grid of a scene must stay off
+/// the pole), longitude any finite value (taken modulo 360).
+pub fn parse_center(text: &str) -> std::result::Result<(f64, f64), String> {
+    let (a, b) = text
+        .split_once('/')
+        .ok_or_else(|| format!("{text:?}: give LAT/LON in degrees, e.g. -13.4/30"))?;
+    let num = |s: &str, what: &str| {
+        s.trim()
+            .parse::<f64>()
+            .ok()
+            .filter(|v| v.is_finite())
+            .ok_or_else(|| format!("{text:?}: {what} {s:?} is not a finite number"))
+    };
+    let (lat, lon) = (num(a, "latitude")?, num(b, "longitude")?);
+    if lat.abs() > 80.0 {
+        return Err(format!("{text:?}: latitude {lat} is beyond ±80°"));
+    }
+    Ok((lat, lon.rem_euclid(360.0)))
 }
 
 /// Run the demo on `spec`, writing products to `out` when given.
@@ -325,5 +350,19 @@ impl DemoReport {
             row("wrote", o.display().to_string());
         }
         s
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn centres_parse_and_bad_ones_are_refused() {
+        assert_eq!(parse_center("-13.4/30").unwrap(), (-13.4, 30.0));
+        assert_eq!(parse_center("10/-2.8").unwrap(), (10.0, 357.2));
+        for bad in ["", "-13.4", "a/3", "3/inf", "81/0"] {
+            assert!(parse_center(bad).is_err(), "{bad}");
+        }
     }
 }

@@ -172,6 +172,11 @@ enum Command {
         /// by half a strip.
         #[arg(long)]
         strips: bool,
+        /// Centre of the scene's stereographic grid as LAT/LON in degrees (default: crater
+        /// Alphonsus, -13.4/357.2). Scenes wider than ≈ 1100 px at 140 m reach longitude 0°
+        /// from Alphonsus, which the LOLA-like writer does not handle: centre them further east.
+        #[arg(long, value_parser = sfsfuse::demo::parse_center)]
+        center: Option<(f64, f64)>,
         /// Print JSON instead of a table.
         #[arg(long)]
         json: bool,
@@ -382,6 +387,7 @@ fn run(cli: Cli) -> Result<(), sfsfuse::Error> {
             suns,
             gains,
             strips,
+            center,
             json,
         } => {
             if let Some(g) = gains.iter().find(|g| !(g.is_finite() && **g > 0.0)) {
@@ -414,7 +420,10 @@ fn run(cli: Cli) -> Result<(), sfsfuse::Error> {
                 )));
             }
             let scene = sfsfuse::synth::generate(&spec);
-            let grid = sfsfuse::demo::demo_grid(&spec)?;
+            let grid = match center {
+                Some((lat, lon)) => sfsfuse::demo::grid_at(&spec, lat, lon)?,
+                None => sfsfuse::demo::demo_grid(&spec)?,
+            };
             let p = sfsfuse::synth::products::write(&scene, &grid, &out)?;
             let labels: Vec<String> = p
                 .m3_labels
