@@ -175,7 +175,7 @@ enum Command {
         /// Centre of the scene's stereographic grid as LAT/LON in degrees (default: crater
         /// Alphonsus, -13.4/357.2). Scenes wider than ≈ 1100 px at 140 m reach longitude 0°
         /// from Alphonsus, which the LOLA-like writer does not handle: centre them further east.
-        #[arg(long, value_parser = sfsfuse::demo::parse_center)]
+        #[arg(long, allow_hyphen_values = true, value_parser = sfsfuse::demo::parse_center)]
         center: Option<(f64, f64)>,
         /// Print JSON instead of a table.
         #[arg(long)]
