@@ -637,12 +637,12 @@ directory = "out"
         );
         // The halo depends on the DEM (σ_DEM, its point spread): the plan sets it. With a DEM
         // 4× coarser the largest σ is the first albedo stage, 100 px, when tiles solve it;
-        // with the plan's coarse reference it is the second, 8 px, and the halo its minimum.
+        // with the plan's coarse reference it is the second, 10 px.
         assert_eq!(o.tiling.halo, None);
         assert!(!o.sigma_dem_given);
         let psf = crate::fusion::dem_psf_sigma(4.0);
         assert_eq!(auto_halo(&o.solver, psf, false), 400);
-        assert_eq!(auto_halo(&o.solver, psf, true), MIN_HALO);
+        assert_eq!(auto_halo(&o.solver, psf, true), 40);
         let given = MINIMAL.replace("[output]", "[solver]\nsigma_dem = 5.0\n[output]");
         let Workflow::Orbital(g) =
             Workflow::parse(&given, Path::new("w.toml"), Path::new(".")).unwrap()

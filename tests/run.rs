@@ -53,8 +53,8 @@ fn synthetic_products_through_run_meet_the_accuracy_bar() {
         serde_json::from_slice(&std::fs::read(out.join("run.json")).unwrap()).unwrap();
     assert_eq!(rec["workflow"]["solver"]["delta"], 50.0);
     // The plan's coarse reference stands for the first albedo stage: the halo covers the
-    // second (4 × 8 px).
-    assert_eq!(rec["halo"], 32);
+    // second (4 × 10 px).
+    assert_eq!(rec["halo"], 40);
     assert_eq!(rec["reference"]["factor"], 4);
     assert_eq!(rec["reference"]["rows"], 64);
     let inputs = rec["inputs"].as_array().unwrap();

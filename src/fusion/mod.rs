@@ -229,7 +229,7 @@ impl Default for FusionParams {
             delta: 50.0,
             eta: 0.1,
             sigma_dem: 3.0,
-            albedo_sigmas: vec![100.0, 8.0],
+            albedo_sigmas: vec![100.0, 10.0, 4.0],
             final_albedo_sigma: 1.5,
             shadow_threshold: 0.1,
             max_iterations: 30,
