@@ -139,16 +139,7 @@ impl CogWriter {
             )));
         }
         if self.format == SampleFormat::Byte {
-            if let Some(((r, c), x)) = rows
-                .indexed_iter()
-                .find(|(_, x)| !(x.is_nan() || (x.fract() == 0.0 && (0.0..255.0).contains(*x))))
-            {
-                return Err(Error::Usage(format!(
-                    "{}: {x} at row {}, column {c} is not a whole number 0–254 for a Byte band",
-                    self.path.display(),
-                    l.rows_in + r
-                )));
-            }
+            super::check_byte_values(&self.path, rows, l.rows_in)?;
         }
         let v: Vec<f32> = rows.iter().map(|&x| x as f32).collect();
         self.stats.add(&v);

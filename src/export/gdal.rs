@@ -41,15 +41,7 @@ pub fn write_geotiff_as(
     };
     super::check_shape(path, grid, data)?;
     if format == SampleFormat::Byte {
-        if let Some(((r, c), x)) = data
-            .indexed_iter()
-            .find(|(_, x)| !(x.is_nan() || (x.fract() == 0.0 && (0.0..255.0).contains(*x))))
-        {
-            return Err(Error::Usage(format!(
-                "{}: {x} at row {r}, column {c} is not a whole number 0–254 for a Byte band",
-                path.display()
-            )));
-        }
+        super::check_byte_values(path, data, 0)?;
     }
     let mem = DriverManager::get_driver_by_name("MEM").map_err(|e| fail("MEM driver", e))?;
     let mut ds = match format {

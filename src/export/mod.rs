@@ -112,6 +112,27 @@ pub fn write_geotiff_as(
     w.finish()
 }
 
+/// A [`SampleFormat::Byte`] band takes whole numbers 0–254 and NaN (no data): the first other
+/// value of `rows` (whose first row is row `first_row` of the image) is refused naming `path`,
+/// the value and its pixel.
+pub(crate) fn check_byte_values(
+    path: &Path,
+    rows: ArrayView2<f64>,
+    first_row: usize,
+) -> Result<()> {
+    match rows
+        .indexed_iter()
+        .find(|(_, x)| !(x.is_nan() || (x.fract() == 0.0 && (0.0..255.0).contains(*x))))
+    {
+        Some(((r, c), x)) => Err(Error::Usage(format!(
+            "{}: {x} at row {}, column {c} is not a whole number 0–254 for a Byte band",
+            path.display(),
+            first_row + r
+        ))),
+        None => Ok(()),
+    }
+}
+
 /// The data must cover the grid exactly.
 pub(crate) fn check_shape(path: &Path, grid: &Grid, data: ArrayView2<f64>) -> Result<()> {
     if data.dim() != (grid.rows, grid.cols) {
