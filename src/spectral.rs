@@ -10,7 +10,7 @@
 //! Transforms run row by row in parallel; each row is independent, so the result does not
 //! depend on the number of threads.
 
-use ndarray::{Array2, ArrayView2, Axis, Zip};
+use ndarray::{Array2, Axis, Zip};
 use rayon::prelude::*;
 use rustfft::num_complex::Complex;
 use rustfft::{Fft, FftPlanner};
@@ -267,33 +267,6 @@ fn cols_apply(a: &mut Array2<f64>, plan: &LineDct, forward: bool) {
         );
 }
 
-/// Cache-blocked parallel transpose into a new standard-layout array.
-pub fn transpose(a: ArrayView2<f64>) -> Array2<f64> {
-    const B: usize = 32;
-    let (ny, nx) = a.dim();
-    let a = a.as_standard_layout();
-    let src = a.as_slice().expect("standard layout");
-    let mut out = Array2::<f64>::zeros((nx, ny));
-    out.as_slice_mut()
-        .expect("standard layout")
-        .par_chunks_mut(B * ny)
-        .enumerate()
-        .for_each(|(bi, block)| {
-            let x0 = bi * B;
-            let w = block.len() / ny.max(1);
-            for y0 in (0..ny).step_by(B) {
-                let y1 = (y0 + B).min(ny);
-                for y in y0..y1 {
-                    let row = &src[y * nx + x0..y * nx + x0 + w];
-                    for (dx, v) in row.iter().enumerate() {
-                        block[dx * ny + y] = *v;
-                    }
-                }
-            }
-        });
-    out
-}
-
 /// 1-D eigenvalues 2 − 2cos(πk/N) of the Neumann second difference.
 pub fn laplacian_eigenvalues(n: usize) -> Vec<f64> {
     (0..n)
@@ -414,6 +387,7 @@ pub fn weighted_gaussian(
 #[cfg(test)]
 mod tests {
     use super::*;
+    use ndarray::ArrayView2;
 
     fn test_array(ny: usize, nx: usize) -> Array2<f64> {
         Array2::from_shape_fn((ny, nx), |(i, j)| {
@@ -482,6 +456,34 @@ mod tests {
                 }
             }
         }
+    }
+
+    /// Cache-blocked parallel transpose into a new standard-layout array (the reference the
+    /// column pass is checked against).
+    fn transpose(a: ArrayView2<f64>) -> Array2<f64> {
+        const B: usize = 32;
+        let (ny, nx) = a.dim();
+        let a = a.as_standard_layout();
+        let src = a.as_slice().expect("standard layout");
+        let mut out = Array2::<f64>::zeros((nx, ny));
+        out.as_slice_mut()
+            .expect("standard layout")
+            .par_chunks_mut(B * ny)
+            .enumerate()
+            .for_each(|(bi, block)| {
+                let x0 = bi * B;
+                let w = block.len() / ny.max(1);
+                for y0 in (0..ny).step_by(B) {
+                    let y1 = (y0 + B).min(ny);
+                    for y in y0..y1 {
+                        let row = &src[y * nx + x0..y * nx + x0 + w];
+                        for (dx, v) in row.iter().enumerate() {
+                            block[dx * ny + y] = *v;
+                        }
+                    }
+                }
+            });
+        out
     }
 
     #[test]

@@ -267,6 +267,13 @@ pub enum FusionError {
         image: (usize, usize),
         dem: (usize, usize),
     },
+    #[error(
+        "the starting surface is {start:?} pixels but the DEM is {dem:?}: they must be on one grid"
+    )]
+    StartShape {
+        start: (usize, usize),
+        dem: (usize, usize),
+    },
     #[error("the grid is {0:?} pixels: fusion needs at least 3 × 3")]
     TooSmall((usize, usize)),
     #[error("grid spacing must be a positive number of metres, got {0}")]
@@ -681,8 +688,8 @@ pub fn fuse_from(
 ) -> Result<Fusion, FusionError> {
     let obj = objective(pr, params)?;
     if start.dim() != pr.dem.dim() {
-        return Err(FusionError::Shape {
-            image: start.dim(),
+        return Err(FusionError::StartShape {
+            start: start.dim(),
             dem: pr.dem.dim(),
         });
     }
@@ -692,9 +699,23 @@ pub fn fuse_from(
 
 /// The factor of the coarse first stage for a grid of `dim`: `params.coarse_factor`, or
 /// `None` when it is 1, there is no albedo stage, or the coarse grid would be under 8 × 8.
-pub fn coarse_factor((ny, nx): (usize, usize), params: &FusionParams) -> Option<usize> {
+pub fn coarse_factor(dim: (usize, usize), params: &FusionParams) -> Option<usize> {
+    coarse_factor_at_least(dim, params, 1)
+}
+
+/// [`coarse_factor`], raised to at least `min` (a tiled run keeps its reference's grid
+/// bounded this way); still `None` when `params.coarse_factor` is 1.
+pub fn coarse_factor_at_least(
+    (ny, nx): (usize, usize),
+    params: &FusionParams,
+    min: usize,
+) -> Option<usize> {
     let f = params.coarse_factor;
-    (f > 1 && !params.albedo_sigmas.is_empty() && ny / f >= 8 && nx / f >= 8).then_some(f)
+    if f <= 1 || params.albedo_sigmas.is_empty() {
+        return None;
+    }
+    let f = f.max(min);
+    (ny / f >= 8 && nx / f >= 8).then_some(f)
 }
 
 /// The albedo stages of widths `sigmas` from surface `z`, then the support taper, the final

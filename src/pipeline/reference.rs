@@ -38,15 +38,10 @@ pub struct ReferenceInfo {
 /// solve every stage themselves), there is no albedo stage, or the coarse grid would be under
 /// 8 × 8 (a region of a few dozen pixels).
 pub(super) fn factor(grid: &Grid, params: &FusionParams) -> Option<usize> {
-    let f0 = params.coarse_factor;
-    if f0 <= 1 || params.albedo_sigmas.is_empty() {
-        return None;
-    }
     let need = ((grid.rows * grid.cols) as f64 / REFERENCE_PIXELS as f64)
         .sqrt()
         .ceil() as usize;
-    let f = f0.max(need);
-    (grid.rows / f >= 8 && grid.cols / f >= 8).then_some(f)
+    fusion::coarse_factor_at_least((grid.rows, grid.cols), params, need)
 }
 
 /// The run-wide quantities a reference is solved with.
