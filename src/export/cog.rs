@@ -421,10 +421,7 @@ pub(super) fn float_predictor(row: &[f32]) -> Vec<u8> {
 /// TIFF's horizontal predictor (Predictor = 2) on one row of bytes (NaN → [`BYTE_NODATA`]):
 /// each byte minus its left neighbour, modulo 256.
 pub(super) fn byte_predictor(row: &[f32]) -> Vec<u8> {
-    let b: Vec<u8> = row
-        .iter()
-        .map(|&v| if v.is_nan() { BYTE_NODATA } else { v as u8 })
-        .collect();
+    let b: Vec<u8> = row.iter().map(|&v| super::byte_sample(v)).collect();
     let mut out = b.clone();
     for j in 1..b.len() {
         out[j] = b[j].wrapping_sub(b[j - 1]);
@@ -451,29 +448,23 @@ pub(super) const ASCII: u16 = 2;
 pub(super) const DOUBLE: u16 = 12;
 pub(super) const LONG8: u16 = 16;
 
-pub(super) fn shorts(tag: u16, v: &[u16]) -> Entry {
+/// An entry of `kind` holding the little-endian bytes of each value.
+fn numbers<T: Copy, const N: usize>(tag: u16, kind: u16, v: &[T], le: fn(T) -> [u8; N]) -> Entry {
     Entry {
         tag,
-        kind: SHORT,
+        kind,
         count: v.len() as u64,
-        bytes: v.iter().flat_map(|x| x.to_le_bytes()).collect(),
+        bytes: v.iter().flat_map(|&x| le(x)).collect(),
     }
+}
+pub(super) fn shorts(tag: u16, v: &[u16]) -> Entry {
+    numbers(tag, SHORT, v, u16::to_le_bytes)
 }
 pub(super) fn longs(tag: u16, v: &[u32]) -> Entry {
-    Entry {
-        tag,
-        kind: LONG,
-        count: v.len() as u64,
-        bytes: v.iter().flat_map(|x| x.to_le_bytes()).collect(),
-    }
+    numbers(tag, LONG, v, u32::to_le_bytes)
 }
 pub(super) fn doubles(tag: u16, v: &[f64]) -> Entry {
-    Entry {
-        tag,
-        kind: DOUBLE,
-        count: v.len() as u64,
-        bytes: v.iter().flat_map(|x| x.to_le_bytes()).collect(),
-    }
+    numbers(tag, DOUBLE, v, f64::to_le_bytes)
 }
 pub(super) fn ascii(tag: u16, s: &str) -> Entry {
     let mut bytes = s.as_bytes().to_vec();
@@ -520,12 +511,7 @@ pub(super) fn level_tags(
         shorts(322, &[TILE as u16]),
         shorts(323, &[TILE as u16]),
         if width.big {
-            Entry {
-                tag: 324,
-                kind: LONG8,
-                count: n as u64,
-                bytes: offsets.iter().flat_map(|x| x.to_le_bytes()).collect(),
-            }
+            numbers(324, LONG8, &offsets, u64::to_le_bytes)
         } else {
             longs(324, &offsets.iter().map(|&x| x as u32).collect::<Vec<_>>())
         },

@@ -92,10 +92,7 @@ pub fn write_geotiff_as(
         match format {
             SampleFormat::Float32 => band.write((0, 0), size, &mut Buffer::new(size, values)),
             SampleFormat::Byte => {
-                let bytes = values
-                    .iter()
-                    .map(|&v| if v.is_nan() { BYTE_NODATA } else { v as u8 })
-                    .collect();
+                let bytes = values.iter().map(|&v| super::byte_sample(v)).collect();
                 band.write((0, 0), size, &mut Buffer::new(size, bytes))
             }
         }

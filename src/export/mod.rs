@@ -133,6 +133,16 @@ pub(crate) fn check_byte_values(
     }
 }
 
+/// The stored byte of a [`SampleFormat::Byte`] value ([`check_byte_values`] passed): NaN is
+/// [`BYTE_NODATA`].
+pub(crate) fn byte_sample(v: f32) -> u8 {
+    if v.is_nan() {
+        BYTE_NODATA
+    } else {
+        v as u8
+    }
+}
+
 /// The data must cover the grid exactly.
 pub(crate) fn check_shape(path: &Path, grid: &Grid, data: ArrayView2<f64>) -> Result<()> {
     if data.dim() != (grid.rows, grid.cols) {
