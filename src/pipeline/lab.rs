@@ -123,10 +123,7 @@ pub(super) fn run_lab(l: &Lab, wf: &Workflow, progress: &Progress) -> Result<Run
     let meta = [("SFSFUSE_VERSION", env!("CARGO_PKG_VERSION").to_string())];
     let mut outputs = Vec::new();
     for &layer in &l.output.layers {
-        let k = TILE_LAYERS
-            .iter()
-            .position(|&x| x == layer)
-            .expect("every layer exists");
+        let k = stored_index(layer);
         let (description, unit) = layer_info(layer, false);
         let path = out.join(format!("{}.tif", layer.name()));
         let mut w = CogWriter::create_as(

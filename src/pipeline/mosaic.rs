@@ -365,10 +365,7 @@ pub(super) fn mosaic(
     let mut writers = Vec::new();
     let mut outputs = Vec::new();
     for &l in &o.output.layers {
-        let k = TILE_LAYERS
-            .iter()
-            .position(|&x| x == l)
-            .expect("every layer is stored per tile");
+        let k = stored_index(l);
         let (description, unit) = layer_info(l, true);
         let description = match (l, &o.photometry) {
             (Layer::Albedo, ModelSpec::Hapke(_)) => format!(

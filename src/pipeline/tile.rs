@@ -30,6 +30,14 @@ pub struct TileRecord {
 pub(super) const TILE_LAYERS: [Layer; 7] = Layer::ALL;
 pub(super) const TILE_MAGIC: &[u8; 8] = b"SFSTILE1";
 
+/// Where `layer` is in [`TILE_LAYERS`] (every layer is stored).
+pub(super) fn stored_index(layer: Layer) -> usize {
+    TILE_LAYERS
+        .iter()
+        .position(|&x| x == layer)
+        .expect("every layer is stored per tile")
+}
+
 /// `mask` codes: fused from shading.
 pub const MASK_FUSED: f64 = 0.0;
 /// `mask` codes: an observation sees the pixel but gave no photometric information there
