@@ -153,17 +153,9 @@ pub fn grid_at(spec: &SceneSpec, lat: f64, lon: f64) -> Result<Grid> {
 /// `LAT/LON` in degrees: latitude within ±80 (the stereographic grid of a scene must stay off
 /// the pole), longitude any finite value (taken modulo 360).
 pub fn parse_center(text: &str) -> std::result::Result<(f64, f64), String> {
-    let (a, b) = text
-        .split_once('/')
-        .ok_or_else(|| format!("{text:?}: give LAT/LON in degrees, e.g. -13.4/30"))?;
-    let num = |s: &str, what: &str| {
-        s.trim()
-            .parse::<f64>()
-            .ok()
-            .filter(|v| v.is_finite())
-            .ok_or_else(|| format!("{text:?}: {what} {s:?} is not a finite number"))
-    };
-    let (lat, lon) = (num(a, "latitude")?, num(b, "longitude")?);
+    let (lat, lon) = crate::synth::parse_pair(text)
+        .filter(|(a, b)| a.is_finite() && b.is_finite())
+        .ok_or_else(|| format!("{text:?}: give LAT/LON in finite degrees, e.g. -13.4/30"))?;
     if lat.abs() > 80.0 {
         return Err(format!("{text:?}: latitude {lat} is beyond ±80°"));
     }

@@ -117,12 +117,9 @@ pub const DEMO_SUNS: [(f64, f64); 6] = [
 /// Parse a Sun direction `AZ/EL` (degrees: azimuth clockwise from north, elevation above the
 /// horizon), as `sfsfuse synth --sun` takes it.
 pub fn parse_sun(text: &str) -> Result<(f64, f64), String> {
-    let bad = || format!("--sun {text}: expected AZIMUTH/ELEVATION in degrees, e.g. 110/55");
-    let (a, e) = text.split_once('/').ok_or_else(bad)?;
-    let (a, e): (f64, f64) = (
-        a.trim().parse().map_err(|_| bad())?,
-        e.trim().parse().map_err(|_| bad())?,
-    );
+    let (a, e) = parse_pair(text).ok_or_else(|| {
+        format!("--sun {text}: expected AZIMUTH/ELEVATION in degrees, e.g. 110/55")
+    })?;
     if !(a.is_finite() && (0.0..=360.0).contains(&a)) {
         return Err(format!("--sun {text}: azimuth {a} must be in [0, 360]"));
     }
@@ -132,6 +129,12 @@ pub fn parse_sun(text: &str) -> Result<(f64, f64), String> {
         ));
     }
     Ok((a, e))
+}
+
+/// `A/B`: two numbers separated by a slash (spaces around them allowed); `None` otherwise.
+pub fn parse_pair(text: &str) -> Option<(f64, f64)> {
+    let (a, b) = text.split_once('/')?;
+    Some((a.trim().parse().ok()?, b.trim().parse().ok()?))
 }
 
 impl SceneSpec {
