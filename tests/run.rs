@@ -921,6 +921,25 @@ fn a_damaged_tile_is_recomputed_not_mosaicked() {
         "{log}"
     );
     assert_eq!(output_bytes(&out), before);
+    // A damaged coarse reference is not used: the plan is made anew, to the same products.
+    let reference = out.join("reference.bin");
+    let mut b = std::fs::read(&reference).unwrap();
+    b[100] ^= 0x10;
+    std::fs::write(&reference, b).unwrap();
+    std::fs::remove_dir_all(out.join("tiles")).unwrap();
+    let o = sfsfuse()
+        .args(["run", "--progress", "lines"])
+        .arg(&wf)
+        .output()
+        .unwrap();
+    let log = String::from_utf8_lossy(&o.stderr);
+    assert!(o.status.success(), "{log}");
+    assert!(
+        log.contains("reference.bin: its SHA-256 is not the plan's")
+            && log.contains("planning anew"),
+        "{log}"
+    );
+    assert_eq!(output_bytes(&out), before);
     std::fs::remove_dir_all(&dir).unwrap();
 }
 

@@ -203,7 +203,7 @@ pub fn list_tiles(wf: &Workflow, progress: &Progress) -> Result<Vec<TileStatus>>
         ));
     };
     let inputs = Inputs::open(o, progress)?;
-    let plan = plan(o, wf, &inputs, progress)?;
+    let (plan, _) = plan(o, wf, &inputs, progress)?;
     Ok(plan
         .tiles
         .iter()
@@ -264,7 +264,7 @@ fn run_orbital(
 ) -> Result<RunSummary> {
     let out = &o.output.directory;
     let inputs = Inputs::open(o, progress)?;
-    let plan = plan(o, wf, &inputs, progress)?;
+    let (plan, reference) = plan(o, wf, &inputs, progress)?;
     let wanted: Vec<usize> = match &req.tiles {
         Some(ids) => {
             if let Some(&bad) = ids.iter().find(|&&i| i >= plan.tiles.len()) {
@@ -290,10 +290,6 @@ fn run_orbital(
     if !pending.is_empty() {
         let tiles = out.join("tiles");
         std::fs::create_dir_all(&tiles).map_err(|e| Error::io(&tiles, e))?;
-        let reference = match &plan.reference {
-            Some(info) => Some(reference::load(out, info)?),
-            None => None,
-        };
         progress.steps("tiles", pending.len() as u64);
         let results: Vec<Result<TileRecord>> = pending
             .par_iter()

@@ -210,31 +210,36 @@ pub(super) fn make_grid(o: &Orbital, inputs: &Inputs, res: f64) -> Result<Grid> 
     }
 }
 
-/// Make the plan, or load it when one with the same key exists.
+/// Make the plan, or load it when one with the same key exists (and its reference file, when
+/// it has one, matches its checksum); with the plan, the reference's values.
 pub(super) fn plan(
     o: &Orbital,
     wf: &Workflow,
     inputs: &Inputs,
     progress: &Progress,
-) -> Result<Plan> {
+) -> Result<(Plan, Option<Array2<f64>>)> {
     let out = &o.output.directory;
     let key = run_key(wf, &inputs.files()?)?;
     let path = out.join("plan.json");
     if let Ok(text) = std::fs::read_to_string(&path) {
-        if let Ok(p) = serde_json::from_str::<Plan>(&text) {
-            let reference_ok = p
-                .reference
-                .as_ref()
-                .is_none_or(|r| super::reference::load(out, r).is_ok());
-            if p.key == key && reference_ok {
-                progress.note(&format!("plan: reusing {}", path.display()));
-                return Ok(p);
+        let why = match serde_json::from_str::<Plan>(&text) {
+            Ok(p) if p.key == key => {
+                let reference = p
+                    .reference
+                    .as_ref()
+                    .map(|r| super::reference::load(out, r))
+                    .transpose();
+                match reference {
+                    Ok(reference) => {
+                        progress.note(&format!("plan: reusing {}", path.display()));
+                        return Ok((p, reference));
+                    }
+                    Err(e) => e.to_string(),
+                }
             }
-        }
-        progress.note(&format!(
-            "plan: {} belongs to other inputs or parameters; planning anew",
-            path.display()
-        ));
+            _ => format!("{} belongs to other inputs or parameters", path.display()),
+        };
+        progress.note(&format!("plan: {why}; planning anew"));
     }
     progress.stage("planning: grid, swath index, intensity scale");
     let (res, resolution_source) = resolution(o, inputs)?;
@@ -343,7 +348,7 @@ pub(super) fn plan(
         vec![1.0]
     };
     std::fs::create_dir_all(out).map_err(|e| Error::io(out, e))?;
-    let reference = match reference_factor {
+    let built = match reference_factor {
         Some(f) => {
             progress.stage("planning: the coarse reference over the whole region");
             let run = RunWide {
@@ -375,7 +380,7 @@ pub(super) fn plan(
         dem_resolution_source,
         sigma_dem,
         swaths,
-        reference,
+        reference: built.as_ref().map(|(info, _)| info.clone()),
     };
     write_atomic(
         &path,
@@ -421,5 +426,5 @@ pub(super) fn plan(
             list(&p.noise_weights)
         ));
     }
-    Ok(p)
+    Ok((p, built.map(|(_, values)| values)))
 }

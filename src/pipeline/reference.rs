@@ -55,15 +55,15 @@ pub(super) struct RunWide<'a> {
 }
 
 /// Build the reference of block `f` over `grid`, write it to the output directory and return
-/// its record; `Ok(None)` when no DEM reaches the grid at all (the tiles then say where) or no
-/// observation has a usable pixel.
+/// its record and its values; `Ok(None)` when no DEM reaches the grid at all (the tiles then
+/// say where) or no observation has a usable pixel.
 pub(super) fn build(
     o: &Orbital,
     inputs: &Inputs,
     grid: &Grid,
     run: &RunWide,
     f: usize,
-) -> Result<Option<ReferenceInfo>> {
+) -> Result<Option<(ReferenceInfo, Array2<f64>)>> {
     let t0 = Instant::now();
     let (cr, cc) = pyramid::coarse_dim((grid.rows, grid.cols), f);
     let n = inputs.obs.len();
@@ -139,14 +139,15 @@ pub(super) fn build(
     let bytes = encode(&correction);
     let path = o.output.directory.join(REFERENCE_FILE);
     write_atomic(&path, &bytes)?;
-    Ok(Some(ReferenceInfo {
+    let info = ReferenceInfo {
         factor: f,
         rows: cr,
         cols: cc,
         sha256: sha256_hex(&bytes),
         iterations: stage.iterations.len(),
         seconds: t0.elapsed().as_secs_f64(),
-    }))
+    };
+    Ok(Some((info, correction)))
 }
 
 fn encode(a: &Array2<f64>) -> Vec<u8> {
@@ -160,16 +161,12 @@ fn encode(a: &Array2<f64>) -> Vec<u8> {
     bytes
 }
 
-/// Read the reference of the plan, checked against its record.
+/// Read the reference of the plan, checked against its record (a file that fails is made anew
+/// by the plan).
 pub(super) fn load(out: &Path, info: &ReferenceInfo) -> Result<Array2<f64>> {
     let path = out.join(REFERENCE_FILE);
     let bytes = std::fs::read(&path).map_err(|e| Error::io(&path, e))?;
-    let bad = |why: &str| {
-        Error::Usage(format!(
-            "{}: {why}; run `sfsfuse run` again to plan anew",
-            path.display()
-        ))
-    };
+    let bad = |why: &str| Error::Usage(format!("{}: {why}", path.display()));
     if sha256_hex(&bytes) != info.sha256 {
         return Err(bad(
             "its SHA-256 is not the plan's (a damaged or foreign file)",
