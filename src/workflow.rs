@@ -245,10 +245,11 @@ impl GridSpec {
 #[serde(deny_unknown_fields, default)]
 pub struct Tiling {
     /// Edge of a tile's core, pixels. Each tile is solved on (core + 2·halo)²: with the default
-    /// halo of 300 px that is 2.6× the core's work at 1024, 4.7× at 512 (docs/workflows.md).
+    /// halo of 40 px that is 1.16× the core's work at 1024, 1.34× at 512 (docs/workflows.md).
     pub tile_size: usize,
-    /// Overlap on each side, pixels; absent = ⌈3 × the largest Gaussian σ⌉ of the solver
-    /// (albedo stages, σ_DEM, the DEM's point spread), the least the issue allows.
+    /// Overlap on each side, pixels; absent = [`auto_halo`]: ⌈4 × the largest Gaussian σ⌉ a
+    /// tile applies (the fine albedo stages, σ_DEM, the DEM's point spread), at least
+    /// [`MIN_HALO`].
     pub halo: Option<usize>,
     /// Half-width, pixels, of the band around each core edge where neighbouring tiles are
     /// blended; at most the halo. Absent = halo / 4.
