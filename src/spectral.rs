@@ -18,14 +18,18 @@ use std::sync::Arc;
 
 /// Orthonormal DCT-II / DCT-III of one length by Makhoul's algorithm: reorder
 /// v = (x₀, x₂, x₄, …, x₅, x₃, x₁), take an N-point FFT, and X_k = Re(e^{−iπk/2N}·V_k). Two real
-/// lines are transformed with one complex FFT (the second as the imaginary part).
+/// lines are transformed with one complex FFT (the second as the imaginary part). The
+/// normalisation c_k (c_0 = √(1/N), c_k = √(2/N)), the ½ of the two-line split and the inverse
+/// FFT's 1/N are folded into the twiddle factors.
 #[derive(Clone)]
 struct LineDct {
     n: usize,
     fwd: Arc<dyn Fft<f64>>,
     inv: Arc<dyn Fft<f64>>,
-    /// e^{−iπk/2N}.
-    tw: Vec<Complex<f64>>,
+    /// Forward: T_k = e^{−iπk/2N}·c_k/2 (k ≥ 1).
+    fwd_tw: Vec<Complex<f64>>,
+    /// Inverse: U_k = e^{iπk/2N}/(c_k·N) (k ≥ 1).
+    inv_tw: Vec<Complex<f64>>,
     scratch_len: usize,
 }
 
@@ -33,9 +37,11 @@ impl LineDct {
     fn new(planner: &mut FftPlanner<f64>, n: usize) -> Self {
         let fwd = planner.plan_fft_forward(n);
         let inv = planner.plan_fft_inverse(n);
-        let tw = (0..n)
-            .map(|k| Complex::from_polar(1.0, -std::f64::consts::PI * k as f64 / (2 * n) as f64))
-            .collect();
+        let (_, ck) = Self::scales(n);
+        let tw =
+            |k: usize| Complex::from_polar(1.0, -std::f64::consts::PI * k as f64 / (2 * n) as f64);
+        let fwd_tw = (0..n).map(|k| tw(k) * (0.5 * ck)).collect();
+        let inv_tw = (0..n).map(|k| tw(k).conj() / (ck * n as f64)).collect();
         let scratch_len = fwd
             .get_inplace_scratch_len()
             .max(inv.get_inplace_scratch_len());
@@ -43,13 +49,15 @@ impl LineDct {
             n,
             fwd,
             inv,
-            tw,
+            fwd_tw,
+            inv_tw,
             scratch_len,
         }
     }
 
-    fn scales(&self) -> (f64, f64) {
-        let n = self.n as f64;
+    /// (c_0, c_k) of the orthonormal basis of length `n`.
+    fn scales(n: usize) -> (f64, f64) {
+        let n = n as f64;
         ((1.0 / n).sqrt(), (2.0 / n).sqrt())
     }
 
@@ -62,6 +70,7 @@ impl LineDct {
         scratch: &mut [Complex<f64>],
     ) {
         let n = self.n;
+        let (a, b, buf) = (&mut a[..n], &mut b[..n], &mut buf[..n]);
         let half = n.div_ceil(2);
         for m in 0..half {
             buf[m] = Complex::new(a[2 * m], b[2 * m]);
@@ -70,15 +79,14 @@ impl LineDct {
             buf[n - 1 - m] = Complex::new(a[2 * m + 1], b[2 * m + 1]);
         }
         self.fwd.process_with_scratch(buf, scratch);
-        let (c0, ck) = self.scales();
-        for k in 0..n {
-            let w = buf[k];
-            let wc = buf[(n - k) % n].conj();
-            let va = (w + wc) * 0.5;
-            let vb = (w - wc) * Complex::new(0.0, -0.5);
-            let c = if k == 0 { c0 } else { ck };
-            a[k] = (va * self.tw[k]).re * c;
-            b[k] = (vb * self.tw[k]).re * c;
+        // With W = FFT(v_a + i·v_b): V_a,k = (W_k + W̄_{N−k})/2, V_b,k = (W_k − W̄_{N−k})/(2i).
+        let c0 = Self::scales(n).0;
+        a[0] = buf[0].re * c0;
+        b[0] = buf[0].im * c0;
+        for k in 1..n {
+            let (w, v, t) = (buf[k], buf[n - k], self.fwd_tw[k]);
+            a[k] = (w.re + v.re) * t.re - (w.im - v.im) * t.im;
+            b[k] = (w.im + v.im) * t.re - (v.re - w.re) * t.im;
         }
     }
 
@@ -91,33 +99,25 @@ impl LineDct {
         scratch: &mut [Complex<f64>],
     ) {
         let n = self.n;
-        let (c0, ck) = self.scales();
-        // Unnormalised coefficients X_k = Y_k / c_k; V_k = e^{iπk/2N}(X_k − i·X_{N−k}).
-        let x = |y: &[f64], k: usize| {
-            if k == 0 {
-                y[0] / c0
-            } else if k < n {
-                y[k] / ck
-            } else {
-                0.0
-            }
-        };
-        for (k, slot) in buf.iter_mut().enumerate() {
-            let t = self.tw[k].conj();
-            let va = t * Complex::new(x(a, k), -x(a, n - k));
-            let vb = t * Complex::new(x(b, k), -x(b, n - k));
-            *slot = va + vb * Complex::new(0.0, 1.0);
+        let (a, b, buf) = (&mut a[..n], &mut b[..n], &mut buf[..n]);
+        // Unnormalised X_k = Y_k/c_k, V_k = e^{iπk/2N}(X_k − i·X_{N−k}) (X_N = 0) for each line;
+        // both lines at once: V_a + i·V_b = e^{iπk/2N}(X_a,k + X_b,N−k + i(X_b,k − X_a,N−k)).
+        let c0 = Self::scales(n).0;
+        let s0 = 1.0 / (c0 * n as f64);
+        buf[0] = Complex::new(a[0] * s0, b[0] * s0);
+        for k in 1..n {
+            let x = Complex::new(a[k] + b[n - k], b[k] - a[n - k]);
+            buf[k] = x * self.inv_tw[k];
         }
         self.inv.process_with_scratch(buf, scratch);
-        let inv_n = 1.0 / n as f64;
         let half = n.div_ceil(2);
         for m in 0..half {
-            a[2 * m] = buf[m].re * inv_n;
-            b[2 * m] = buf[m].im * inv_n;
+            a[2 * m] = buf[m].re;
+            b[2 * m] = buf[m].im;
         }
         for m in 0..n / 2 {
-            a[2 * m + 1] = buf[n - 1 - m].re * inv_n;
-            b[2 * m + 1] = buf[n - 1 - m].im * inv_n;
+            a[2 * m + 1] = buf[n - 1 - m].re;
+            b[2 * m + 1] = buf[n - 1 - m].im;
         }
     }
 }
@@ -155,17 +155,29 @@ impl Dct2d {
     /// Forward transform: spatial values → orthonormal coefficients.
     pub fn forward(&self, a: &Array2<f64>) -> Array2<f64> {
         let mut out = a.as_standard_layout().into_owned();
-        rows_apply(&mut out, &self.rows, true);
-        cols_apply(&mut out, &self.cols, true);
+        self.forward_in_place(&mut out);
         out
     }
 
     /// Inverse transform: orthonormal coefficients → spatial values.
     pub fn inverse(&self, a: &Array2<f64>) -> Array2<f64> {
         let mut out = a.as_standard_layout().into_owned();
-        cols_apply(&mut out, &self.cols, false);
-        rows_apply(&mut out, &self.rows, false);
+        self.inverse_in_place(&mut out);
         out
+    }
+
+    /// [`Self::forward`] in place (no copy when `a` is in standard layout).
+    pub fn forward_in_place(&self, a: &mut Array2<f64>) {
+        standardise(a);
+        rows_apply(a, &self.rows, true);
+        cols_apply(a, &self.cols, true);
+    }
+
+    /// [`Self::inverse`] in place (no copy when `a` is in standard layout).
+    pub fn inverse_in_place(&self, a: &mut Array2<f64>) {
+        standardise(a);
+        cols_apply(a, &self.cols, false);
+        rows_apply(a, &self.rows, false);
     }
 
     /// `inverse(forward(a) ⊙ m)`: apply an operator that is diagonal in the DCT basis.
@@ -173,6 +185,13 @@ impl Dct2d {
         let mut c = self.forward(a);
         c *= m;
         self.inverse(&c)
+    }
+}
+
+/// Make `a` row-major and contiguous, which the line transforms need (a no-op when it is).
+fn standardise(a: &mut Array2<f64>) {
+    if !a.is_standard_layout() {
+        *a = a.as_standard_layout().into_owned();
     }
 }
 
@@ -215,16 +234,19 @@ fn rows_apply(a: &mut Array2<f64>, plan: &LineDct, forward: bool) {
         );
 }
 
-/// Columns per block of [`cols_apply`]: one 64-byte cache line of f64.
-const COLUMN_BLOCK: usize = 8;
+/// Columns per block of [`cols_apply`]: 512 bytes of each row.
+const COLUMN_BLOCK: usize = 64;
 
 /// Transform every column in place, two at a time (columns 2m and 2m + 1, an odd last column
 /// with a zero line: the pairs a transpose and [`rows_apply`] would form, so the result is
-/// the same to the bit). Blocks of [`COLUMN_BLOCK`] columns are copied out row by row — each
-/// row's part is one cache line — transformed, and copied back, which reads and writes the
-/// array once instead of transposing it twice.
+/// the same to the bit). Blocks of [`COLUMN_BLOCK`] columns are copied out row by row into
+/// lines of one scratch buffer, transformed, and copied back, which reads and writes the array
+/// once instead of transposing it twice. The lines are `ny + 8` apart, not `ny`: with a
+/// power-of-two length every line would start in the same cache set, and the row-by-row copy
+/// would evict its own lines.
 fn cols_apply(a: &mut Array2<f64>, plan: &LineDct, forward: bool) {
     let ny = a.nrows();
+    let stride = ny + 8;
     a.axis_chunks_iter_mut(Axis(1), COLUMN_BLOCK)
         .into_par_iter()
         .for_each_init(
@@ -232,23 +254,25 @@ fn cols_apply(a: &mut Array2<f64>, plan: &LineDct, forward: bool) {
                 (
                     vec![Complex::new(0.0, 0.0); ny],
                     vec![Complex::new(0.0, 0.0); plan.scratch_len],
-                    vec![vec![0.0; ny]; COLUMN_BLOCK + 1],
+                    vec![0.0; stride * (COLUMN_BLOCK + 1)],
                 )
             },
             |(buf, scratch, lines), mut block| {
                 let w = block.ncols();
                 for (i, row) in block.rows().into_iter().enumerate() {
                     for (k, v) in row.iter().enumerate() {
-                        lines[k][i] = *v;
+                        lines[k * stride + i] = *v;
                     }
                 }
+                let spare = COLUMN_BLOCK * stride;
                 for k in (0..w).step_by(2) {
-                    let (head, tail) = lines.split_at_mut(k + 1);
-                    let first = &mut head[k];
+                    let (head, tail) = lines.split_at_mut((k + 1) * stride);
+                    let first = &mut head[k * stride..k * stride + ny];
                     let second = if k + 1 < w {
-                        &mut tail[0]
+                        &mut tail[..ny]
                     } else {
-                        let spare = &mut tail[tail.len() - 1];
+                        let at = spare - (k + 1) * stride;
+                        let spare = &mut tail[at..at + ny];
                         spare.iter_mut().for_each(|x| *x = 0.0);
                         spare
                     };
@@ -260,7 +284,7 @@ fn cols_apply(a: &mut Array2<f64>, plan: &LineDct, forward: bool) {
                 }
                 for (i, mut row) in block.rows_mut().into_iter().enumerate() {
                     for (k, v) in row.iter_mut().enumerate() {
-                        *v = lines[k][i];
+                        *v = lines[k * stride + i];
                     }
                 }
             },
@@ -488,7 +512,7 @@ mod tests {
 
     #[test]
     fn the_column_pass_equals_transposed_rows_to_the_bit() {
-        for (ny, nx) in [(5, 7), (8, 8), (9, 17), (33, 64), (1, 4), (4, 1)] {
+        for (ny, nx) in [(5, 7), (8, 8), (9, 17), (33, 64), (7, 150), (1, 4), (4, 1)] {
             let a = test_array(ny, nx);
             let dct = Dct2d::new(ny, nx);
             for forward in [true, false] {

@@ -9,42 +9,99 @@ use super::{ops, FusionParams, IterationRecord};
 use crate::spectral;
 use ndarray::{Array2, ArrayView2, Zip};
 
-/// Dᵀ(H + M)D·v for the photometric term: H = Σ_k 2w_k(a_k, b_k)ᵀ(a_k, b_k) the per-pixel
-/// Gauss–Newton Hessian in (p, q) ([`Photo::gn`]), M the residual curvature of
-/// [`Objective::curvature`], both acting on (D_x v, D_y v).
-fn data_normal(
+/// Dᵀ(H + M)D·v (+ 2K·v, the tie) for the photometric term, into `out`: H = Σ_k
+/// 2w_k(a_k, b_k)ᵀ(a_k, b_k) the per-pixel Gauss–Newton Hessian in (p, q) ([`Photo::gn`]), M
+/// the residual curvature of [`Objective::curvature`], both acting on (D_x v, D_y v). `vx` and
+/// `vy` are scratch of the grid's shape.
+fn data_normal_into(
     obj: &Objective,
     photo: &Photo,
     curv: &Array2<[f64; 3]>,
     v: &Array2<f64>,
-) -> Array2<f64> {
+    [vx, vy, out]: [&mut Array2<f64>; 3],
+) {
     let eps = obj.problem.spacing;
-    let (vx, vy) = ops::gradient(v.view(), eps);
-    let mut u = Array2::zeros(v.dim());
-    let mut w = Array2::zeros(v.dim());
-    Zip::indexed(&mut u)
-        .and(&mut w)
+    ops::gradient_into(v.view(), eps, vx, vy);
+    Zip::from(&mut *vx)
+        .and(&mut *vy)
         .and(&photo.gn)
         .and(curv)
-        .par_for_each(|ij, u, w, h, m| {
-            let (x, y) = (vx[ij], vy[ij]);
-            *u = (h[0] + m[0]) * x + (h[1] + m[1]) * y;
-            *w = (h[1] + m[1]) * x + (h[2] + m[2]) * y;
+        .par_for_each(|x, y, h, m| {
+            let (a, b) = (*x, *y);
+            *x = (h[0] + m[0]) * a + (h[1] + m[1]) * b;
+            *y = (h[1] + m[1]) * a + (h[2] + m[2]) * b;
         });
-    let mut out = ops::gradient_adjoint(u.view(), w.view(), eps);
+    ops::gradient_adjoint_into(vx.view(), vy.view(), eps, out);
     if let Some(k) = &obj.tie {
-        Zip::from(&mut out)
+        Zip::from(out)
             .and(k)
             .and(v)
             .par_for_each(|o, &k, &v| *o += 2.0 * k * v);
     }
-    out
+}
+
+/// The per-row partial sums of a fused pass, added in row order: like [`ops::dot`], the
+/// result does not depend on the number of threads.
+fn in_row_order(parts: ndarray::Array1<[f64; 2]>) -> [f64; 2] {
+    parts
+        .iter()
+        .fold([0.0, 0.0], |[a, b], [x, y]| [a + x, b + y])
+}
+
+/// The operator of one Newton step in DCT coefficients, with its scratch.
+struct Normal<'o, 'a, 'p> {
+    obj: &'o Objective<'a, 'p>,
+    photo: &'o Photo,
+    curv: &'o Array2<[f64; 3]>,
+    hq: &'o Array2<f64>,
+    fixed_mean: bool,
+    v: Array2<f64>,
+    vx: Array2<f64>,
+    vy: Array2<f64>,
+}
+
+impl Normal<'_, '_, '_> {
+    /// `out` = A·d̂ (A the Newton system's matrix in DCT coefficients); returns d̂·A·d̂.
+    fn apply(&mut self, d: &Array2<f64>, out: &mut Array2<f64>) -> f64 {
+        let obj = self.obj;
+        self.v.assign(d);
+        obj.dct.inverse_in_place(&mut self.v);
+        data_normal_into(
+            obj,
+            self.photo,
+            self.curv,
+            &self.v,
+            [&mut self.vx, &mut self.vy, out],
+        );
+        obj.dct.forward_in_place(out);
+        if let Some(rh) = obj.relief_hessian(d) {
+            out.scaled_add(obj.delta, &rh);
+        }
+        if self.fixed_mean {
+            // d̂₀ = 0 here (the preconditioner zeroes it), so d̂·A·d̂ does not see this entry.
+            out[(0, 0)] = 0.0;
+        }
+        let parts = Zip::from(out.rows_mut())
+            .and(self.hq.rows())
+            .and(d.rows())
+            .par_map_collect(|mut o, h, d| {
+                let mut dad = 0.0;
+                for ((o, &h), &d) in o.iter_mut().zip(h).zip(d) {
+                    *o += h * d;
+                    dad += d * *o;
+                }
+                [dad, 0.0]
+            });
+        in_row_order(parts)[0]
+    }
 }
 
 /// Preconditioned CG for (Dᵀ(H + M)D + 2K + H_Q + H_R)Δ (H_R the DEM term's relief field,
 /// [`Objective::relief_hessian`]) = −g in DCT coefficients (K the tie's
 /// per-pixel weight); returns (Δ, iterations). Without a tie no term sees the mean height, which
-/// stays the DEM's; with one, the mean is solved for too.
+/// stays the DEM's; with one, the mean is solved for too. Each iteration is two transforms and
+/// five passes over the grid: the operator's, the residual update fused with both inner
+/// products, and the direction update fused with the solution's.
 fn newton_step(
     obj: &Objective,
     photo: &Photo,
@@ -79,51 +136,69 @@ fn newton_step(
     if fixed_mean {
         minv[(0, 0)] = 0.0; // the mean height is fixed by the DEM
     }
-    let apply = |d: &Array2<f64>| {
-        let v = obj.dct.inverse(d);
-        let mut out = obj.dct.forward(&data_normal(obj, photo, curv, &v));
-        Zip::from(&mut out)
-            .and(hq)
-            .and(d)
-            .par_for_each(|o, &h, &x| *o += h * x);
-        if let Some(rh) = obj.relief_hessian(d) {
-            out.scaled_add(obj.delta, &rh);
-        }
-        if fixed_mean {
-            out[(0, 0)] = 0.0;
-        }
-        out
+    let mut normal = Normal {
+        obj,
+        photo,
+        curv,
+        hq,
+        fixed_mean,
+        v: Array2::zeros((ny, nx)),
+        vx: Array2::zeros((ny, nx)),
+        vy: Array2::zeros((ny, nx)),
     };
-    let mut r = obj.dct.forward(g).mapv(|x| -x);
+    let mut r = g.mapv(|x| -x);
+    obj.dct.forward_in_place(&mut r);
     if fixed_mean {
         r[(0, 0)] = 0.0;
     }
     let mut y = Array2::zeros(r.dim());
     let mut s = &r * &minv;
     let mut d = s.clone();
+    let mut ad = Array2::zeros(r.dim());
     let mut rs = ops::dot(r.view(), s.view());
     let r0 = ops::dot(r.view(), r.view()).sqrt();
     let mut it = 0;
     while it < params.cg_iterations && r0 > 0.0 {
         it += 1;
-        let ad = apply(&d);
-        let dad = ops::dot(d.view(), ad.view());
+        let dad = normal.apply(&d, &mut ad);
         if dad <= 0.0 {
             break;
         }
         let alpha = rs / dad;
-        y.scaled_add(alpha, &d);
-        r.scaled_add(-alpha, &ad);
-        if ops::dot(r.view(), r.view()).sqrt() <= params.cg_tolerance * r0 {
+        // r ← r − α·Ad, s ← M⁻¹r, with |r|² and r·s in the same pass.
+        let [rr, rs_new] = in_row_order(
+            Zip::from(r.rows_mut())
+                .and(s.rows_mut())
+                .and(ad.rows())
+                .and(minv.rows())
+                .par_map_collect(|mut r, mut s, ad, m| {
+                    let (mut rr, mut rs) = (0.0, 0.0);
+                    for (((r, s), &ad), &m) in r.iter_mut().zip(s.iter_mut()).zip(ad).zip(m) {
+                        *r -= alpha * ad;
+                        *s = *r * m;
+                        rr += *r * *r;
+                        rs += *r * *s;
+                    }
+                    [rr, rs]
+                }),
+        );
+        if rr.sqrt() <= params.cg_tolerance * r0 {
+            y.scaled_add(alpha, &d);
             break;
         }
-        s = &r * &minv;
-        let rs_new = ops::dot(r.view(), s.view());
         let beta = rs_new / rs;
         rs = rs_new;
-        d = &s + &(d * beta);
+        // y ← y + α·d, then d ← s + β·d.
+        Zip::from(&mut y)
+            .and(&mut d)
+            .and(&s)
+            .par_for_each(|y, d, &s| {
+                *y += alpha * *d;
+                *d = s + beta * *d;
+            });
     }
-    (obj.dct.inverse(&y), it)
+    obj.dct.inverse_in_place(&mut y);
+    (y, it)
 }
 
 pub fn minimise(

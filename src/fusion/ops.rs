@@ -74,10 +74,16 @@ fn adjoint_line(u: &[f64], out: &mut [f64]) {
 
 /// Surface gradients (p, q) at pixel centres.
 pub fn gradient(z: ArrayView2<f64>, eps: f64) -> (Array2<f64>, Array2<f64>) {
-    let (ny, nx) = z.dim();
+    let mut p = Array2::zeros(z.dim());
+    let mut q = Array2::zeros(z.dim());
+    gradient_into(z, eps, &mut p, &mut q);
+    (p, q)
+}
+
+/// [`gradient`] into `p` and `q` (standard layout, the shape of `z`).
+pub fn gradient_into(z: ArrayView2<f64>, eps: f64, p: &mut Array2<f64>, q: &mut Array2<f64>) {
+    let ny = z.nrows();
     let z = z.as_standard_layout();
-    let mut p = Array2::zeros((ny, nx));
-    let mut q = Array2::zeros((ny, nx));
     let inv = 1.0 / eps;
     p.axis_iter_mut(Axis(0))
         .into_par_iter()
@@ -109,15 +115,25 @@ pub fn gradient(z: ArrayView2<f64>, eps: f64) -> (Array2<f64>, Array2<f64>) {
                 *o = -w * (x - y) * inv;
             }
         });
-    (p, q)
 }
 
 /// Adjoint of [`gradient`]: D_xᵀu + D_yᵀv (a negative divergence).
 pub fn gradient_adjoint(u: ArrayView2<f64>, v: ArrayView2<f64>, eps: f64) -> Array2<f64> {
-    let (ny, nx) = u.dim();
+    let mut out = Array2::zeros(u.dim());
+    gradient_adjoint_into(u, v, eps, &mut out);
+    out
+}
+
+/// [`gradient_adjoint`] into `out` (standard layout, the shape of `u`).
+pub fn gradient_adjoint_into(
+    u: ArrayView2<f64>,
+    v: ArrayView2<f64>,
+    eps: f64,
+    out: &mut Array2<f64>,
+) {
+    let ny = u.nrows();
     let u = u.as_standard_layout();
     let v = v.as_standard_layout();
-    let mut out = Array2::zeros((ny, nx));
     let inv = 1.0 / eps;
     out.axis_iter_mut(Axis(0))
         .into_par_iter()
@@ -139,7 +155,6 @@ pub fn gradient_adjoint(u: ArrayView2<f64>, v: ArrayView2<f64>, eps: f64) -> Arr
             }
             o.iter_mut().for_each(|x| *x *= inv);
         });
-    out
 }
 
 /// max |aᵢ| (0 for an empty array).
