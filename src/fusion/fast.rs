@@ -9,14 +9,13 @@ use super::{ops, FusionParams, IterationRecord};
 use crate::spectral;
 use ndarray::{Array2, ArrayView2, Zip};
 
-/// Dᵀ(H + M)D·v (+ 2K·v, the tie) for the photometric term, into `out`: H = Σ_k
-/// 2w_k(a_k, b_k)ᵀ(a_k, b_k) the per-pixel Gauss–Newton Hessian in (p, q) ([`Photo::gn`]), M
-/// the residual curvature of [`Objective::curvature`], both acting on (D_x v, D_y v). `vx` and
-/// `vy` are scratch of the grid's shape.
+/// Dᵀ(H + M)D·v (+ 2K·v, the tie) for the photometric term, into `out`: `hm` = H + M per
+/// pixel (xx, xy, yy), H = Σ_k 2w_k(a_k, b_k)ᵀ(a_k, b_k) the Gauss–Newton Hessian in (p, q)
+/// ([`Photo::gn`]), M the residual curvature of [`Objective::curvature`], acting on
+/// (D_x v, D_y v). `vx` and `vy` are scratch of the grid's shape.
 fn data_normal_into(
     obj: &Objective,
-    photo: &Photo,
-    curv: &Array2<[f64; 3]>,
+    hm: &Array2<[f64; 3]>,
     v: &Array2<f64>,
     [vx, vy, out]: [&mut Array2<f64>; 3],
 ) {
@@ -24,12 +23,11 @@ fn data_normal_into(
     ops::gradient_into(v.view(), eps, vx, vy);
     Zip::from(&mut *vx)
         .and(&mut *vy)
-        .and(&photo.gn)
-        .and(curv)
-        .par_for_each(|x, y, h, m| {
+        .and(hm)
+        .par_for_each(|x, y, h| {
             let (a, b) = (*x, *y);
-            *x = (h[0] + m[0]) * a + (h[1] + m[1]) * b;
-            *y = (h[1] + m[1]) * a + (h[2] + m[2]) * b;
+            *x = h[0] * a + h[1] * b;
+            *y = h[1] * a + h[2] * b;
         });
     ops::gradient_adjoint_into(vx.view(), vy.view(), eps, out);
     if let Some(k) = &obj.tie {
@@ -51,8 +49,8 @@ fn in_row_order(parts: ndarray::Array1<[f64; 2]>) -> [f64; 2] {
 /// The operator of one Newton step in DCT coefficients, with its scratch.
 struct Normal<'o, 'a, 'p> {
     obj: &'o Objective<'a, 'p>,
-    photo: &'o Photo,
-    curv: &'o Array2<[f64; 3]>,
+    /// H + M per pixel.
+    hm: Array2<[f64; 3]>,
     hq: &'o Array2<f64>,
     fixed_mean: bool,
     v: Array2<f64>,
@@ -66,13 +64,7 @@ impl Normal<'_, '_, '_> {
         let obj = self.obj;
         self.v.assign(d);
         obj.dct.inverse_in_place(&mut self.v);
-        data_normal_into(
-            obj,
-            self.photo,
-            self.curv,
-            &self.v,
-            [&mut self.vx, &mut self.vy, out],
-        );
+        data_normal_into(obj, &self.hm, &self.v, [&mut self.vx, &mut self.vy, out]);
         obj.dct.forward_in_place(out);
         if let Some(rh) = obj.relief_hessian(d) {
             out.scaled_add(obj.delta, &rh);
@@ -113,12 +105,12 @@ fn newton_step(
     let (ny, nx) = g.dim();
     let e2 = obj.problem.spacing * obj.problem.spacing;
     let n = curv.len() as f64;
-    let (ax, ay) = curv
+    let hm = Zip::from(&photo.gn)
+        .and(curv)
+        .par_map_collect(|h, m| [h[0] + m[0], h[1] + m[1], h[2] + m[2]]);
+    let (ax, ay) = hm
         .iter()
-        .zip(&photo.gn)
-        .fold((0.0, 0.0), |(x, y), (m, h)| {
-            (x + (m[0] + h[0]) / n, y + (m[2] + h[2]) / n)
-        });
+        .fold((0.0, 0.0), |(x, y), h| (x + h[0] / n, y + h[2] / n));
     let cx = spectral::central_symbol(nx);
     let cy = spectral::central_symbol(ny);
     let tie = obj.tie.as_ref().map(|k| 2.0 * ops::sum(k.view()) / n);
@@ -138,8 +130,7 @@ fn newton_step(
     }
     let mut normal = Normal {
         obj,
-        photo,
-        curv,
+        hm,
         hq,
         fixed_mean,
         v: Array2::zeros((ny, nx)),
