@@ -97,7 +97,7 @@ impl Normal<'_, '_, '_> {
 fn newton_step(
     obj: &Objective,
     photo: &Photo,
-    curv: &Array2<[f64; 3]>,
+    curv: Array2<[f64; 3]>,
     hq: &Array2<f64>,
     g: &Array2<f64>,
     params: &FusionParams,
@@ -105,9 +105,11 @@ fn newton_step(
     let (ny, nx) = g.dim();
     let e2 = obj.problem.spacing * obj.problem.spacing;
     let n = curv.len() as f64;
-    let hm = Zip::from(&photo.gn)
-        .and(curv)
-        .par_map_collect(|h, m| [h[0] + m[0], h[1] + m[1], h[2] + m[2]]);
+    // H + M, in the curvature's storage.
+    let mut hm = curv;
+    Zip::from(&mut hm).and(&photo.gn).par_for_each(|m, h| {
+        *m = [h[0] + m[0], h[1] + m[1], h[2] + m[2]];
+    });
     let (ax, ay) = hm
         .iter()
         .fold((0.0, 0.0), |(x, y), h| (x + h[0] / n, y + h[2] / n));
@@ -211,7 +213,7 @@ pub fn minimise(
     for iteration in 1..=params.max_iterations {
         let g = obj.gradient(z.view(), &zh, &photo);
         let curv = obj.curvature(z.view(), rho, &photo, params.curvature_residual);
-        let (step, inner) = newton_step(obj, &photo, &curv, &hq, &g, params);
+        let (step, inner) = newton_step(obj, &photo, curv, &hq, &g, params);
         let slope = ops::dot(g.view(), step.view());
         if slope >= 0.0 {
             break;
