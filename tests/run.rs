@@ -1063,3 +1063,173 @@ fn two_overlapping_strips_are_fused_with_a_run_wide_gain() {
     assert!(seam <= 0.1 * all, "tiled vs single tile: {seam:.3} m");
     std::fs::remove_dir_all(&dir).unwrap();
 }
+
+/// Bytes a file takes on tmpfs (whole 4 KiB pages), summed over a directory tree.
+fn pages_used(dir: &Path) -> u64 {
+    let mut total = 0;
+    for e in std::fs::read_dir(dir).unwrap() {
+        let e = e.unwrap();
+        let m = e.metadata().unwrap();
+        total += if m.is_dir() {
+            pages_used(&e.path())
+        } else {
+            m.len().div_ceil(4096) * 4096
+        };
+    }
+    total
+}
+
+/// Every file under `dir`, relative to it.
+fn files_under(dir: &Path) -> Vec<std::path::PathBuf> {
+    let mut out = Vec::new();
+    for e in std::fs::read_dir(dir).unwrap() {
+        let p = e.unwrap().path();
+        if p.is_dir() {
+            out.extend(files_under(&p));
+        } else {
+            out.push(p);
+        }
+    }
+    out.sort();
+    out
+}
+
+/// A tmpfs of a given size, unmounted when dropped.
+struct SmallDisk(std::path::PathBuf);
+
+impl SmallDisk {
+    fn mount(at: &Path, bytes: u64) -> SmallDisk {
+        std::fs::create_dir_all(at).unwrap();
+        let o = std::process::Command::new("mount")
+            .args(["-t", "tmpfs", "-o", &format!("size={bytes}"), "tmpfs"])
+            .arg(at)
+            .output()
+            .expect("needs mount(8)");
+        assert!(
+            o.status.success(),
+            "mounting a tmpfs needs root (CAP_SYS_ADMIN): {}",
+            String::from_utf8_lossy(&o.stderr)
+        );
+        SmallDisk(at.to_path_buf())
+    }
+
+    fn grow(&self, bytes: u64) {
+        let o = std::process::Command::new("mount")
+            .args(["-o", &format!("remount,size={bytes}")])
+            .arg(&self.0)
+            .output()
+            .unwrap();
+        assert!(o.status.success(), "{}", String::from_utf8_lossy(&o.stderr));
+    }
+}
+
+impl Drop for SmallDisk {
+    fn drop(&mut self) {
+        let _ = std::process::Command::new("umount").arg(&self.0).status();
+    }
+}
+
+/// A real full disk (a tmpfs too small for the run), once while the tiles are written and once
+/// while the products are: the run fails with the OS's error naming the file it was writing
+/// under its final name, leaves no temporary and no half-written product, and once the disk
+/// has room a rerun keeps the finished tiles and writes the same products as a run that never
+/// failed.
+#[test]
+#[ignore = "needs root to mount a small tmpfs; .ci/run runs it where mount(8) is allowed"]
+fn a_full_disk_is_reported_by_file_and_a_rerun_completes() {
+    let p = scene_products(256, 10);
+    let dir = scratch("fulldisk");
+    let reference = dir.join("reference");
+    run_ok(
+        &["run", "--progress", "quiet"],
+        &write_workflow(&dir, &workflow(p, &reference, 128, "")),
+    );
+    let products = [
+        "dem.tif",
+        "albedo.tif",
+        "residual.tif",
+        "mask.tif",
+        "input_dem.tif",
+    ];
+    let product_bytes: u64 = products
+        .iter()
+        .map(|f| {
+            std::fs::metadata(reference.join(f))
+                .unwrap()
+                .len()
+                .div_ceil(4096)
+                * 4096
+        })
+        .sum();
+    let before_products = pages_used(&reference) - product_bytes - {
+        let q = reference.join("quicklook.png");
+        let r = reference.join("run.json");
+        [q, r]
+            .iter()
+            .map(|f| std::fs::metadata(f).map_or(0, |m| m.len().div_ceil(4096) * 4096))
+            .sum::<u64>()
+    };
+    // Half the tiles' room, then room for the tiles and half the products.
+    for (case, bytes) in [
+        ("tiles", before_products / 2),
+        ("products", before_products + product_bytes / 2 + 64 * 1024),
+    ] {
+        let mnt = dir.join(format!("disk-{case}"));
+        let disk = SmallDisk::mount(&mnt, bytes);
+        let out = mnt.join("out");
+        let wf_dir = dir.join(case);
+        std::fs::create_dir_all(&wf_dir).unwrap();
+        let wf = write_workflow(&wf_dir, &workflow(p, &out, 128, ""));
+        let o = sfsfuse()
+            .args(["run", "--progress", "quiet"])
+            .arg(&wf)
+            .output()
+            .unwrap();
+        let err = String::from_utf8_lossy(&o.stderr);
+        assert!(!o.status.success(), "{case}: a full disk exited 0:\n{err}");
+        assert!(!err.contains("panicked"), "{case}: {err}");
+        assert!(
+            err.contains("No space left on device"),
+            "{case}: the OS's reason is missing:\n{err}"
+        );
+        let named = err
+            .split_whitespace()
+            .find(|w| w.starts_with(out.to_str().unwrap()))
+            .unwrap_or_else(|| panic!("{case}: no file under {} named:\n{err}", out.display()));
+        assert!(
+            !named.contains(".tmp"),
+            "{case}: names a temporary: {named}"
+        );
+        for f in files_under(&out) {
+            let name = f.file_name().unwrap().to_string_lossy().to_string();
+            assert!(!name.contains(".tmp"), "{case}: left {}", f.display());
+            assert!(
+                !products.contains(&name.as_str()) && name != "run.json",
+                "{case}: {name} exists although the run failed"
+            );
+        }
+        // Room again: the rerun finishes, keeping the tiles that were done.
+        disk.grow(64 << 20);
+        let o = sfsfuse()
+            .args(["run", "--progress", "lines"])
+            .arg(&wf)
+            .output()
+            .unwrap();
+        let err = String::from_utf8_lossy(&o.stderr);
+        assert!(o.status.success(), "{case}: rerun failed:\n{err}");
+        for f in products {
+            assert_eq!(
+                std::fs::read(out.join(f)).unwrap(),
+                std::fs::read(reference.join(f)).unwrap(),
+                "{case}: {f} differs from an uninterrupted run"
+            );
+        }
+        if case == "products" {
+            assert!(
+                err.contains("4 tile(s) already done"),
+                "{case}: the rerun recomputed tiles:\n{err}"
+            );
+        }
+    }
+    let _ = std::fs::remove_dir_all(&dir);
+}
