@@ -1064,22 +1064,12 @@ fn two_overlapping_strips_are_fused_with_a_run_wide_gain() {
     std::fs::remove_dir_all(&dir).unwrap();
 }
 
-/// Bytes a file takes on tmpfs (whole 4 KiB pages), summed over a directory tree.
-fn pages_used(dir: &Path) -> u64 {
-    let mut total = 0;
-    for e in std::fs::read_dir(dir).unwrap() {
-        let e = e.unwrap();
-        let m = e.metadata().unwrap();
-        total += if m.is_dir() {
-            pages_used(&e.path())
-        } else {
-            m.len().div_ceil(4096) * 4096
-        };
-    }
-    total
+/// Bytes a file takes on tmpfs (whole 4 KiB pages); 0 if it does not exist.
+fn file_pages(f: &Path) -> u64 {
+    std::fs::metadata(f).map_or(0, |m| m.len().div_ceil(4096) * 4096)
 }
 
-/// Every file under `dir`, relative to it.
+/// Every file under `dir` (full paths), sorted.
 fn files_under(dir: &Path) -> Vec<std::path::PathBuf> {
     let mut out = Vec::new();
     for e in std::fs::read_dir(dir).unwrap() {
@@ -1153,22 +1143,17 @@ fn a_full_disk_is_reported_by_file_and_a_rerun_completes() {
     ];
     let product_bytes: u64 = products
         .iter()
-        .map(|f| {
-            std::fs::metadata(reference.join(f))
-                .unwrap()
-                .len()
-                .div_ceil(4096)
-                * 4096
-        })
+        .map(|f| file_pages(&reference.join(f)))
         .sum();
-    let before_products = pages_used(&reference) - product_bytes - {
-        let q = reference.join("quicklook.png");
-        let r = reference.join("run.json");
-        [q, r]
-            .iter()
-            .map(|f| std::fs::metadata(f).map_or(0, |m| m.len().div_ceil(4096) * 4096))
-            .sum::<u64>()
-    };
+    // What the run writes before its products: the plan, the reference, the tiles.
+    let before_products: u64 = files_under(&reference)
+        .iter()
+        .filter(|f| {
+            let name = f.file_name().unwrap().to_string_lossy();
+            !products.contains(&name.as_ref()) && name != "quicklook.png" && name != "run.json"
+        })
+        .map(|f| file_pages(f))
+        .sum();
     // Half the tiles' room, then room for the tiles and half the products.
     for (case, bytes) in [
         ("tiles", before_products / 2),

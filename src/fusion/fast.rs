@@ -38,14 +38,6 @@ fn data_normal_into(
     }
 }
 
-/// The per-row partial sums of a fused pass, added in row order: like [`ops::dot`], the
-/// result does not depend on the number of threads.
-fn in_row_order(parts: ndarray::Array1<[f64; 2]>) -> [f64; 2] {
-    parts
-        .iter()
-        .fold([0.0, 0.0], |[a, b], [x, y]| [a + x, b + y])
-}
-
 /// The operator of one Newton step in DCT coefficients, with its scratch.
 struct Normal<'o, 'a, 'p> {
     obj: &'o Objective<'a, 'p>,
@@ -82,9 +74,10 @@ impl Normal<'_, '_, '_> {
                     *o += h * d;
                     dad += d * *o;
                 }
-                [dad, 0.0]
+                [dad]
             });
-        in_row_order(parts)[0]
+        let [dad] = ops::sum_row_parts(parts.view());
+        dad
     }
 }
 
@@ -159,7 +152,7 @@ fn newton_step(
         }
         let alpha = rs / dad;
         // r ← r − α·Ad, s ← M⁻¹r, with |r|² and r·s in the same pass.
-        let [rr, rs_new] = in_row_order(
+        let [rr, rs_new] = ops::sum_row_parts(
             Zip::from(r.rows_mut())
                 .and(s.rows_mut())
                 .and(ad.rows())
@@ -173,7 +166,8 @@ fn newton_step(
                         rs += *r * *s;
                     }
                     [rr, rs]
-                }),
+                })
+                .view(),
         );
         if rr.sqrt() <= params.cg_tolerance * r0 {
             y.scaled_add(alpha, &d);

@@ -5,7 +5,7 @@
 //! one-sided at the edges: p = ∂z/∂x (east), q = ∂z/∂y (north, i.e. towards row − 1). The
 //! quadratic terms use forward differences, which the DCT diagonalises (see `spectral`).
 
-use ndarray::{Array2, ArrayView2, Axis};
+use ndarray::{Array2, ArrayView1, ArrayView2, Axis};
 use rayon::prelude::*;
 
 /// Coefficient D[j][k]·ε of the 1-D central difference (one-sided at both ends) on `n` points.
@@ -182,6 +182,17 @@ pub fn dot(a: ArrayView2<f64>, b: ArrayView2<f64>) -> f64 {
         .collect::<Vec<_>>()
         .iter()
         .sum()
+}
+
+/// The per-row partial sums of a fused pass (one array of N sums per row), added in row order:
+/// like [`sum`] and [`dot`], the result does not depend on the number of threads.
+pub fn sum_row_parts<const N: usize>(parts: ArrayView1<[f64; N]>) -> [f64; N] {
+    parts.iter().fold([0.0; N], |mut acc, part| {
+        for (a, x) in acc.iter_mut().zip(part) {
+            *a += x;
+        }
+        acc
+    })
 }
 
 #[cfg(test)]
