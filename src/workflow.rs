@@ -47,7 +47,7 @@ pub struct Orbital {
     #[serde(default)]
     pub fetch: Option<FetchSpec>,
     /// Whether `[solver] sigma_dem` was given. Absent, the run sets σ_DEM from the input DEM's
-    /// effective resolution ([`crate::fusion::dem_sigma`]); the run key includes this flag.
+    /// effective resolution ([`crate::fusion::dem_sigma`]); the plan and run keys include this flag.
     #[serde(skip)]
     pub sigma_dem_given: bool,
 }
@@ -399,7 +399,7 @@ impl Workflow {
     /// Read, parse and resolve the workflow at `path`.
     pub fn load(path: &Path) -> Result<Workflow> {
         let text = std::fs::read_to_string(path).map_err(|e| Error::io(path, e))?;
-        // Absolute, so the resolved workflow (and the run key hashed from it) is the same
+        // Absolute, so the resolved workflow (and the plan key hashed from it) is the same
         // however the path was spelled: `w.toml`, `./w.toml` or `/data/w.toml`.
         let abs = std::path::absolute(path).map_err(|e| Error::io(path, e))?;
         let base = normalise(abs.parent().unwrap_or(Path::new("/")));

@@ -148,25 +148,50 @@ fn output_bytes(out: &Path) -> Vec<(String, Vec<u8>)> {
         .collect()
 }
 
-/// 1 and 2 threads give bit-identical products.
+/// 1 and 2 threads give bit-identical products, and so do input files moved elsewhere: the
+/// products name what they were made from (`RUN_KEY`, also in run.json), not where it lay.
 #[test]
-fn products_do_not_depend_on_the_thread_count() {
+fn products_do_not_depend_on_the_thread_count_or_the_inputs_place() {
     let p = scene_products(256, 10);
     let dir = scratch("threads");
+    let home = p.m3_label.parent().unwrap();
+    let moved = dir.join("moved");
+    std::fs::create_dir_all(&moved).unwrap();
+    for e in std::fs::read_dir(home).unwrap() {
+        let e = e.unwrap().path();
+        if e.is_file() {
+            std::fs::copy(&e, moved.join(e.file_name().unwrap())).unwrap();
+        }
+    }
     let mut files = Vec::new();
+    let mut keys = Vec::new();
     for n in ["1", "2"] {
         let d = dir.join(n);
         std::fs::create_dir_all(&d).unwrap();
         let out = d.join("out");
-        let wf = write_workflow(
-            &d,
-            &workflow(p, &out, 128, "[solver]\nalbedo_sigmas = [30.0, 10.0, 4.0]"),
-        );
+        let mut text = workflow(p, &out, 128, "[solver]\nalbedo_sigmas = [30.0, 10.0, 4.0]");
+        if n == "2" {
+            let (from, to) = (home.display().to_string(), moved.display().to_string());
+            assert!(text.contains(&from));
+            text = text.replace(&from, &to);
+        }
+        let wf = write_workflow(&d, &text);
         run_ok(&["--threads", n, "run", "--progress", "quiet"], &wf);
         files.push(output_bytes(&out));
+        let rec: serde_json::Value =
+            serde_json::from_slice(&std::fs::read(out.join("run.json")).unwrap()).unwrap();
+        keys.push(rec["run_key"].as_str().unwrap().to_string());
     }
+    assert_eq!(keys[0], keys[1]);
+    assert_eq!(keys[0].len(), 64);
     for ((name, a), (_, b)) in files[0].iter().zip(&files[1]) {
-        assert!(a == b, "{name}.tif differs between 1 and 2 threads");
+        assert!(a == b, "{name}.tif differs between the two runs");
+        // GDAL's metadata XML in the file carries the key.
+        let item = format!("<Item name=\"RUN_KEY\">{}</Item>", keys[0]);
+        assert!(
+            a.windows(item.len()).any(|w| w == item.as_bytes()),
+            "{name}.tif has no RUN_KEY item"
+        );
     }
     std::fs::remove_dir_all(&dir).unwrap();
 }
@@ -965,6 +990,9 @@ fn products_describe_themselves_to_gdal() {
     let j: serde_json::Value = serde_json::from_slice(&gdalinfo.stdout).unwrap();
     let md = &j["metadata"][""];
     assert_eq!(md["M3_PRODUCT_IDS"], "M3G20991231T000000_V03_RDN", "{md}");
+    let rec: serde_json::Value =
+        serde_json::from_slice(&std::fs::read(out.join("run.json")).unwrap()).unwrap();
+    assert_eq!(md["RUN_KEY"], rec["run_key"]);
     assert_eq!(md["DEM_PRODUCT_IDS"], "LDEM_64_SYNTHETIC");
     assert_eq!(md["WAVELENGTH_NM"], "1209.6");
     assert_eq!(md["VERTICAL_REFERENCE"], "sphere");

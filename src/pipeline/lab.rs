@@ -120,7 +120,12 @@ pub(super) fn run_lab(l: &Lab, wf: &Workflow, progress: &Progress) -> Result<Run
         image.clone(),
         f.observations.mapv(f64::from),
     ];
-    let meta = [("SFSFUSE_VERSION", env!("CARGO_PKG_VERSION").to_string())];
+    let files = checksums(&[l.inputs.image.clone(), l.inputs.depth.clone()], progress)?;
+    let key = run_key(wf, &files);
+    let meta = [
+        ("SFSFUSE_VERSION", env!("CARGO_PKG_VERSION").to_string()),
+        ("RUN_KEY", key.clone()),
+    ];
     let mut outputs = Vec::new();
     for &layer in &l.output.layers {
         let k = stored_index(layer);
@@ -143,13 +148,13 @@ pub(super) fn run_lab(l: &Lab, wf: &Workflow, progress: &Progress) -> Result<Run
         w.finish()?;
         outputs.push(path);
     }
-    let files = vec![l.inputs.image.clone(), l.inputs.depth.clone()];
     let (rows, cols) = image.dim();
     let record = RunRecord {
         tool: "sfsfuse",
         version: env!("CARGO_PKG_VERSION"),
         workflow: wf,
-        inputs: checksums(&files, progress)?,
+        run_key: key,
+        inputs: files,
         grid: None,
         crs_wkt: None,
         halo: None,

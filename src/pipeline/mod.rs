@@ -20,7 +20,7 @@
 //!
 //! One file per stage: `inputs` (opening the products), `plan`, `tile`, `mosaic` (with the run
 //! record and the products' metadata), `lab` (laboratory workflows); this file holds the
-//! entry points (`run`, `list_tiles`), the run key and the tile-list syntax.
+//! entry points (`run`, `list_tiles`), the plan key, the run key and the tile-list syntax.
 
 use crate::error::{Error, Result};
 use crate::export::{BandInfo, CogWriter, Container, SampleFormat};
@@ -132,8 +132,10 @@ pub fn file_sha256(path: &Path) -> Result<String> {
     crate::raster::file_digest::<Sha256>(path)
 }
 
-/// The key that ties plan and tiles to one workflow and one set of input files.
-fn run_key(wf: &Workflow, files: &[PathBuf]) -> Result<String> {
+/// The plan key: ties plan and tiles to one workflow and one set of input files, by their
+/// paths, sizes and modification times (cheap to check on every rerun; a touched input makes a
+/// new plan).
+fn plan_key(wf: &Workflow, files: &[PathBuf]) -> Result<String> {
     let mut text = format!("sfsfuse {}\n", env!("CARGO_PKG_VERSION"));
     text.push_str(&serde_json::to_string(wf).expect("workflows serialise"));
     if let Workflow::Orbital(o) = wf {
@@ -149,6 +151,43 @@ fn run_key(wf: &Workflow, files: &[PathBuf]) -> Result<String> {
         text.push_str(&format!("\n{}:{}:{mtime}", f.display(), m.len()));
     }
     Ok(sha256_hex(text.as_bytes()))
+}
+
+/// The run key written into every product (`RUN_KEY`) and into run.json: the hex SHA-256 of
+/// the tool version, the workflow with every default filled in and every path reduced to its
+/// file name, and each input file's name and SHA-256 in order. It names what the products
+/// were made from, not where: the same input files and parameters give the same key (and the
+/// same bytes) wherever they lie and wherever the run writes, and any change of an input's
+/// contents or of a parameter gives another key.
+fn run_key(wf: &Workflow, inputs: &[InputFile]) -> String {
+    let name = |p: &Path| PathBuf::from(p.file_name().unwrap_or(p.as_os_str()));
+    let names = |v: &mut Vec<PathBuf>| v.iter_mut().for_each(|p| *p = name(p));
+    let mut wf = wf.clone();
+    match &mut wf {
+        Workflow::Orbital(o) => {
+            names(&mut o.inputs.m3);
+            names(&mut o.inputs.lola);
+            o.inputs.solar_spectrum = name(&o.inputs.solar_spectrum);
+            o.output.directory = PathBuf::new();
+            // What `[fetch]` brings is in the inputs' checksums; where from is not the
+            // products' business.
+            o.fetch = None;
+        }
+        Workflow::Lab(l) => {
+            l.inputs.image = name(&l.inputs.image);
+            l.inputs.depth = name(&l.inputs.depth);
+            l.output.directory = PathBuf::new();
+        }
+    }
+    let mut text = format!("sfsfuse {}\n", env!("CARGO_PKG_VERSION"));
+    text.push_str(&serde_json::to_string(&wf).expect("workflows serialise"));
+    if let Workflow::Orbital(o) = &wf {
+        text.push_str(&format!("\nsigma_dem_given={}", o.sigma_dem_given));
+    }
+    for f in inputs {
+        text.push_str(&format!("\n{}:{}", name(&f.path).display(), f.sha256));
+    }
+    sha256_hex(text.as_bytes())
 }
 
 fn projector(crs: &Crs) -> Result<Projector> {
@@ -373,6 +412,44 @@ mod tests {
         assert_eq!(
             parse_tiles(&tile_spec(&[0, 1, 2, 3, 7, 9, 10], ",")).unwrap(),
             [0, 1, 2, 3, 7, 9, 10]
+        );
+    }
+
+    /// The run key follows the inputs' contents and the parameters, not the paths.
+    #[test]
+    fn the_run_key_follows_contents_and_parameters_not_places() {
+        let text = |dir: &str, delta: f64| {
+            format!(
+                "kind = \"orbital\"\n[inputs]\nm3 = [\"{dir}/a_L1B.LBL\"]\nlola = [\"{dir}/LDEM.LBL\"]\n\
+                 solar_spectrum = \"{dir}/solar.TAB\"\n[solver]\ndelta = {delta}\n\
+                 [output]\ndirectory = \"{dir}/out\"\n"
+            )
+        };
+        let wf = |dir: &str, delta: f64| {
+            Workflow::parse(&text(dir, delta), Path::new("w.toml"), Path::new("/")).unwrap()
+        };
+        let files = |dir: &str, sums: [&str; 3]| -> Vec<InputFile> {
+            ["a_L1B.LBL", "LDEM.LBL", "solar.TAB"]
+                .iter()
+                .zip(sums)
+                .map(|(n, s)| InputFile {
+                    path: PathBuf::from(format!("{dir}/{n}")),
+                    bytes: 1,
+                    sha256: s.to_string(),
+                })
+                .collect()
+        };
+        let sums = ["01", "02", "03"];
+        let key = run_key(&wf("/data", 50.0), &files("/data", sums));
+        assert_eq!(key.len(), 64);
+        assert_eq!(
+            key,
+            run_key(&wf("/elsewhere/x", 50.0), &files("/elsewhere/x", sums))
+        );
+        assert_ne!(key, run_key(&wf("/data", 60.0), &files("/data", sums)));
+        assert_ne!(
+            key,
+            run_key(&wf("/data", 50.0), &files("/data", ["01", "02", "04"]))
         );
     }
 

@@ -82,6 +82,7 @@ pub(super) fn product_metadata(
     o: &Orbital,
     inputs: &Inputs,
     plan: &Plan,
+    key: &str,
 ) -> Vec<(&'static str, String)> {
     let id = |label: &pds::Label, path: &Path| {
         label
@@ -123,6 +124,7 @@ pub(super) fn product_metadata(
     };
     vec![
         ("SFSFUSE_VERSION", env!("CARGO_PKG_VERSION").to_string()),
+        ("RUN_KEY", key.to_string()),
         ("M3_PRODUCT_IDS", m3.join(",")),
         ("DEM_PRODUCT_IDS", dems.join(",")),
         ("WAVELENGTH_NM", format!("{}", o.inputs.wavelength_nm)),
@@ -211,6 +213,8 @@ pub(super) struct RunRecord<'a> {
     pub(super) version: &'static str,
     /// The workflow with every default filled in.
     pub(super) workflow: &'a Workflow,
+    /// [`run_key`]: the products' `RUN_KEY`, which ties them to this record.
+    pub(super) run_key: String,
     pub(super) inputs: Vec<InputFile>,
     pub(super) grid: Option<Grid>,
     pub(super) crs_wkt: Option<String>,
@@ -359,9 +363,11 @@ pub(super) fn mosaic(
     }
     let (rows, cols) = (plan.grid.rows, plan.grid.cols);
     let heads: Vec<(TileRecord, u64)> = found.into_iter().flatten().collect();
-    // What the products are, from the inputs and parameters only (no path, time or run key:
-    // the same inputs give the same files wherever the run writes them).
-    let meta = product_metadata(o, inputs, plan);
+    // What the products are, from the inputs' contents and the parameters only (no path or
+    // time: the same inputs give the same files wherever they lie and the run writes).
+    let files = checksums(&inputs.files()?, progress)?;
+    let key = run_key(wf, &files);
+    let meta = product_metadata(o, inputs, plan, &key);
     let mut writers = Vec::new();
     let mut outputs = Vec::new();
     for &l in &o.output.layers {
@@ -498,7 +504,8 @@ pub(super) fn mosaic(
         tool: "sfsfuse",
         version: env!("CARGO_PKG_VERSION"),
         workflow: wf,
-        inputs: checksums(&inputs.files()?, progress)?,
+        run_key: key,
+        inputs: files,
         grid: Some(plan.grid),
         crs_wkt: Some(plan.grid.crs.wkt()),
         halo: Some(plan.halo),

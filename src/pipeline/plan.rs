@@ -219,7 +219,7 @@ pub(super) fn plan(
     progress: &Progress,
 ) -> Result<(Plan, Option<Array2<f64>>)> {
     let out = &o.output.directory;
-    let key = run_key(wf, &inputs.files()?)?;
+    let key = plan_key(wf, &inputs.files()?)?;
     let path = out.join("plan.json");
     if let Ok(text) = std::fs::read_to_string(&path) {
         let why = match serde_json::from_str::<Plan>(&text) {
