@@ -290,23 +290,52 @@ impl ReflectanceModel for Hapke {
     }
 
     /// Newton on w with a bisection fallback; r(w) is strictly increasing (docs/photometry.md).
+    /// The w-free factors are computed once, in plain f64; with H81 each step is then one
+    /// square root and three divisions: r = w·k·(H(a)H(b) + M − 1), k = a/(a + b)·S/4π,
+    /// H(a)H(b) = (1 + 2a)(1 + 2b)/((1 + 2γa)(1 + 2γb)), γ = √(1 − w), and
+    /// ∂(H(a)H(b))/∂w = H(a)H(b)·(a/(1 + 2γa) + b/(1 + 2γb))/γ.
     fn invert_cosines(&self, observed: f64, c: &Cosines) -> Albedo {
         if observed <= 0.0 {
             return Albedo::Value(0.0);
         }
         let (mu0e, mue, s, m) =
-            self.w_free(Dual::<1>::constant(c.mu0), Dual::constant(c.mu), c.cos_g);
-        let r = |w: f64| self.r_from_parts(Dual::<1>::var(w, 0), mu0e, mue, s, m);
-        if r(W_MAX).v < observed {
+            self.w_free(Dual::<0>::constant(c.mu0), Dual::constant(c.mu), c.cos_g);
+        let (a, b, s) = (mu0e.v, mue.v, s.v);
+        let k = a / (a + b) * s / (4.0 * PI);
+        let n = (1.0 + 2.0 * a) * (1.0 + 2.0 * b);
+        // (r, ∂r/∂w) at w.
+        let r = |w: f64| -> (f64, f64) {
+            match self.h_function {
+                HFunction::H81 => {
+                    let gamma = (1.0 - w).sqrt();
+                    let (da, db) = (1.0 + 2.0 * gamma * a, 1.0 + 2.0 * gamma * b);
+                    let hh = n / (da * db);
+                    let bracket = hh + m - 1.0;
+                    let dhh = hh * (a / da + b / db) / gamma;
+                    (w * k * bracket, k * (bracket + w * dhh))
+                }
+                HFunction::H02 => {
+                    let f = self.r_from_parts(
+                        Dual::<1>::var(w, 0),
+                        Dual::constant(a),
+                        Dual::constant(b),
+                        Dual::constant(s),
+                        m,
+                    );
+                    (f.v, f.d[0])
+                }
+            }
+        };
+        if r(W_MAX).0 < observed {
             return Albedo::OutOfRange;
         }
         let (mut lo, mut hi) = (0.0, W_MAX);
         // Start from the secant through the origin and w = 0.5 (r(w)/w varies slowly in w).
-        let slope = r(0.5).v / 0.5;
+        let slope = r(0.5).0 / 0.5;
         let mut w = (observed / slope).clamp(0.0, W_MAX);
         for _ in 0..100 {
-            let f = r(w);
-            let err = f.v - observed;
+            let (f, df) = r(w);
+            let err = f - observed;
             if err > 0.0 {
                 hi = w;
             } else {
@@ -315,8 +344,8 @@ impl ReflectanceModel for Hapke {
             if err.abs() <= 1e-14 * observed || hi - lo <= 1e-15 {
                 break;
             }
-            let newton = w - err / f.d[0];
-            w = if f.d[0] > 0.0 && newton > lo && newton < hi {
+            let newton = w - err / df;
+            w = if df > 0.0 && newton > lo && newton < hi {
                 newton
             } else {
                 0.5 * (lo + hi)
