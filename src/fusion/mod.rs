@@ -744,7 +744,13 @@ fn fine_stages(
 ) -> Result<Fusion, FusionError> {
     let w = &obj.weights;
     let multi = w.multiplicity();
-    let has_multi = params.albedo_sigmas.last().is_some() && multi.iter().any(|&c| c > 0.0);
+    // Where observations overlap, a last stage at `multi_albedo_sigma` follows the configured
+    // ones (blended into the last of them).
+    let multi_stage = params
+        .albedo_sigmas
+        .last()
+        .copied()
+        .filter(|_| multi.iter().any(|&c| c > 0.0));
     // A stage before the last only hands the next its surface: it stops on
     // `stage_step_tolerance`.
     let early = FusionParams {
@@ -754,7 +760,7 @@ fn fine_stages(
     for (m, &sigma) in sigmas.iter().enumerate() {
         let t0 = Instant::now();
         let rho = albedo_map(pr, w, &obj.dct, z.view(), sigma)?;
-        let last = m + 1 == sigmas.len() && !has_multi;
+        let last = m + 1 == sigmas.len() && multi_stage.is_none();
         let stage_params = if last || params.solver == SolverKind::Paper {
             params
         } else {
@@ -767,7 +773,7 @@ fn fine_stages(
             seconds: t0.elapsed().as_secs_f64(),
         });
     }
-    if let (Some(&last), true) = (params.albedo_sigmas.last(), multi.iter().any(|&c| c > 0.0)) {
+    if let Some(last) = multi_stage {
         let t0 = Instant::now();
         let maps = albedo_maps(
             pr,

@@ -296,7 +296,7 @@ impl ReflectanceModel for Hapke {
     /// one square root and four divisions: r = w·k·(H(a)H(b) + M − 1), k = a/(a + b)·S/4π,
     /// H(a)H(b) = (1 + 2a)(1 + 2b)/((1 + 2γa)(1 + 2γb)), γ = √(1 − w), and
     /// ∂(H(a)H(b))/∂w = H(a)H(b)·(a/(1 + 2γa) + b/(1 + 2γb))/γ. r(w_max) is evaluated only
-    /// when the iteration heads for w_max (the observation may be out of range), and the
+    /// when the iteration reaches w_max (the observation may be out of range), and the
     /// iteration stops at 10⁻¹² relative, far below any use of the albedo.
     fn invert_cosines(&self, observed: f64, c: &Cosines) -> Albedo {
         if observed <= 0.0 {
@@ -343,18 +343,14 @@ impl ReflectanceModel for Hapke {
             (observed / (2.0 * r_half)).min(W_MAX)
         };
         for _ in 0..100 {
-            if w == W_MAX && !in_range {
-                // r(w_max) < I: no albedo gives the observation.
-                if r(W_MAX).0 < observed {
-                    return Albedo::OutOfRange;
-                }
-                in_range = true;
-            }
             let (f, df) = r(w);
             let err = f - observed;
             if err > 0.0 {
                 hi = w;
                 in_range = true;
+            } else if w == W_MAX && err < 0.0 {
+                // r(w_max) < I: no albedo gives the observation.
+                return Albedo::OutOfRange;
             } else {
                 lo = w;
             }

@@ -132,15 +132,22 @@ pub fn file_sha256(path: &Path) -> Result<String> {
     crate::raster::file_digest::<Sha256>(path)
 }
 
-/// The plan key: ties plan and tiles to one workflow and one set of input files, by their
-/// paths, sizes and modification times (cheap to check on every rerun; a touched input makes a
-/// new plan).
-fn plan_key(wf: &Workflow, files: &[PathBuf]) -> Result<String> {
+/// What both keys hash first: the tool version and the resolved workflow (with whether
+/// `[solver] sigma_dem` was given, which serialisation does not show).
+fn key_text(wf: &Workflow) -> String {
     let mut text = format!("sfsfuse {}\n", env!("CARGO_PKG_VERSION"));
     text.push_str(&serde_json::to_string(wf).expect("workflows serialise"));
     if let Workflow::Orbital(o) = wf {
         text.push_str(&format!("\nsigma_dem_given={}", o.sigma_dem_given));
     }
+    text
+}
+
+/// The plan key: ties plan and tiles to one workflow and one set of input files, by their
+/// paths, sizes and modification times (cheap to check on every rerun; a touched input makes a
+/// new plan).
+fn plan_key(wf: &Workflow, files: &[PathBuf]) -> Result<String> {
+    let mut text = key_text(wf);
     for f in files {
         let m = std::fs::metadata(f).map_err(|e| Error::io(f, e))?;
         let mtime = m
@@ -179,11 +186,7 @@ fn run_key(wf: &Workflow, inputs: &[InputFile]) -> String {
             l.output.directory = PathBuf::new();
         }
     }
-    let mut text = format!("sfsfuse {}\n", env!("CARGO_PKG_VERSION"));
-    text.push_str(&serde_json::to_string(&wf).expect("workflows serialise"));
-    if let Workflow::Orbital(o) = &wf {
-        text.push_str(&format!("\nsigma_dem_given={}", o.sigma_dem_given));
-    }
+    let mut text = key_text(&wf);
     for f in inputs {
         text.push_str(&format!("\n{}:{}", name(&f.path).display(), f.sha256));
     }
