@@ -59,12 +59,68 @@ fn paper_and_fast_solvers_reach_the_same_energy_with_two_observations() {
     );
 }
 
+/// The edge-aware membrane's energy (per-pixel weights from the starting surface, here the
+/// truth, so that they are not uniform): the `paper` iteration approaches the fast solver's
+/// minimum of it too.
+#[test]
+fn paper_and_fast_solvers_reach_the_same_energy_with_an_edge_aware_membrane() {
+    let spec = SceneSpec {
+        size: 32,
+        seed: 3,
+        ..SceneSpec::default()
+    };
+    let scene = generate(&spec);
+    solvers_agree_from(&spec, FusionParams::edge_aware(), &scene.truth_height);
+}
+
+/// The edge-aware membrane (`FusionParams::edge_aware`, docs/science.md) on the unseen scene
+/// of the accuracy bar, one Sun: at least 7 % below the default's elevation error (9.04 →
+/// 8.23 m measured), the albedo no worse.
+#[test]
+fn the_edge_aware_membrane_lowers_single_image_errors() {
+    let spec = SceneSpec {
+        size: 256,
+        seed: 10,
+        ..SceneSpec::default()
+    };
+    let scene = generate(&spec);
+    let plain = score(
+        &scene,
+        &fuse(&scene.problem(), &FusionParams::default()).unwrap(),
+    );
+    let edge = score(
+        &scene,
+        &fuse(&scene.problem(), &FusionParams::edge_aware()).unwrap(),
+    );
+    eprintln!(
+        "plain {:.2} m, albedo {:.4}; edge-aware {:.2} m, albedo {:.4}",
+        plain.0, plain.1, edge.0, edge.1
+    );
+    assert!(
+        edge.0 <= 0.93 * plain.0,
+        "{:.2} m vs {:.2} m",
+        edge.0,
+        plain.0
+    );
+    assert!(
+        edge.1 <= plain.1 * 1.02,
+        "albedo {:.4} vs {:.4}",
+        edge.1,
+        plain.1
+    );
+}
+
 fn solvers_agree(spec: &SceneSpec) {
     let scene = generate(spec);
+    solvers_agree_from(spec, FusionParams::default(), &scene.input_dem);
+}
+
+/// Both solvers from `start` at the first stage's albedo, with `base`'s energy.
+fn solvers_agree_from(spec: &SceneSpec, base: FusionParams, start: &ndarray::Array2<f64>) {
+    let scene = generate(spec);
     let pr = scene.problem();
-    let base = FusionParams::default();
     let rho = initial_albedo(&pr, &base).unwrap();
-    let mut zf = scene.input_dem.clone();
+    let mut zf = start.clone();
     let fast = FusionParams {
         max_iterations: 200,
         tolerance: 1e-12,
@@ -74,11 +130,12 @@ fn solvers_agree(spec: &SceneSpec) {
         ..base.clone()
     };
     let lf = solve_fixed_albedo(&pr, &fast, rho.view(), &mut zf, &mut |_| {}).unwrap();
-    let mut zp = scene.input_dem.clone();
+    let mut zp = start.clone();
     let paper = FusionParams {
+        solver: SolverKind::Paper,
         max_iterations: 20000,
         tolerance: 1e-13,
-        ..FusionParams::paper()
+        ..base.clone()
     };
     let lp = solve_fixed_albedo(&pr, &paper, rho.view(), &mut zp, &mut |_| {}).unwrap();
     let (e0, ef, ep) = (

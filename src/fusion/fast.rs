@@ -57,6 +57,7 @@ impl Normal<'_, '_, '_> {
         self.v.assign(d);
         obj.dct.inverse_in_place(&mut self.v);
         data_normal_into(obj, &self.hm, &self.v, [&mut self.vx, &mut self.vy, out]);
+        obj.add_membrane_relief_hessian(&self.v, out);
         obj.dct.forward_in_place(out);
         if let Some(rh) = obj.relief_hessian(d) {
             out.scaled_add(obj.delta, &rh);
@@ -110,10 +111,13 @@ fn newton_step(
     let cy = spectral::central_symbol(ny);
     let tie = obj.tie.as_ref().map(|k| 2.0 * ops::sum(k.view()) / n);
     let mut minv = spectral::separable(&cy, &cx, |sy, sx| (ax * sx + ay * sy) / e2);
-    if obj.dem_relief.is_some() {
-        // The relief field lowers δ where several observations overlap: precondition with
-        // its mean.
-        minv += &obj.quadratic_hessian_with(obj.delta * (1.0 - obj.mean_relief()));
+    if obj.dem_relief.is_some() || obj.membrane_relief.is_some() {
+        // The relief fields lower δ where several observations overlap and η on steep
+        // corrections: precondition with their means.
+        minv += &obj.quadratic_hessian_with(
+            obj.delta * (1.0 - obj.mean_relief()),
+            obj.eta * (1.0 - obj.mean_membrane_relief()),
+        );
     } else {
         minv += hq;
     }

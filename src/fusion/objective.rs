@@ -120,6 +120,9 @@ pub struct Objective<'a, 'p> {
     /// [`Weights::multiplicity`]) the DEM term's weight there is δ·(1 − r), down to δ·f
     /// ([`Objective::with_multi_delta`]); `None`: δ everywhere.
     pub dem_relief: Option<Array2<f64>>,
+    /// r_η(x) = 1 − ω(x): the membrane's weight at x is η·ω(x)
+    /// ([`Objective::set_membrane_weights`]); `None`: η everywhere.
+    pub membrane_relief: Option<Array2<f64>>,
 }
 
 impl<'a, 'p> Objective<'a, 'p> {
@@ -187,7 +190,63 @@ impl<'a, 'p> Objective<'a, 'p> {
             support,
             tie,
             dem_relief: None,
+            membrane_relief: None,
         }
+    }
+
+    /// Set the membrane's per-pixel weight η·ω(x) for the albedo stage that starts from
+    /// surface `z`: ω = (1 − c)·m + c·f, c the multi-coverage of [`Weights::multiplicity`],
+    /// f = `multi_factor` and m = 1/√(1 + |∇(z − z_DEM)|²/k²) (∇ the central difference,
+    /// k = `slope`, dimensionless; m = 1 when k = 0). Stored as r_η = 1 − ω.
+    ///
+    /// The membrane pulls the correction's gradients towards 0, which flattens small craters'
+    /// walls and rims (docs/science.md, "Edge-aware membrane"); where the surface already
+    /// departs steeply from the DEM it pulls less, like a total-variation penalty
+    /// re-linearised once per stage. Where two or more Suns carry a pixel the image fixes
+    /// every slope and a plain, weaker membrane (η·f) serves better. ω is fixed within a
+    /// stage, so each stage's energy keeps its form.
+    pub fn set_membrane_weights(&mut self, z: ArrayView2<f64>, slope: f64, multi_factor: f64) {
+        self.membrane_relief = None;
+        if self.eta == 0.0 || (slope <= 0.0 && multi_factor == 1.0) {
+            return;
+        }
+        let c = self.weights.multiplicity();
+        let (p, q) = ops::gradient(self.correction(z).view(), self.problem.spacing);
+        let k2 = slope * slope;
+        let r = Zip::from(&p).and(&q).and(&c).par_map_collect(|&p, &q, &c| {
+            let m = if k2 > 0.0 {
+                1.0 / (1.0 + (p * p + q * q) / k2).sqrt()
+            } else {
+                1.0
+            };
+            (1.0 - c) * (1.0 - m) + c * (1.0 - multi_factor)
+        });
+        if r.iter().any(|&r| r != 0.0) {
+            self.membrane_relief = Some(r);
+        }
+    }
+
+    /// The membrane relief's part of the quadratic Hessian applied to a spatial field v,
+    /// −η·2Dᵀ(r_η∘Dv)/ε², added into `out`.
+    pub fn add_membrane_relief_hessian(&self, v: &Array2<f64>, out: &mut Array2<f64>) {
+        if let Some(r) = &self.membrane_relief {
+            let (_, g) = self.relief_term(r, v, true);
+            out.scaled_add(-self.eta, &g.expect("asked for"));
+        }
+    }
+
+    /// The mean of r_η(x) (0 without it): the preconditioner uses η·(1 − mean r_η).
+    pub fn mean_membrane_relief(&self) -> f64 {
+        self.membrane_relief
+            .as_ref()
+            .map_or(0.0, |r| ops::sum(r.view()) / r.len() as f64)
+    }
+
+    /// z − z_DEM.
+    fn correction(&self, z: ArrayView2<f64>) -> Array2<f64> {
+        Zip::from(z)
+            .and(self.problem.dem)
+            .map_collect(|&z, &d| z - d)
     }
 
     /// Lower the DEM term's weight to δ·`factor` where several observations carry a pixel,
@@ -416,8 +475,8 @@ impl<'a, 'p> Objective<'a, 'p> {
         out
     }
 
-    /// The quadratic terms (E_DEM, E_reg) from the DCT coefficients ẑ.
-    pub fn quadratic(&self, zh: &Array2<f64>) -> (f64, f64) {
+    /// The quadratic terms (E_DEM, E_reg) at z, from z and its DCT coefficients ẑ.
+    pub fn quadratic(&self, z: ArrayView2<f64>, zh: &Array2<f64>) -> (f64, f64) {
         let dem = Zip::from(&self.lam)
             .and(&self.gs)
             .and(zh)
@@ -434,7 +493,11 @@ impl<'a, 'p> Objective<'a, 'p> {
         if let Some(r) = &self.dem_relief {
             dem -= self.relief_term(r, &self.dem_residual(zh), false).0;
         }
-        (dem, ops::sum(reg.view()))
+        let mut reg = ops::sum(reg.view());
+        if let Some(r) = &self.membrane_relief {
+            reg -= self.relief_term(r, &self.correction(z), false).0;
+        }
+        (dem, reg)
     }
 
     /// Everything the solvers need at one iterate: photometric state, ẑ and the energy.
@@ -454,7 +517,7 @@ impl<'a, 'p> Objective<'a, 'p> {
     /// Energy at `z` given ẑ and the photometric state.
     pub fn energy_with(&self, z: ArrayView2<f64>, zh: &Array2<f64>, photo: &Photo) -> Energy {
         let intensity = photo.intensity;
-        let (dem, membrane) = self.quadratic(zh);
+        let (dem, membrane) = self.quadratic(z, zh);
         let tie = self.tie_energy(z);
         Energy {
             intensity,
@@ -489,6 +552,10 @@ impl<'a, 'p> Objective<'a, 'p> {
                 .for_each(|o, &x, &g| *o -= self.delta * g * x);
         }
         let mut g = data + self.dct.inverse(&quad_hat);
+        if let Some(r) = &self.membrane_relief {
+            let (_, gu) = self.relief_term(r, &self.correction(z), true);
+            g.scaled_add(-self.eta, &gu.expect("asked for"));
+        }
         if let Some(k) = &self.tie {
             Zip::from(&mut g)
                 .and(k)
@@ -502,14 +569,14 @@ impl<'a, 'p> Objective<'a, 'p> {
     /// Diagonal of the quadratic terms' Hessian in the DCT basis without the relief field:
     /// 2(λ/ε²)(δĝ_s² + η).
     pub fn quadratic_hessian(&self) -> Array2<f64> {
-        self.quadratic_hessian_with(self.delta)
+        self.quadratic_hessian_with(self.delta, self.eta)
     }
 
-    /// 2(λ/ε²)(δ'ĝ_s² + η) for a given δ'.
-    pub fn quadratic_hessian_with(&self, delta: f64) -> Array2<f64> {
+    /// 2(λ/ε²)(δ'ĝ_s² + η') for a given δ' and η'.
+    pub fn quadratic_hessian_with(&self, delta: f64, eta: f64) -> Array2<f64> {
         Zip::from(&self.lam)
             .and(&self.gs)
-            .map_collect(|&l, &g| 2.0 * l * (delta * g * g + self.eta))
+            .map_collect(|&l, &g| 2.0 * l * (delta * g * g + eta))
     }
 }
 
@@ -677,6 +744,53 @@ mod tests {
         let obj = Objective::new(&pr, 3.0, 0.2, 1.2, 1.5, 0.03, w).with_multi_delta(0.3);
         assert!(obj.dem_relief.as_ref().unwrap()[(5, 15)] > 0.5);
         assert_gradient_matches(&obj, &z, &[(3, 4), (6, 9), (5, 15), (11, 25), (0, 29)]);
+    }
+
+    /// With the edge-aware membrane's per-pixel weights (and the plain, weaker membrane where
+    /// two observations overlap) the gradient still matches E.
+    #[test]
+    fn gradient_matches_finite_differences_with_an_edge_aware_membrane() {
+        let (ny, nx) = (12, 30);
+        let (z, dem) = surfaces(ny, nx);
+        let strip = |lo: usize, hi: usize| {
+            Array2::from_shape_fn((ny, nx), |(i, j)| {
+                if j < lo || j >= hi {
+                    f64::NAN
+                } else {
+                    0.03 + 0.002 * ((i * 3 + j) % 5) as f64
+                }
+            })
+        };
+        let (a, b) = (strip(0, 20), strip(8, 30));
+        let model = Hapke::moon();
+        let mut pr = Problem::single(
+            a.view(),
+            Directions::Uniform(crate::synth::direction(50.0, 100.0)),
+            Directions::Uniform(crate::synth::direction(5.0, 200.0)),
+            dem.view(),
+            100.0,
+            1.5,
+            &model,
+        );
+        pr.observations.push(crate::fusion::Observation {
+            image: b.view(),
+            sun: Directions::Uniform(crate::synth::direction(65.0, 230.0)),
+            view: Directions::Uniform(crate::synth::direction(2.0, 90.0)),
+        });
+        let w = crate::fusion::observations::weights(&pr, vec![1.0, 1.0], 0.03, None, 0.0, 4.0);
+        let mut obj = Objective::new(&pr, 3.0, 0.5, 1.2, 1.5, 0.03, w);
+        // The weights come from another surface than the one the gradient is checked at.
+        let start = &dem + &z.mapv(|v| 0.5 * v);
+        obj.set_membrane_weights(start.view(), 0.05, 0.2);
+        let r = obj.membrane_relief.as_ref().unwrap();
+        // Single coverage: 1 − m, strictly between 0 and 1 on a steep correction; full double
+        // coverage: 1 − 0.2.
+        assert!(r[(5, 2)] > 0.1 && r[(5, 2)] < 1.0, "{}", r[(5, 2)]);
+        assert!((r[(5, 14)] - 0.8).abs() < 1e-12, "{}", r[(5, 14)]);
+        assert_gradient_matches(&obj, &z, &[(3, 4), (6, 9), (5, 15), (11, 25), (0, 29)]);
+        // k = 0 and a factor of 1: the plain membrane, no field at all.
+        obj.set_membrane_weights(start.view(), 0.0, 1.0);
+        assert!(obj.membrane_relief.is_none());
     }
 
     #[test]
