@@ -701,14 +701,10 @@ mod tests {
         assert_gradient_matches(&obj, &z, &[(3, 4), (6, 19), (5, 21), (11, 25), (0, 29)]);
     }
 
-    /// Two overlapping observations under different Suns, with gains, noise weights and edge
-    /// ramps: the summed photometric term's gradient matches E too.
-    #[test]
-    fn gradient_matches_finite_differences_with_two_observations() {
-        let (ny, nx) = (12, 30);
-        let (z, dem) = surfaces(ny, nx);
+    /// Two observation images on a 12 × 30 grid, columns 0..20 and 8..30, the second × `gain`.
+    fn two_strips(gain: f64) -> (Array2<f64>, Array2<f64>) {
         let strip = |lo: usize, hi: usize, g: f64| {
-            Array2::from_shape_fn((ny, nx), |(i, j)| {
+            Array2::from_shape_fn((12, 30), |(i, j)| {
                 if j < lo || j >= hi {
                     f64::NAN
                 } else {
@@ -716,8 +712,16 @@ mod tests {
                 }
             })
         };
-        let (a, b) = (strip(0, 20, 1.0), strip(8, 30, 1.1));
-        let model = Hapke::moon();
+        (strip(0, 20, 1.0), strip(8, 30, gain))
+    }
+
+    /// The problem of the two strips `a` and `b` under different Suns over `dem`.
+    fn two_observations<'a>(
+        a: &'a Array2<f64>,
+        b: &'a Array2<f64>,
+        dem: &'a Array2<f64>,
+        model: &'a Hapke,
+    ) -> Problem<'a> {
         let mut pr = Problem::single(
             a.view(),
             Directions::Uniform(crate::synth::direction(50.0, 100.0)),
@@ -725,13 +729,24 @@ mod tests {
             dem.view(),
             100.0,
             1.5,
-            &model,
+            model,
         );
         pr.observations.push(crate::fusion::Observation {
             image: b.view(),
             sun: Directions::Uniform(crate::synth::direction(65.0, 230.0)),
             view: Directions::Uniform(crate::synth::direction(2.0, 90.0)),
         });
+        pr
+    }
+
+    /// Two overlapping observations under different Suns, with gains, noise weights and edge
+    /// ramps: the summed photometric term's gradient matches E too.
+    #[test]
+    fn gradient_matches_finite_differences_with_two_observations() {
+        let (z, dem) = surfaces(12, 30);
+        let (a, b) = two_strips(1.1);
+        let model = Hapke::moon();
+        let pr = two_observations(&a, &b, &dem, &model);
         let w = crate::fusion::observations::weights(
             &pr,
             vec![1.0, 1.1],
@@ -750,33 +765,10 @@ mod tests {
     /// two observations overlap) the gradient still matches E.
     #[test]
     fn gradient_matches_finite_differences_with_an_edge_aware_membrane() {
-        let (ny, nx) = (12, 30);
-        let (z, dem) = surfaces(ny, nx);
-        let strip = |lo: usize, hi: usize| {
-            Array2::from_shape_fn((ny, nx), |(i, j)| {
-                if j < lo || j >= hi {
-                    f64::NAN
-                } else {
-                    0.03 + 0.002 * ((i * 3 + j) % 5) as f64
-                }
-            })
-        };
-        let (a, b) = (strip(0, 20), strip(8, 30));
+        let (z, dem) = surfaces(12, 30);
+        let (a, b) = two_strips(1.0);
         let model = Hapke::moon();
-        let mut pr = Problem::single(
-            a.view(),
-            Directions::Uniform(crate::synth::direction(50.0, 100.0)),
-            Directions::Uniform(crate::synth::direction(5.0, 200.0)),
-            dem.view(),
-            100.0,
-            1.5,
-            &model,
-        );
-        pr.observations.push(crate::fusion::Observation {
-            image: b.view(),
-            sun: Directions::Uniform(crate::synth::direction(65.0, 230.0)),
-            view: Directions::Uniform(crate::synth::direction(2.0, 90.0)),
-        });
+        let pr = two_observations(&a, &b, &dem, &model);
         let w = crate::fusion::observations::weights(&pr, vec![1.0, 1.0], 0.03, None, 0.0, 4.0);
         let mut obj = Objective::new(&pr, 3.0, 0.5, 1.2, 1.5, 0.03, w);
         // The weights come from another surface than the one the gradient is checked at.
