@@ -175,6 +175,16 @@ impl Hapke {
     }
 }
 
+/// (ψ/π)·e with ψ = acos(cos ψ), skipping the arc cosine where e is exactly 0 (a near-nadir
+/// view's E1, [`neg_exp`]: M3's every pixel in the i ≥ e branch), where the product is 0.
+fn psi_over_pi_times<const N: usize>(cos_psi: Dual<N>, e: Dual<N>) -> Dual<N> {
+    if e == Dual::constant(0.0) {
+        e
+    } else {
+        cos_psi.acos() / PI * e
+    }
+}
+
 /// sin x from cos x, with value and derivative 0 at x = 0.
 fn sin_from_cos<const N: usize>(c: Dual<N>) -> Dual<N> {
     let s2 = 1.0 - c * c;
@@ -248,10 +258,10 @@ fn roughness<const N: usize>(
     } else {
         ((cos_g - mu0 * mu) / (sin_i * sin_e)).clamp(-1.0 + 1e-12, 1.0 - 1e-12)
     };
-    let psi = cos_psi.acos();
     let half_sin2 = (1.0 - cos_psi) * 0.5; // sin²(ψ/2)
-                                           // f(ψ) = exp(−2 tan(ψ/2)), with tan(ψ/2) = √((1 − cos ψ)/(1 + cos ψ)) (cheaper than tan).
-    let f = if psi.v >= PI {
+    // f(ψ) = exp(−2 tan(ψ/2)), with tan(ψ/2) = √((1 − cos ψ)/(1 + cos ψ)) (cheaper than tan);
+    // f = 0 at ψ = π.
+    let f = if cos_psi.v <= -1.0 {
         Dual::constant(0.0)
     } else if cos_psi.v >= 1.0 {
         Dual::constant(1.0)
@@ -262,17 +272,16 @@ fn roughness<const N: usize>(
         |c: Dual<N>, s: Dual<N>, e1: Dual<N>, e2: Dual<N>| (c + s * tan_tb * e2 / (2.0 - e1)) * chi;
     let eta_i = eta(mu0, sin_i, e1i, e2i);
     let eta_e = eta(mu, sin_e, e1e, e2e);
-    let psi_pi = psi / PI;
     if mu0.v >= mu.v {
         // i ≤ e
-        let d = 2.0 - e1e - psi_pi * e1i;
+        let d = 2.0 - e1e - psi_over_pi_times(cos_psi, e1i);
         let mu0e = (mu0 + sin_i * tan_tb * (cos_psi * e2e + half_sin2 * e2i) / d) * chi;
         let mue = (mu + sin_e * tan_tb * (e2e - half_sin2 * e2i) / d) * chi;
         let s = (mue / eta_e) * (mu0 / eta_i) * chi / (1.0 - f + f * chi * (mu0 / eta_i));
         (mu0e, mue, s)
     } else {
         // i ≥ e
-        let d = 2.0 - e1i - psi_pi * e1e;
+        let d = 2.0 - e1i - psi_over_pi_times(cos_psi, e1e);
         let mu0e = (mu0 + sin_i * tan_tb * (e2i - half_sin2 * e2e) / d) * chi;
         let mue = (mu + sin_e * tan_tb * (cos_psi * e2i + half_sin2 * e2e) / d) * chi;
         let s = (mue / eta_e) * (mu0 / eta_i) * chi / (1.0 - f + f * chi * (mu / eta_e));
