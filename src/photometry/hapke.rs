@@ -258,7 +258,8 @@ fn roughness<const N: usize>(
     } else {
         ((cos_g - mu0 * mu) / (sin_i * sin_e)).clamp(-1.0 + 1e-12, 1.0 - 1e-12)
     };
-    let half_sin2 = (1.0 - cos_psi) * 0.5; // sin²(ψ/2)
+    // sin²(ψ/2).
+    let half_sin2 = (1.0 - cos_psi) * 0.5;
     // f(ψ) = exp(−2 tan(ψ/2)), with tan(ψ/2) = √((1 − cos ψ)/(1 + cos ψ)) (cheaper than tan);
     // f = 0 at ψ = π.
     let f = if cos_psi.v <= -1.0 {
