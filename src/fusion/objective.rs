@@ -10,7 +10,8 @@
 //!   so a surface turned away from the Sun at an observed-lit pixel is penalised, not dropped;
 //! * E_DEM = Σ ‖f_σ(∇ B z) − f_σ(∇ z_DEM)‖², f_σ the Gaussian low-pass of width σ_DEM, B the
 //!   input DEM's own point-spread (identity for the seed's plain term);
-//! * E_reg = Σ ‖∇(z − z_DEM)‖², the membrane regulariser;
+//! * E_reg = Σ ω(x)·‖∇(z − z_DEM)‖², the membrane regulariser, ω = 1 unless the opt-in
+//!   edge-aware weights of [`Objective::set_membrane_weights`] are set for a stage;
 //! * E_tie = Σ κ(x)·((z − z_DEM)/ε)², κ = κ₀·max(1 − s, 1 − 2c, 0), which holds the surface to
 //!   the input DEM where no image constrains it: s the photometric support of
 //!   [`super::support`] (1 within σ_s of the image's footprint, 0 beyond 3σ_s), c below (a
