@@ -24,7 +24,7 @@ const GSD_LINES: usize = 256;
 
 /// The ground sample distance of an observation, metres: the geometric mean of the median
 /// distances between neighbouring samples of a line and between neighbouring lines, over up
-/// to [`GSD_LINES`] lines from the middle of LOC (great circles at the LOC radius) — the side
+/// to `GSD_LINES` lines from the middle of LOC (great circles at the LOC radius) — the side
 /// of a square pixel with the area of the swath's. M3 global mode gives ≈ 140–150 m from the
 /// 100 km orbit (the real crops: 143 m across, 157 m along track → 150 m) and about twice that
 /// from 200 km.

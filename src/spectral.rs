@@ -332,7 +332,7 @@ pub fn gaussian_transfer(n: usize, sigma: f64) -> Vec<f64> {
         .collect()
 }
 
-/// Outer product table t[l][k] = f(ay[l], ax[k]).
+/// Outer product table `t[l][k] = f(ay[l], ax[k])`.
 pub fn separable(ay: &[f64], ax: &[f64], f: impl Fn(f64, f64) -> f64 + Sync) -> Array2<f64> {
     let mut t = Array2::zeros((ay.len(), ax.len()));
     t.axis_iter_mut(Axis(0))

@@ -89,7 +89,7 @@ pub enum GeoTiffCrs {
 }
 
 /// Read the CRS from GeoKeys (tags 34735/34736): the Moon sphere (semi-major axis 1 737 400 m,
-/// no flattening) with one of the coordinate transformations [`geokeys`] writes — CT 17
+/// no flattening) with one of the coordinate transformations `geokeys` writes — CT 17
 /// (equirectangular, standard parallel 0), 15 (polar stereographic, pole longitude 0), 14/16
 /// (stereographic, scale 1), 21 (orthographic) — metres, no false easting/northing; or a
 /// geographic model. Anything else is refused with the key that does not fit.

@@ -21,7 +21,7 @@ pub struct Sources {
     pub m3_base: String,
     /// The `lola_gdr` directory of the LOLA archive.
     pub lola_base: String,
-    /// Optional md5sum-style manifests ("<md5>  <name or path>" per line) checked after each
+    /// Optional md5sum-style manifests (`<md5>  <name or path>` per line) checked after each
     /// download, e.g. a volume's checksum list or one made by a mirror.
     pub checksums: Vec<String>,
     /// Attempts per file (connection errors, timeouts, 5xx and cut transfers are retried;
@@ -244,7 +244,7 @@ pub fn parts(label: &Label, source: &str) -> Result<Vec<Part>> {
     Ok(out)
 }
 
-/// md5sum-style manifest lines: "<32 hex>  <name or path>" (a `*` before the name, for binary
+/// md5sum-style manifest lines: `<32 hex>  <name or path>` (a `*` before the name, for binary
 /// mode, is allowed). Returns (lower-case file name, md5).
 pub fn parse_manifest(text: &str) -> Vec<(String, String)> {
     text.lines()

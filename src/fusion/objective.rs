@@ -6,7 +6,7 @@
 //!   lit: valid, not image-shadowed (I/Ī ≥ threshold), seen by the camera (μ > 0), and within
 //!   the selection; w_k and the gains g_k are those of [`super::observations`]. R is continued
 //!   through μ0 = 0
-//!   ([`ReflectanceModel::shade_observed`](crate::photometry::ReflectanceModel::shade_observed)),
+//!   ([`crate::photometry::ReflectanceModel::shade_observed`]),
 //!   so a surface turned away from the Sun at an observed-lit pixel is penalised, not dropped;
 //! * E_DEM = Σ ‖f_σ(∇ B z) − f_σ(∇ z_DEM)‖², f_σ the Gaussian low-pass of width σ_DEM, B the
 //!   input DEM's own point-spread (identity for the seed's plain term);

@@ -27,7 +27,7 @@ use ndarray::{Array2, ArrayView2, Axis, Zip};
 use rayon::prelude::*;
 use serde::{Deserialize, Serialize};
 
-/// Which observations a pixel uses ([inputs] in a workflow).
+/// Which observations a pixel uses (`[inputs]` in a workflow).
 #[derive(Debug, Clone, Copy, PartialEq, Serialize, Deserialize)]
 #[serde(deny_unknown_fields, default)]
 pub struct Selection {

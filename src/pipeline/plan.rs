@@ -38,7 +38,7 @@ pub struct Plan {
     #[serde(default)]
     pub noise_weights: Vec<f64>,
     /// The coarse reference the tiles start from and anchor to (`reference.bin`); `None`: the
-    /// tiles solve every stage themselves ([`super::reference`]).
+    /// tiles solve every stage themselves (`pipeline::reference`).
     #[serde(default)]
     pub reference: Option<ReferenceInfo>,
 }
