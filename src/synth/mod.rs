@@ -347,27 +347,41 @@ pub fn generate(spec: &SceneSpec) -> Scene {
         })
         .collect();
     let bright: Vec<&Crater> = craters.iter().filter(|c| c.r * 2.0 >= 6.0 * eps).collect();
-    Zip::indexed(&mut albedo).par_for_each(|(i, j), w| {
-        let (fi, fj) = (i as f64, j as f64);
-        for &(ci, cj, rad, amp) in &patches {
-            let d = ((fi - ci).powi(2) + (fj - cj).powi(2)).sqrt();
-            // Soft edge about 4 px wide.
-            *w -= amp / (1.0 + ((d - rad) / 2.0).exp());
-        }
-        let (x, y) = (fj * eps, -fi * eps);
-        for c in &bright {
-            // The ring is negligible (< 0.05·e⁻¹⁶) beyond t = 4.
-            let reach = c.r * (1.0 + 4.0 * 0.6);
-            if (x - c.x).abs() > reach || (y - c.y).abs() > reach {
-                continue;
+    // The ring is negligible (< 0.05·e⁻¹⁶) beyond t = 4, i.e. (1 + 4·0.6)·r from the centre.
+    let reach = |c: &Crater| c.r * (1.0 + 4.0 * 0.6);
+    albedo
+        .axis_iter_mut(Axis(0))
+        .into_par_iter()
+        .enumerate()
+        .for_each(|(i, mut row)| {
+            let fi = i as f64;
+            let y = -fi * eps;
+            // The bright craters whose rings reach this row, in list order (the sum's order).
+            let near: Vec<&Crater> = bright
+                .iter()
+                .copied()
+                .filter(|c| (y - c.y).abs() <= reach(c))
+                .collect();
+            for (j, w) in row.iter_mut().enumerate() {
+                let fj = j as f64;
+                for &(ci, cj, rad, amp) in &patches {
+                    let d = ((fi - ci).powi(2) + (fj - cj).powi(2)).sqrt();
+                    // Soft edge about 4 px wide.
+                    *w -= amp / (1.0 + ((d - rad) / 2.0).exp());
+                }
+                let x = fj * eps;
+                for c in &near {
+                    if (x - c.x).abs() > reach(c) {
+                        continue;
+                    }
+                    let d = ((x - c.x).powi(2) + (y - c.y).powi(2)).sqrt();
+                    let t = (d - c.r) / (0.6 * c.r);
+                    if t.abs() < 4.0 {
+                        *w += 0.05 * (-t * t).exp();
+                    }
+                }
             }
-            let d = ((x - c.x).powi(2) + (y - c.y).powi(2)).sqrt();
-            let t = (d - c.r) / (0.6 * c.r);
-            if t.abs() < 4.0 {
-                *w += 0.05 * (-t * t).exp();
-            }
-        }
-    });
+        });
     // Fine texture: white noise smoothed over ~1.5 px, σ ≈ 0.01.
     let dct = Dct2d::new(n, n);
     let white = Array2::from_shape_simple_fn((n, n), || rng.normal());
@@ -502,17 +516,19 @@ impl Subsampled<'_> {
     }
 }
 
-/// Side, in grid cells, of the blocks whose maxima let a shadow ray skip terrain it clears.
-const SHADOW_BLOCK: usize = 16;
+/// Sides, in grid cells and coarsest first, of the blocks whose maxima let a shadow ray skip
+/// terrain it clears.
+const SHADOW_BLOCKS: [usize; 3] = [64, 16, 4];
 
 /// Cast shadows: march from each pixel towards the Sun over the bilinearly interpolated DEM,
 /// in steps of half a cell, until the terrain rises above the ray (shadow), the ray leaves the
 /// grid or rises above the highest point (lit).
 ///
 /// A bilinear sample in cell (i0, j0) mixes the heights at rows i0, i0 + 1 and columns
-/// j0, j0 + 1, so it cannot exceed the maximum over the cell's [`SHADOW_BLOCK`]-block and a
-/// margin of one row and column beyond it. Where the ray (which only rises) is already above
-/// that maximum, every step inside the block is lit and the march jumps to the last step
+/// j0, j0 + 1, so it cannot exceed the maximum over the cell's block (of any size in
+/// [`SHADOW_BLOCKS`]) and a margin of one row and column beyond it. Where the ray (which only
+/// rises) is already above the largest such block's maximum, every step inside that block is
+/// lit and the march jumps to the last step
 /// before the ray leaves the block (one step short of the continuous exit, so that rounding
 /// never skips a step outside it): the same steps decide, so the result is the plain march's
 /// exactly, without sampling the terrain the ray clears — with kilometre-deep craters the
@@ -527,16 +543,21 @@ fn cast_shadow(h: &Array2<f64>, eps: f64, sun: &Vec3) -> Array2<bool> {
     let rise = sun[2] / horiz; // metres of ray rise per metre travelled
     let (dj, di) = (sun[0] / horiz, -sun[1] / horiz); // per pixel step, columns east, rows south
     let hmax = h.iter().cloned().fold(f64::MIN, f64::max);
-    let b = SHADOW_BLOCK;
-    let block_max = Array2::from_shape_fn((ny.div_ceil(b), nx.div_ceil(b)), |(bi, bj)| {
-        h.slice(s![
-            bi * b..((bi + 1) * b + 1).min(ny),
-            bj * b..((bj + 1) * b + 1).min(nx)
-        ])
+    let maxima: Vec<(usize, Array2<f64>)> = SHADOW_BLOCKS
         .iter()
-        .cloned()
-        .fold(f64::MIN, f64::max)
-    });
+        .map(|&b| {
+            let m = Array2::from_shape_fn((ny.div_ceil(b), nx.div_ceil(b)), |(bi, bj)| {
+                h.slice(s![
+                    bi * b..((bi + 1) * b + 1).min(ny),
+                    bj * b..((bj + 1) * b + 1).min(nx)
+                ])
+                .iter()
+                .cloned()
+                .fold(f64::MIN, f64::max)
+            });
+            (b, m)
+        })
+        .collect();
     let sample = |fi: f64, fj: f64| {
         let (i0, j0) = (fi.floor() as usize, fj.floor() as usize);
         let (i1, j1) = ((i0 + 1).min(ny - 1), (j0 + 1).min(nx - 1));
@@ -546,7 +567,7 @@ fn cast_shadow(h: &Array2<f64>, eps: f64, sun: &Vec3) -> Array2<bool> {
     };
     // The ray parameter at which it leaves the block range [lo, lo + b) along an axis, from
     // `start` moving by `d` per unit (infinite when it does not move along that axis).
-    let exit = |start: f64, d: f64, lo: usize| {
+    let exit = |start: f64, d: f64, lo: usize, b: usize| {
         if d > 0.0 {
             ((lo + b) as f64 - start) / d
         } else if d < 0.0 {
@@ -570,9 +591,13 @@ fn cast_shadow(h: &Array2<f64>, eps: f64, sun: &Vec3) -> Array2<bool> {
             if ray > hmax {
                 break;
             }
-            let (bi, bj) = (fi.floor() as usize / b, fj.floor() as usize / b);
-            if rise >= 0.0 && ray > block_max[(bi, bj)] {
-                let t_exit = exit(i as f64, di, bi * b).min(exit(j as f64, dj, bj * b));
+            let (ci, cj) = (fi.floor() as usize, fj.floor() as usize);
+            let clear = maxima
+                .iter()
+                .find(|(b, m)| rise >= 0.0 && ray > m[(ci / b, cj / b)]);
+            if let Some(&(b, _)) = clear {
+                let (lo_i, lo_j) = (ci / b * b, cj / b * b);
+                let t_exit = exit(i as f64, di, lo_i, b).min(exit(j as f64, dj, lo_j, b));
                 let last_inside = (t_exit / step).floor() - 1.0;
                 k = if last_inside > (k + 1) as f64 {
                     last_inside as u64
