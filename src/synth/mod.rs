@@ -365,7 +365,13 @@ pub fn generate(spec: &SceneSpec) -> Scene {
             for (j, w) in row.iter_mut().enumerate() {
                 let fj = j as f64;
                 for &(ci, cj, rad, amp) in &patches {
-                    let d = ((fi - ci).powi(2) + (fj - cj).powi(2)).sqrt();
+                    let d2 = (fi - ci).powi(2) + (fj - cj).powi(2);
+                    // Beyond rad + 1424 px, e^((d − rad)/2) overflows to infinity and the term
+                    // is exactly 0: skipping it changes no bit.
+                    if d2 > (rad + PATCH_ZERO_PX).powi(2) {
+                        continue;
+                    }
+                    let d = d2.sqrt();
                     // Soft edge about 4 px wide.
                     *w -= amp / (1.0 + ((d - rad) / 2.0).exp());
                 }
@@ -515,6 +521,11 @@ impl Subsampled<'_> {
         (image, shadow)
     }
 }
+
+/// Distance beyond a dark patch's radius, in pixels, from which its soft edge
+/// amp/(1 + e^((d − rad)/2)) is exactly 0 in f64: e^x overflows to infinity from x ≈ 709.8,
+/// and 2·712 leaves a margin for the rounding of d.
+const PATCH_ZERO_PX: f64 = 1424.0;
 
 /// Sides, in grid cells and coarsest first, of the blocks whose maxima let a shadow ray skip
 /// terrain it clears.
