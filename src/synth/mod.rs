@@ -538,12 +538,12 @@ const SHADOW_BLOCKS: [usize; 3] = [64, 16, 4];
 /// A bilinear sample in cell (i0, j0) mixes the heights at rows i0, i0 + 1 and columns
 /// j0, j0 + 1, so it cannot exceed the maximum over the cell's block (of any size in
 /// [`SHADOW_BLOCKS`]) and a margin of one row and column beyond it. Where the ray (which only
-/// rises) is already above the largest such block's maximum, every step inside that block is
-/// lit and the march jumps to the last step
-/// before the ray leaves the block (one step short of the continuous exit, so that rounding
-/// never skips a step outside it): the same steps decide, so the result is the plain march's
-/// exactly, without sampling the terrain the ray clears — with kilometre-deep craters the
-/// plain march takes thousands of steps per pixel.
+/// rises, with the Sun above the horizon) is already above the largest such block's maximum,
+/// every step inside that block is lit and the march jumps to the last step before the ray
+/// leaves the block (one step short of the continuous exit, so that rounding never skips a
+/// step outside it): the same steps decide, so the result is the plain march's exactly,
+/// without sampling the terrain the ray clears — with kilometre-deep craters the plain march
+/// takes thousands of steps per pixel.
 fn cast_shadow(h: &Array2<f64>, eps: f64, sun: &Vec3) -> Array2<bool> {
     let (ny, nx) = h.dim();
     let horiz = (sun[0] * sun[0] + sun[1] * sun[1]).sqrt();
@@ -554,7 +554,9 @@ fn cast_shadow(h: &Array2<f64>, eps: f64, sun: &Vec3) -> Array2<bool> {
     let rise = sun[2] / horiz; // metres of ray rise per metre travelled
     let (dj, di) = (sun[0] / horiz, -sun[1] / horiz); // per pixel step, columns east, rows south
     let hmax = h.iter().cloned().fold(f64::MIN, f64::max);
-    let maxima: Vec<(usize, Array2<f64>)> = SHADOW_BLOCKS
+    // A ray that sinks (the Sun below the horizon) may not skip anything: no blocks.
+    let blocks: &[usize] = if rise >= 0.0 { &SHADOW_BLOCKS } else { &[] };
+    let maxima: Vec<(usize, Array2<f64>)> = blocks
         .iter()
         .map(|&b| {
             let m = Array2::from_shape_fn((ny.div_ceil(b), nx.div_ceil(b)), |(bi, bj)| {
@@ -603,9 +605,7 @@ fn cast_shadow(h: &Array2<f64>, eps: f64, sun: &Vec3) -> Array2<bool> {
                 break;
             }
             let (ci, cj) = (fi.floor() as usize, fj.floor() as usize);
-            let clear = maxima
-                .iter()
-                .find(|(b, m)| rise >= 0.0 && ray > m[(ci / b, cj / b)]);
+            let clear = maxima.iter().find(|(b, m)| ray > m[(ci / b, cj / b)]);
             if let Some(&(b, _)) = clear {
                 let (lo_i, lo_j) = (ci / b * b, cj / b * b);
                 let t_exit = exit(i as f64, di, lo_i, b).min(exit(j as f64, dj, lo_j, b));
@@ -721,8 +721,8 @@ mod tests {
         })
     }
 
-    /// Rough terrain (a deep pit, a ridge, noise, single-cell spikes) under low Suns from every quadrant and along
-    /// the axes: the same shadows, pixel for pixel, as the plain march.
+    /// Rough terrain (a deep pit, a ridge, noise, single-cell spikes) under low Suns from every
+    /// quadrant and along the axes: the same shadows, pixel for pixel, as the plain march.
     #[test]
     fn block_skipping_gives_the_plain_marchs_shadows() {
         let mut rng = Rng::new(7);
