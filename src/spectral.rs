@@ -298,11 +298,12 @@ pub fn laplacian_eigenvalues(n: usize) -> Vec<f64> {
         .collect()
 }
 
-/// 1-D DCT-domain symbol sin²(πk/N) of the central difference's normal operator (exact in the
-/// interior; used only for preconditioning).
-pub fn central_symbol(n: usize) -> Vec<f64> {
+/// 1-D DCT-domain symbol h(πk/N)² of a difference operator's normal operator DᵀD, h the
+/// stencil's response to angular frequency ω (sin ω for the central difference). Exact in the
+/// interior; used only for preconditioning.
+pub fn difference_symbol(n: usize, response: impl Fn(f64) -> f64) -> Vec<f64> {
     (0..n)
-        .map(|k| (std::f64::consts::PI * k as f64 / n as f64).sin().powi(2))
+        .map(|k| response(std::f64::consts::PI * k as f64 / n as f64).powi(2))
         .collect()
 }
 

@@ -107,8 +107,8 @@ fn newton_step(
     let (ax, ay) = hm
         .iter()
         .fold((0.0, 0.0), |(x, y), h| (x + h[0] / n, y + h[2] / n));
-    let cx = spectral::central_symbol(nx);
-    let cy = spectral::central_symbol(ny);
+    let cx = spectral::difference_symbol(nx, ops::stencil_response);
+    let cy = spectral::difference_symbol(ny, ops::stencil_response);
     let tie = obj.tie.as_ref().map(|k| 2.0 * ops::sum(k.view()) / n);
     let mut minv = spectral::separable(&cy, &cx, |sy, sx| (ax * sx + ay * sy) / e2);
     if obj.dem_relief.is_some() || obj.membrane_relief.is_some() {

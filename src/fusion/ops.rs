@@ -1,14 +1,32 @@
 //! Discrete operators of the fusion energy on a grid of `ny` rows (row 0 north) × `nx` columns
 //! (column 0 west) with spacing ε metres.
 //!
-//! The photometric term reads the surface gradient at pixel centres by central differences,
-//! one-sided at the edges: p = ∂z/∂x (east), q = ∂z/∂y (north, i.e. towards row − 1). The
+//! The photometric term reads the surface gradient at pixel centres by the fourth-order central
+//! difference of [`STENCIL`] (the plain central difference one pixel from an edge, one-sided at
+//! the edge): p = ∂z/∂x (east), q = ∂z/∂y (north, i.e. towards row − 1). The
 //! quadratic terms use forward differences, which the DCT diagonalises (see `spectral`).
 
 use ndarray::{Array2, ArrayView1, ArrayView2, Axis};
 use rayon::prelude::*;
 
-/// Coefficient D[j][k]·ε of the 1-D central difference (one-sided at both ends) on `n` points.
+/// Interior coefficients (c₁, c₂) of the photometric gradient,
+/// p·ε = c₁·(v[j+1] − v[j−1]) + c₂·(v[j+2] − v[j−2]): the fourth-order central difference
+/// (−v[j+2] + 8v[j+1] − 8v[j−1] + v[j−2])/12, exact for cubics. Its response to a wave of
+/// angular frequency ω (radians per pixel) is (8 sin ω − sin 2ω)/6, against ω for the true
+/// derivative and sin ω for the plain central difference: at 4 px wavelength the central
+/// difference sees 64 % of the slope, this stencil 85 % (a detector averaging over its pixel
+/// sees 90 %), so the rendered image keeps the contrast of small craters that the plain
+/// difference smooths away (docs/science.md, "The photometric gradient").
+pub const STENCIL: (f64, f64) = (8.0 / 12.0, -1.0 / 12.0);
+
+/// The response Σₘ 2cₘ·sin(mω) of the interior stencil at angular frequency ω.
+pub fn stencil_response(omega: f64) -> f64 {
+    let (c1, c2) = STENCIL;
+    2.0 * c1 * omega.sin() + 2.0 * c2 * (2.0 * omega).sin()
+}
+
+/// Coefficient D[j][k]·ε of the 1-D gradient on `n` points: the interior stencil where
+/// j ∈ [2, n − 3], central at j = 1 and n − 2, one-sided at both ends.
 fn coef(n: usize, j: usize, k: usize) -> f64 {
     if n < 2 {
         return 0.0;
@@ -29,20 +47,29 @@ fn coef(n: usize, j: usize, k: usize) -> f64 {
             0.0
         };
     }
+    let (c1, c2) = if j >= 2 && j + 3 <= n {
+        STENCIL
+    } else {
+        (0.5, 0.0)
+    };
     if k + 1 == j {
-        -0.5
+        -c1
     } else if k == j + 1 {
-        0.5
+        c1
+    } else if k + 2 == j {
+        -c2
+    } else if k == j + 2 {
+        c2
     } else {
         0.0
     }
 }
 
-/// (Dᵀu)[k]·ε for one line, gathered from u[k−1], u[k], u[k+1] via `get`.
+/// (Dᵀu)[k]·ε for one line, gathered from u[k−2..=k+2] via `get`.
 #[inline]
 fn adjoint_at(n: usize, k: usize, get: impl Fn(usize) -> f64) -> f64 {
-    let lo = k.saturating_sub(1);
-    let hi = (k + 1).min(n.saturating_sub(1));
+    let lo = k.saturating_sub(2);
+    let hi = (k + 2).min(n.saturating_sub(1));
     (lo..=hi).map(|j| coef(n, j, k) * get(j)).sum()
 }
 
@@ -53,22 +80,35 @@ fn diff_line(v: &[f64], out: &mut [f64]) {
         out.iter_mut().for_each(|o| *o = 0.0);
         return;
     }
+    let (c1, c2) = STENCIL;
     out[0] = v[1] - v[0];
     out[n - 1] = v[n - 1] - v[n - 2];
-    for j in 1..n - 1 {
-        out[j] = 0.5 * (v[j + 1] - v[j - 1]);
+    for j in [1, n - 2] {
+        if j >= 1 && j + 1 < n {
+            out[j] = 0.5 * (v[j + 1] - v[j - 1]);
+        }
+    }
+    // The interior j ∈ [2, n − 3], branch-free: out[j] from v[j − 2 ..= j + 2].
+    if n >= 5 {
+        for (o, w) in out[2..n - 2].iter_mut().zip(v.windows(5)) {
+            *o = c1 * (w[3] - w[1]) + c2 * (w[4] - w[0]);
+        }
     }
 }
 
 /// Dᵀu·ε along one contiguous line.
 fn adjoint_line(u: &[f64], out: &mut [f64]) {
     let n = u.len();
-    for k in 0..n {
-        out[k] = if k >= 2 && k + 2 < n {
-            0.5 * (u[k - 1] - u[k + 1])
-        } else {
-            adjoint_at(n, k, |j| u[j])
-        };
+    let (c1, c2) = STENCIL;
+    // Where every row j ∈ [k − 2, k + 2] that reaches k is interior (k ∈ [4, n − 5]), branch-free.
+    let (lo, hi) = if n >= 9 { (4, n - 4) } else { (n, n) };
+    for k in (0..lo.min(n)).chain(hi..n) {
+        out[k] = adjoint_at(n, k, |j| u[j]);
+    }
+    if lo < hi {
+        for (o, w) in out[lo..hi].iter_mut().zip(u[lo - 2..].windows(5)) {
+            *o = c1 * (w[1] - w[3]) + c2 * (w[0] - w[4]);
+        }
     }
 }
 
@@ -99,20 +139,17 @@ pub fn gradient_into(z: ArrayView2<f64>, eps: f64, p: &mut Array2<f64>, q: &mut 
                 qr.iter_mut().for_each(|x| *x = 0.0);
                 return;
             }
-            let (a, b, w) = if i == 0 {
-                (1, 0, 1.0)
-            } else if i == ny - 1 {
-                (ny - 1, ny - 2, 1.0)
-            } else {
-                (i + 1, i - 1, 0.5)
-            };
-            let (ra, rb) = (z.row(a), z.row(b));
-            let (ra, rb) = (
-                ra.as_slice().expect("standard layout"),
-                rb.as_slice().expect("standard layout"),
-            );
-            for ((o, x), y) in qr.iter_mut().zip(ra).zip(rb) {
-                *o = -w * (x - y) * inv;
+            qr.iter_mut().for_each(|x| *x = 0.0);
+            let lo = i.saturating_sub(2);
+            let hi = (i + 2).min(ny - 1);
+            for k in lo..=hi {
+                let c = coef(ny, i, k);
+                if c != 0.0 {
+                    let r = z.row(k);
+                    for (o, x) in qr.iter_mut().zip(r.as_slice().expect("standard layout")) {
+                        *o -= c * x * inv;
+                    }
+                }
             }
         });
 }
@@ -141,9 +178,9 @@ pub fn gradient_adjoint_into(
         .for_each(|(k, mut orow)| {
             let o = orow.as_slice_mut().expect("standard layout");
             adjoint_line(u.row(k).as_slice().expect("standard layout"), o);
-            // Rows j ∈ {k−1, k, k+1} of v with coefficient coef(ny, j, k); q = −D_rows, so subtract.
-            let lo = k.saturating_sub(1);
-            let hi = (k + 1).min(ny.saturating_sub(1));
+            // Rows j ∈ [k−2, k+2] of v with coefficient coef(ny, j, k); q = −D_rows, so subtract.
+            let lo = k.saturating_sub(2);
+            let hi = (k + 2).min(ny.saturating_sub(1));
             for j in lo..=hi {
                 let c = coef(ny, j, k);
                 if c != 0.0 {
@@ -210,17 +247,73 @@ mod tests {
     }
 
     #[test]
+    fn the_interior_gradient_is_exact_for_quartics() {
+        // The fourth-order central difference is exact up to degree 4: z = x⁴ + x·y³ has
+        // p = 4x³ + y³ and q = 3x·y², with x = j·ε and y = −i·ε. The plain central difference
+        // is off by ε²·∂³z/∂x³/6 = 4x·ε² in p.
+        let eps = 1.5;
+        let (ny, nx) = (9, 11);
+        let xy = |i: usize, j: usize| (j as f64 * eps, -(i as f64) * eps);
+        let z = Array2::from_shape_fn((ny, nx), |(i, j)| {
+            let (x, y) = xy(i, j);
+            x.powi(4) + x * y.powi(3)
+        });
+        let (p, q) = gradient(z.view(), eps);
+        for i in 2..ny - 2 {
+            for j in 2..nx - 2 {
+                let (x, y) = xy(i, j);
+                let (pe, qe) = (4.0 * x.powi(3) + y.powi(3), 3.0 * x * y * y);
+                assert!(
+                    (p[(i, j)] - pe).abs() < 1e-9 * pe.abs().max(1.0),
+                    "p at ({i}, {j})"
+                );
+                assert!(
+                    (q[(i, j)] - qe).abs() < 1e-9 * qe.abs().max(1.0),
+                    "q at ({i}, {j})"
+                );
+            }
+        }
+    }
+
+    #[test]
+    fn the_stencil_response_is_the_gradient_of_a_wave() {
+        // z = sin(ωj): in the interior, p·ε = h(ω)·cos(ωj) with h = stencil_response.
+        let n = 40;
+        for omega in [0.3, std::f64::consts::FRAC_PI_2, 2.5] {
+            let z = Array2::from_shape_fn((1, n), |(_, j)| (omega * j as f64).sin());
+            let (p, _) = gradient(z.view(), 1.0);
+            for j in 2..n - 2 {
+                let expected = stencil_response(omega) * (omega * j as f64).cos();
+                assert!((p[(0, j)] - expected).abs() < 1e-12, "ω {omega}, j {j}");
+            }
+        }
+        // The figures of STENCIL's documentation: at 4 px wavelength the stencil sees 85 % of
+        // the slope, the plain central difference 64 %.
+        let w = std::f64::consts::FRAC_PI_2;
+        assert!((stencil_response(w) / w - 0.849).abs() < 1e-3);
+        assert!((w.sin() / w - 0.637).abs() < 1e-3);
+    }
+
+    #[test]
     fn adjoint_is_the_transpose() {
-        let (ny, nx) = (9, 12);
-        let z = Array2::from_shape_fn((ny, nx), |(i, j)| ((i * 31 + j * 17) % 11) as f64);
-        let u = Array2::from_shape_fn((ny, nx), |(i, j)| ((i * 7 + j * 5) % 13) as f64 - 6.0);
-        let v = Array2::from_shape_fn((ny, nx), |(i, j)| ((i * 3 + j * 19) % 7) as f64 - 3.0);
-        let (p, q) = gradient(z.view(), 2.5);
-        let lhs = dot(p.view(), u.view()) + dot(q.view(), v.view());
-        let rhs = dot(z.view(), gradient_adjoint(u.view(), v.view(), 2.5).view());
-        assert!(
-            (lhs - rhs).abs() < 1e-10 * lhs.abs().max(1.0),
-            "{lhs} {rhs}"
-        );
+        // Entry by entry: ⟨D e_m, e_n⟩ = ⟨e_m, Dᵀ e_n⟩ for every pair of unit vectors, on
+        // shapes that exercise the one-sided ends, the central rows next to them and the
+        // interior stencil (or none of it).
+        for (ny, nx) in [(9, 12), (1, 5), (2, 3), (6, 10), (13, 4), (5, 9)] {
+            let unit =
+                |m: usize| Array2::from_shape_fn((ny, nx), |(i, j)| f64::from(i * nx + j == m));
+            let zero = Array2::<f64>::zeros((ny, nx));
+            for m in 0..ny * nx {
+                let (p, q) = gradient(unit(m).view(), 2.5);
+                for n in 0..ny * nx {
+                    let (i, j) = (n / nx, n % nx);
+                    let dx = gradient_adjoint(unit(n).view(), zero.view(), 2.5);
+                    let dy = gradient_adjoint(zero.view(), unit(n).view(), 2.5);
+                    let (mi, mj) = (m / nx, m % nx);
+                    assert_eq!(p[(i, j)], dx[(mi, mj)], "D_x {ny}×{nx} row {n} column {m}");
+                    assert_eq!(q[(i, j)], dy[(mi, mj)], "D_y {ny}×{nx} row {n} column {m}");
+                }
+            }
+        }
     }
 }
