@@ -11,7 +11,7 @@ use rayon::prelude::*;
 
 /// Interior coefficients (c₁, c₂) of the photometric gradient,
 /// p·ε = c₁·(v[j+1] − v[j−1]) + c₂·(v[j+2] − v[j−2]): the fourth-order central difference
-/// (−v[j+2] + 8v[j+1] − 8v[j−1] + v[j−2])/12, exact for cubics. Its response to a wave of
+/// (−v[j+2] + 8v[j+1] − 8v[j−1] + v[j−2])/12, exact up to quartics. Its response to a wave of
 /// angular frequency ω (radians per pixel) is (8 sin ω − sin 2ω)/6, against ω for the true
 /// derivative and sin ω for the plain central difference: at 4 px wavelength the central
 /// difference sees 64 % of the slope, this stencil 85 % (a detector averaging over its pixel
