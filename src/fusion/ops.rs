@@ -83,8 +83,9 @@ fn diff_line(v: &[f64], out: &mut [f64]) {
     let (c1, c2) = STENCIL;
     out[0] = v[1] - v[0];
     out[n - 1] = v[n - 1] - v[n - 2];
-    for j in [1, n - 2] {
-        if j >= 1 && j + 1 < n {
+    // The central difference one point from each end (n ≥ 3).
+    if n >= 3 {
+        for j in [1, n - 2] {
             out[j] = 0.5 * (v[j + 1] - v[j - 1]);
         }
     }
@@ -102,7 +103,7 @@ fn adjoint_line(u: &[f64], out: &mut [f64]) {
     let (c1, c2) = STENCIL;
     // Where every row j ∈ [k − 2, k + 2] that reaches k is interior (k ∈ [4, n − 5]), branch-free.
     let (lo, hi) = if n >= 9 { (4, n - 4) } else { (n, n) };
-    for k in (0..lo.min(n)).chain(hi..n) {
+    for k in (0..lo).chain(hi..n) {
         out[k] = adjoint_at(n, k, |j| u[j]);
     }
     if lo < hi {
@@ -134,11 +135,8 @@ pub fn gradient_into(z: ArrayView2<f64>, eps: f64, p: &mut Array2<f64>, q: &mut 
             diff_line(z.row(i).as_slice().expect("standard layout"), pr);
             pr.iter_mut().for_each(|x| *x *= inv);
             // y points north = towards smaller row index: q = −(D along rows).
+            // (coef is 0 everywhere on a single row.)
             let qr = qrow.as_slice_mut().expect("standard layout");
-            if ny < 2 {
-                qr.iter_mut().for_each(|x| *x = 0.0);
-                return;
-            }
             qr.iter_mut().for_each(|x| *x = 0.0);
             let lo = i.saturating_sub(2);
             let hi = (i + 2).min(ny - 1);
