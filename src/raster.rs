@@ -7,10 +7,21 @@ use std::path::{Path, PathBuf};
 
 /// Write `bytes` to `path` atomically (temporary sibling + fsync + rename).
 pub fn write_atomic(path: &Path, bytes: &[u8]) -> Result<()> {
+    write_atomic_with(path, |w| w.write_all(bytes))
+}
+
+/// Write `path` atomically from what `fill` streams into a buffered writer on the temporary
+/// sibling (then fsync + rename): for products too large to assemble in memory first. On any
+/// error the temporary is removed and the error names `path`.
+pub fn write_atomic_with(
+    path: &Path,
+    fill: impl FnOnce(&mut dyn Write) -> std::io::Result<()>,
+) -> Result<()> {
     let tmp = tmp_name(path);
     let res = (|| {
-        let mut f = std::fs::File::create(&tmp)?;
-        f.write_all(bytes)?;
+        let mut w = std::io::BufWriter::with_capacity(1 << 20, std::fs::File::create(&tmp)?);
+        fill(&mut w)?;
+        let f = w.into_inner().map_err(|e| e.into_error())?;
         f.sync_all()?;
         std::fs::rename(&tmp, path)
     })();
@@ -68,6 +79,39 @@ mod tests {
         let missing = dir.join("no/such/dir/b.bin");
         let e = write_atomic(&missing, b"x").unwrap_err().to_string();
         assert!(e.contains("no/such/dir/b.bin"), "{e}");
+        std::fs::remove_dir_all(&dir).unwrap();
+    }
+
+    #[test]
+    fn a_failing_stream_leaves_neither_output_nor_temporary() {
+        let dir = std::env::temp_dir().join(format!("sfsfuse-stream-{}", std::process::id()));
+        std::fs::create_dir_all(&dir).unwrap();
+        let p = dir.join("cube.img");
+        write_atomic_with(&p, |w| {
+            for line in 0..3u8 {
+                w.write_all(&[line; 4])?;
+            }
+            Ok(())
+        })
+        .unwrap();
+        assert_eq!(
+            std::fs::read(&p).unwrap(),
+            [0, 0, 0, 0, 1, 1, 1, 1, 2, 2, 2, 2]
+        );
+        let q = dir.join("broken.img");
+        let e = write_atomic_with(&q, |w| {
+            w.write_all(b"half")?;
+            Err(std::io::Error::other("the source ran dry"))
+        })
+        .unwrap_err()
+        .to_string();
+        assert!(e.contains("broken.img") && e.contains("ran dry"), "{e}");
+        let mut names: Vec<_> = std::fs::read_dir(&dir)
+            .unwrap()
+            .map(|e| e.unwrap().file_name().into_string().unwrap())
+            .collect();
+        names.sort();
+        assert_eq!(names, ["cube.img"]);
         std::fs::remove_dir_all(&dir).unwrap();
     }
 }

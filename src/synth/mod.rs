@@ -288,53 +288,8 @@ pub fn generate(spec: &SceneSpec) -> Scene {
     // Big craters first, so that small ones superpose on them.
     craters.sort_by(|a, b| b.r.total_cmp(&a.r));
 
-    // Height and analytic slopes on a grid SUB times finer than the pixels; subsample
-    // (SUB/2, SUB/2) of each pixel is its centre (x = j·ε east, y = −i·ε north).
-    let m = n * SUB;
-    let h_sub = eps / SUB as f64;
-    let origin = -((SUB / 2) as f64) * h_sub;
-    let mut height = Array2::zeros((m, m));
-    let mut px = Array2::zeros((m, m));
-    let mut py = Array2::zeros((m, m));
-    Zip::indexed(&mut height)
-        .and(&mut px)
-        .and(&mut py)
-        .par_for_each(|(i, j), h, gx, gy| {
-            let (x, y) = (origin + j as f64 * h_sub, -(origin + i as f64 * h_sub));
-            for w in &waves {
-                let a = w.kx * x + w.ky * y + w.phase;
-                *h += w.amp * a.sin();
-                *gx += w.amp * w.kx * a.cos();
-                *gy += w.amp * w.ky * a.cos();
-            }
-        });
-    // Craters, row by row in parallel; within a row they are added in the (size-sorted) list
-    // order, so the sums do not depend on the thread count.
-    height
-        .axis_iter_mut(Axis(0))
-        .into_par_iter()
-        .zip(px.axis_iter_mut(Axis(0)))
-        .zip(py.axis_iter_mut(Axis(0)))
-        .enumerate()
-        .for_each(|(i, ((mut hrow, mut xrow), mut yrow))| {
-            let y = -(origin + i as f64 * h_sub);
-            for c in &craters {
-                let reach = 3.0 * c.r;
-                if (y - c.y).abs() > reach {
-                    continue;
-                }
-                let j0 = (((c.x - reach - origin) / h_sub).floor().max(0.0) as usize).min(m);
-                let j1 = (((c.x + reach - origin) / h_sub).ceil().max(0.0) as usize + 1).min(m);
-                for j in j0..j1 {
-                    let (h, gx, gy) = c.eval(origin + j as f64 * h_sub - c.x, y - c.y);
-                    hrow[j] += h;
-                    xrow[j] += gx;
-                    yrow[j] += gy;
-                }
-            }
-        });
-
-    // Albedo.
+    // Albedo. It is built before the subsampled surface below (and draws from `rng` after the
+    // craters, as it always did), so that the texture's temporaries never coexist with that.
     let mut albedo = Array2::from_elem((n, n), 0.0);
     let patches: Vec<(f64, f64, f64, f64)> = (0..(n * n / 40000).max(3))
         .map(|_| {
@@ -397,6 +352,52 @@ pub fn generate(spec: &SceneSpec) -> Scene {
     let mean = albedo.mean().unwrap_or(0.0);
     albedo.mapv_inplace(|w| (w - mean + 0.44).clamp(0.05, 0.95));
 
+    // Height and analytic slopes on a grid SUB times finer than the pixels; subsample
+    // (SUB/2, SUB/2) of each pixel is its centre (x = j·ε east, y = −i·ε north).
+    let m = n * SUB;
+    let h_sub = eps / SUB as f64;
+    let origin = -((SUB / 2) as f64) * h_sub;
+    let mut height = Array2::zeros((m, m));
+    let mut px = Array2::zeros((m, m));
+    let mut py = Array2::zeros((m, m));
+    Zip::indexed(&mut height)
+        .and(&mut px)
+        .and(&mut py)
+        .par_for_each(|(i, j), h, gx, gy| {
+            let (x, y) = (origin + j as f64 * h_sub, -(origin + i as f64 * h_sub));
+            for w in &waves {
+                let a = w.kx * x + w.ky * y + w.phase;
+                *h += w.amp * a.sin();
+                *gx += w.amp * w.kx * a.cos();
+                *gy += w.amp * w.ky * a.cos();
+            }
+        });
+    // Craters, row by row in parallel; within a row they are added in the (size-sorted) list
+    // order, so the sums do not depend on the thread count.
+    height
+        .axis_iter_mut(Axis(0))
+        .into_par_iter()
+        .zip(px.axis_iter_mut(Axis(0)))
+        .zip(py.axis_iter_mut(Axis(0)))
+        .enumerate()
+        .for_each(|(i, ((mut hrow, mut xrow), mut yrow))| {
+            let y = -(origin + i as f64 * h_sub);
+            for c in &craters {
+                let reach = 3.0 * c.r;
+                if (y - c.y).abs() > reach {
+                    continue;
+                }
+                let j0 = (((c.x - reach - origin) / h_sub).floor().max(0.0) as usize).min(m);
+                let j1 = (((c.x + reach - origin) / h_sub).ceil().max(0.0) as usize + 1).min(m);
+                for j in j0..j1 {
+                    let (h, gx, gy) = c.eval(origin + j as f64 * h_sub - c.x, y - c.y);
+                    hrow[j] += h;
+                    xrow[j] += gx;
+                    yrow[j] += gy;
+                }
+            }
+        });
+
     // Rendering: each pixel averages the radiance of its SUB × SUB subsamples, as a detector
     // integrates over its footprint; the albedo is constant over a pixel.
     let model = Hapke::moon();
@@ -432,9 +433,12 @@ pub fn generate(spec: &SceneSpec) -> Scene {
             }
         })
         .collect();
-    let height = Array2::from_shape_fn((n, n), |(i, j)| {
+    let truth = Array2::from_shape_fn((n, n), |(i, j)| {
         height[(i * SUB + SUB / 2, j * SUB + SUB / 2)]
     });
+    // The subsampled surface (SUB² × 24 bytes per pixel) is not needed beyond this point.
+    drop((height, px, py));
+    let height = truth;
 
     let input_dem = lola_like(&height, spec, &dct, &mut rng);
     Scene {

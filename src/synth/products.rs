@@ -23,7 +23,7 @@ use super::{Scene, SceneSpec};
 use crate::error::{Error, Result};
 use crate::export::{write_geotiff, BandInfo};
 use crate::grid::{Grid, Interpolation, MOON_RADIUS_M};
-use crate::raster::write_atomic;
+use crate::raster::{write_atomic, write_atomic_with};
 use ndarray::Array2;
 use std::path::{Path, PathBuf};
 
@@ -184,32 +184,44 @@ fn write_m3(
     let (c0, c1) = (c0.min(grid.cols), c1.min(grid.cols));
     let cols = c1 - c0;
 
+    let name = |part: &str, ext: &str| format!("{id}_V03_{part}.{ext}");
+    // Each file is streamed line by line: at 8192² the radiance cube alone is 23 GB.
     // RDN: LINE_INTERLEAVED = for each line, every band's samples in turn.
-    let mut rdn = Vec::with_capacity(rows * cols * wl.len() * 4);
-    for i in 0..rows {
-        for (b, &w) in wl.iter().enumerate() {
-            // A smooth, red-sloped lunar spectrum normalised at 1209.57 nm.
-            let shape = (w / wl[band_1209]).powf(0.6);
-            for j in c0..c1 {
-                let r = shot.image[(i, j)] * shape;
-                f32_bytes(&mut rdn, r * irr[b] / (SOLAR_DISTANCE * SOLAR_DISTANCE));
+    write_atomic_with(&dir.join(name("RDN", "IMG")), |w| {
+        let mut line = Vec::with_capacity(cols * wl.len() * 4);
+        for i in 0..rows {
+            line.clear();
+            for (b, &wv) in wl.iter().enumerate() {
+                // A smooth, red-sloped lunar spectrum normalised at 1209.57 nm.
+                let shape = (wv / wl[band_1209]).powf(0.6);
+                for j in c0..c1 {
+                    let r = shot.image[(i, j)] * shape;
+                    f32_bytes(&mut line, r * irr[b] / (SOLAR_DISTANCE * SOLAR_DISTANCE));
+                }
             }
+            w.write_all(&line)?;
         }
-    }
+        Ok(())
+    })?;
     // LOC: longitude (east, 0–360), latitude, radius.
-    let mut loc = Vec::with_capacity(rows * cols * 3 * 8);
-    for i in 0..rows {
-        for band in 0..3 {
-            for j in c0..c1 {
-                let v = match band {
-                    0 => geo.lon[(i, j)].rem_euclid(360.0),
-                    1 => geo.lat[(i, j)],
-                    _ => MOON_RADIUS_M + scene.truth_height[(i, j)],
-                };
-                loc.extend_from_slice(&v.to_le_bytes());
+    write_atomic_with(&dir.join(name("LOC", "IMG")), |w| {
+        let mut line = Vec::with_capacity(cols * 3 * 8);
+        for i in 0..rows {
+            line.clear();
+            for band in 0..3 {
+                for j in c0..c1 {
+                    let v = match band {
+                        0 => geo.lon[(i, j)].rem_euclid(360.0),
+                        1 => geo.lat[(i, j)],
+                        _ => MOON_RADIUS_M + scene.truth_height[(i, j)],
+                    };
+                    line.extend_from_slice(&v.to_le_bytes());
+                }
             }
+            w.write_all(&line)?;
         }
-    }
+        Ok(())
+    })?;
     // OBS: grid-frame directions → local east-north-up (inverse of the ingest rotation).
     let to_enu = |v: [f64; 3], t: f64| {
         let (s, c) = t.sin_cos();
@@ -222,48 +234,50 @@ fn write_m3(
         )
     };
     let (p, q) = crate::fusion::ops::gradient(scene.truth_height.view(), grid.spacing);
-    let mut obs = Vec::with_capacity(rows * cols * 10 * 4);
-    for i in 0..rows {
+    write_atomic_with(&dir.join(name("OBS", "IMG")), |w| {
+        let mut line = Vec::with_capacity(cols * 10 * 4);
         let mut bands: Vec<Vec<f64>> = (0..10).map(|_| Vec::with_capacity(cols)).collect();
-        for j in c0..c1 {
-            let t = geo.bearing[(i, j)];
-            let (s, v) = (to_enu(shot.sun, t), to_enu(scene.view, t));
-            let (saz, sz) = az_zen(s);
-            let (vaz, vz) = az_zen(v);
-            let phase = (s[0] * v[0] + s[1] * v[1] + s[2] * v[2])
-                .clamp(-1.0, 1.0)
-                .acos();
-            // Facet normal (−p, −q, 1)/|…| in the grid frame, then east-north-up.
-            let n = (p[(i, j)] * p[(i, j)] + q[(i, j)] * q[(i, j)] + 1.0).sqrt();
-            let nrm = to_enu([-p[(i, j)] / n, -q[(i, j)] / n, 1.0 / n], t);
-            let (aspect, slope) = az_zen(nrm);
-            let cos_i = nrm[0] * s[0] + nrm[1] * s[1] + nrm[2] * s[2];
-            let vals = [
-                saz,
-                sz,
-                vaz,
-                vz,
-                phase.to_degrees(),
-                0.0,
-                100_000.0,
-                slope,
-                aspect,
-                cos_i,
-            ];
-            for (b, x) in vals.into_iter().enumerate() {
-                bands[b].push(x);
+        for i in 0..rows {
+            line.clear();
+            bands.iter_mut().for_each(Vec::clear);
+            for j in c0..c1 {
+                let t = geo.bearing[(i, j)];
+                let (s, v) = (to_enu(shot.sun, t), to_enu(scene.view, t));
+                let (saz, sz) = az_zen(s);
+                let (vaz, vz) = az_zen(v);
+                let phase = (s[0] * v[0] + s[1] * v[1] + s[2] * v[2])
+                    .clamp(-1.0, 1.0)
+                    .acos();
+                // Facet normal (−p, −q, 1)/|…| in the grid frame, then east-north-up.
+                let n = (p[(i, j)] * p[(i, j)] + q[(i, j)] * q[(i, j)] + 1.0).sqrt();
+                let nrm = to_enu([-p[(i, j)] / n, -q[(i, j)] / n, 1.0 / n], t);
+                let (aspect, slope) = az_zen(nrm);
+                let cos_i = nrm[0] * s[0] + nrm[1] * s[1] + nrm[2] * s[2];
+                let vals = [
+                    saz,
+                    sz,
+                    vaz,
+                    vz,
+                    phase.to_degrees(),
+                    0.0,
+                    100_000.0,
+                    slope,
+                    aspect,
+                    cos_i,
+                ];
+                for (b, x) in vals.into_iter().enumerate() {
+                    bands[b].push(x);
+                }
             }
-        }
-        for b in bands {
-            for x in b {
-                f32_bytes(&mut obs, x);
+            for b in &bands {
+                for &x in b {
+                    f32_bytes(&mut line, x);
+                }
             }
+            w.write_all(&line)?;
         }
-    }
-    let name = |part: &str, ext: &str| format!("{id}_V03_{part}.{ext}");
-    write_atomic(&dir.join(name("RDN", "IMG")), &rdn)?;
-    write_atomic(&dir.join(name("LOC", "IMG")), &loc)?;
-    write_atomic(&dir.join(name("OBS", "IMG")), &obs)?;
+        Ok(())
+    })?;
     let wl_list: Vec<String> = wl.iter().map(|w| format!("{w:.6}")).collect();
     let hdr = format!(
         "ENVI\ndescription = {{SYNTHETIC M3-like radiance written by sfsfuse}}\nsamples = {cols}\nlines = {rows}\nbands = {}\nheader offset = 0\nfile type = ENVI Standard\ndata type = 4\ninterleave = bil\nbyte order = 0\nwavelength = {{\n {} }}\n",
