@@ -3,7 +3,8 @@
 //!
 //! * Truth DEM: smooth relief (random long-wavelength waves) plus fresh bowl craters with a
 //!   power-law size distribution N(>D) ∝ D⁻², depth/diameter ≈ 0.2, raised rims (0.04·D) and
-//!   ejecta decaying as (R/r)³ out to 3R. Slopes are analytic.
+//!   ejecta decaying as (R/r)³ out to 3R; beyond D = 15 km depth and rim grow as D^0.301
+//!   ([`complex_crater_scale`]). Slopes are analytic.
 //! * Truth albedo (Hapke w, mean 0.44): dark soft-edged patches, bright ejecta rings around the
 //!   larger craters, and a weak fine-scale texture.
 //! * Image: Hapke IMSA (lunar parameters) rendered from the analytic slopes under the given
@@ -245,6 +246,22 @@ struct Wave {
 /// Subsamples per pixel and axis used to render the image.
 const SUB: usize = 3;
 
+/// Diameter, metres, of the Moon's simple-to-complex crater transition (Pike 1977: ≈ 15 km).
+pub const COMPLEX_CRATER_M: f64 = 15e3;
+
+/// Factor on the depth and rim height of a crater of diameter `d` metres: 1 up to
+/// [`COMPLEX_CRATER_M`]; beyond, depth grows as D^0.301 rather than in proportion (Pike 1977,
+/// complex lunar craters), continuous at the transition. A 229 km crater (the largest in an
+/// 8192² scene) is then 6.9 km deep, not 46 km. Scenes under 536 px at 140 m hold no crater
+/// that wide, so they are unchanged.
+pub fn complex_crater_scale(d: f64) -> f64 {
+    if d <= COMPLEX_CRATER_M {
+        1.0
+    } else {
+        (d / COMPLEX_CRATER_M).powf(0.301 - 1.0)
+    }
+}
+
 /// Generate the scene for `spec`.
 pub fn generate(spec: &SceneSpec) -> Scene {
     let n = spec.size;
@@ -276,12 +293,13 @@ pub fn generate(spec: &SceneSpec) -> Scene {
             // Inverse CDF of the truncated Pareto with exponent 2.
             let d = dmin / (1.0 - u * (1.0 - (dmin / dmax).powi(2))).sqrt();
             let ratio = 0.2 * rng.range(0.85, 1.05);
+            let complex = complex_crater_scale(d);
             Crater {
                 x: rng.range(0.0, extent),
                 y: -rng.range(0.0, extent),
                 r: d / 2.0,
-                depth: ratio * d,
-                rim: 0.04 * d,
+                depth: ratio * d * complex,
+                rim: 0.04 * d * complex,
             }
         })
         .collect();
@@ -723,6 +741,23 @@ mod tests {
                 t += 0.5;
             }
         })
+    }
+
+    /// Complex craters: continuous at 15 km, depth ∝ D^0.301 beyond (Pike 1977), so that the
+    /// widest crater of an 8192² scene at 140 m (229 km) is a few kilometres deep, as the
+    /// Moon's are, and its DEM fits a LOLA-like 16-bit product.
+    #[test]
+    fn complex_craters_deepen_as_the_0_301_power_of_diameter() {
+        assert_eq!(complex_crater_scale(3e3), 1.0);
+        assert_eq!(complex_crater_scale(COMPLEX_CRATER_M), 1.0);
+        let depth = |d: f64| 0.2 * d * complex_crater_scale(d);
+        assert!((depth(15.001e3) / depth(15e3) - 1.0).abs() < 1e-4);
+        for d in [20e3, 60e3, 150e3] {
+            let ratio = depth(2.0 * d) / depth(d);
+            assert!((ratio - 2f64.powf(0.301)).abs() < 1e-12, "{ratio}");
+        }
+        let widest = 8192.0 / 5.0 * 140.0;
+        assert!((6.0e3..8.0e3).contains(&depth(widest)), "{}", depth(widest));
     }
 
     /// Rough terrain (a deep pit, a ridge, noise, single-cell spikes) under low Suns from every

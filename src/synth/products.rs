@@ -362,8 +362,13 @@ fn write_lola(
         crate::grid::interpolate(scene.input_dem.view(), r, c, Interpolation::Bilinear, false)
     });
     for h in heights.iter() {
-        let dn = (h / 0.5).round().clamp(i16::MIN as f64, i16::MAX as f64) as i16;
-        img.extend_from_slice(&dn.to_le_bytes());
+        let dn = (h / 0.5).round();
+        if !(i16::MIN as f64..=i16::MAX as f64).contains(&dn) {
+            return Err(Error::Usage(format!(
+                "the synthetic scene's input DEM reaches {h:.1} m, beyond what a LOLA-like 16-bit DN at 0.5 m holds (±16383.5 m)"
+            )));
+        }
+        img.extend_from_slice(&(dn as i16).to_le_bytes());
     }
     let img_name = "LDEM_64_SYNTHETIC.IMG";
     write_atomic(&dir.join(img_name), &img)?;
