@@ -84,8 +84,9 @@ impl Normal<'_, '_, '_> {
 
 /// Preconditioned CG for (Dᵀ(H + M)D + 2K + H_Q + H_R)Δ (H_R the DEM term's relief field,
 /// [`Objective::relief_hessian`]) = −g in DCT coefficients (K the tie's
-/// per-pixel weight); returns (Δ, iterations). Without a tie no term sees the mean height, which
-/// stays the DEM's; with one, the mean is solved for too. Each iteration is two transforms and
+/// per-pixel weight); returns (Δ, iterations). Without a tie or E_DEM's height part
+/// ([`Objective::dem_height`]) no term sees the mean height, which stays the DEM's; with
+/// either, the mean is solved for too. Each iteration is two transforms and
 /// five passes over the grid: the operator's, the residual update fused with both inner
 /// products, and the direction update fused with the solution's.
 fn newton_step(
@@ -123,7 +124,9 @@ fn newton_step(
     }
     minv += tie.unwrap_or(0.0);
     minv.mapv_inplace(|m| if m > 0.0 { 1.0 / m } else { 0.0 });
-    let fixed_mean = tie.is_none();
+    // The mean height is seen by the tie and by E_DEM's height part; with neither it stays
+    // the DEM's.
+    let fixed_mean = tie.is_none() && obj.dem_height == 0.0;
     if fixed_mean {
         minv[(0, 0)] = 0.0; // the mean height is fixed by the DEM
     }

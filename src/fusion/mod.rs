@@ -239,6 +239,12 @@ pub struct FusionParams {
     /// The first albedo stage is solved on the grid block-averaged by this factor and its
     /// correction z − z_DEM interpolated back ([`pyramid`]); 1 solves it on the full grid.
     pub coarse_factor: usize,
+    /// ℓ, pixels: E_DEM holds the heights of the blurred difference u = B_s z − T as well as
+    /// its gradients, with weight 1/ℓ² against |∇u|² ([`objective::Objective::with_dem_height_length`]),
+    /// so that at wavelengths beyond 2πℓ the DEM's heights hold the surface; 0 leaves gradients
+    /// only. Without it a slope bias of the photometric model integrates into a tilt that grows
+    /// with the region (docs/science.md, "Long wavelengths").
+    pub dem_height_length_px: f64,
 }
 
 impl Default for FusionParams {
@@ -266,6 +272,7 @@ impl Default for FusionParams {
             edge_membrane_slope: 0.0,
             multi_eta_factor: 1.0,
             coarse_factor: 4,
+            dem_height_length_px: 30.0,
         }
     }
 }
@@ -449,7 +456,7 @@ fn validate(pr: &Problem, params: &FusionParams) -> Result<(), FusionError> {
         }
     }
     let sel = &pr.selection;
-    let checks: [(&'static str, f64, bool, &'static str); 18] = [
+    let checks: [(&'static str, f64, bool, &'static str); 19] = [
         (
             "multi_delta_factor",
             params.multi_delta_factor,
@@ -500,6 +507,12 @@ fn validate(pr: &Problem, params: &FusionParams) -> Result<(), FusionError> {
             params.multi_eta_factor,
             params.multi_eta_factor >= 0.0,
             "must be ≥ 0",
+        ),
+        (
+            "dem_height_length_px",
+            params.dem_height_length_px,
+            params.dem_height_length_px >= 0.0,
+            "must be ≥ 0 (pixels; 0: the DEM term measures gradients only)",
         ),
         (
             "sigma_dem",
@@ -715,7 +728,8 @@ pub(crate) fn objective<'a, 'p>(
         scale,
         w,
     )
-    .with_multi_delta(params.multi_delta_factor))
+    .with_multi_delta(params.multi_delta_factor)
+    .with_dem_height_length(params.dem_height_length_px * pr.spacing))
 }
 
 /// Run the whole fusion: albedo stages, each followed by a surface solve. With

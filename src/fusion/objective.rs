@@ -99,6 +99,10 @@ pub struct Objective<'a, 'p> {
     pub dct: Dct2d,
     /// λ_kl/ε².
     pub lam: Array2<f64>,
+    /// 1/ℓ² (m⁻²; 0: none): E_DEM measures the heights of the blurred difference u as well as
+    /// its gradients, Σ|∇u|² + Σu²/ℓ², so that at wavelengths beyond 2πℓ the DEM's heights,
+    /// not only its slopes, hold the surface ([`Objective::with_dem_height_length`]).
+    pub dem_height: f64,
     /// ĝ_s = ĝ_σDEM·ĝ_B (solution side).
     pub gs: Array2<f64>,
     /// ĝ_σDEM·T̂, T = c·z_DEM + (1 − c)·B z_DEM (DEM side, constant; see the module
@@ -192,7 +196,24 @@ impl<'a, 'p> Objective<'a, 'p> {
             tie,
             dem_relief: None,
             membrane_relief: None,
+            dem_height: 0.0,
         }
+    }
+
+    /// Let E_DEM hold heights as well as gradients beyond the length `length_m` (metres; 0 or
+    /// less: gradients only): E_DEM = Σ_x |∇u|² + Σ_x u²/ℓ², u = B_s z − T the blurred
+    /// difference. In the DCT basis the weight of a coefficient goes from λ_k/ε² to
+    /// λ_k/ε² + 1/ℓ²: unchanged where λ_k/ε² ≫ 1/ℓ² (wavelengths well below 2πℓ), a height tie
+    /// above. Gradients alone leave the longest wavelengths to whatever slope bias the
+    /// photometric model has: integrated over a region such a bias is a tilt that grows with
+    /// its width (docs/science.md, "Long wavelengths").
+    pub fn with_dem_height_length(mut self, length_m: f64) -> Self {
+        self.dem_height = if length_m > 0.0 && length_m.is_finite() {
+            1.0 / (length_m * length_m)
+        } else {
+            0.0
+        };
+        self
     }
 
     /// Set the membrane's per-pixel weight η·ω(x) for the albedo stage that starts from
@@ -231,7 +252,7 @@ impl<'a, 'p> Objective<'a, 'p> {
     /// −η·2Dᵀ(r_η∘Dv)/ε², added into `out`.
     pub fn add_membrane_relief_hessian(&self, v: &Array2<f64>, out: &mut Array2<f64>) {
         if let Some(r) = &self.membrane_relief {
-            let (_, g) = self.relief_term(r, v, true);
+            let (_, g) = self.relief_term(r, v, 0.0, true);
             out.scaled_add(-self.eta, &g.expect("asked for"));
         }
     }
@@ -273,12 +294,15 @@ impl<'a, 'p> Objective<'a, 'p> {
         )
     }
 
-    /// Σ r·|D u|²/ε² (the part of E_DEM the relief field takes away; r on an edge is the mean
-    /// of its two pixels) and, when `grad`, its gradient with respect to u, 2Dᵀ(r∘Du)/ε².
+    /// Σ r·|D u|²/ε² + h·Σ r·u² (the part of E_DEM or E_reg the relief field takes away; r on
+    /// an edge is the mean of its two pixels; h the height weight, [`Objective::dem_height`]
+    /// for E_DEM, 0 for E_reg) and, when `grad`, its gradient with respect to u,
+    /// 2Dᵀ(r∘Du)/ε² + 2h·r∘u.
     fn relief_term(
         &self,
         r: &Array2<f64>,
         u: &Array2<f64>,
+        height: f64,
         grad: bool,
     ) -> (f64, Option<Array2<f64>>) {
         let (ny, nx) = u.dim();
@@ -303,12 +327,13 @@ impl<'a, 'p> Objective<'a, 'p> {
                     *sum += *fy * d;
                 }
                 *sum /= e2;
+                *sum += height * r[(i, j)] * u[(i, j)] * u[(i, j)];
             });
         let g = grad.then(|| {
             Zip::indexed(&fx).par_map_collect(|(i, j), &x| {
                 let west = if j > 0 { fx[(i, j - 1)] } else { 0.0 };
                 let north = if i > 0 { fy[(i - 1, j)] } else { 0.0 };
-                2.0 * (west - x + north - fy[(i, j)]) / e2
+                2.0 * (west - x + north - fy[(i, j)]) / e2 + 2.0 * height * r[(i, j)] * u[(i, j)]
             })
         });
         (ops::sum(sum.view()), g)
@@ -319,7 +344,7 @@ impl<'a, 'p> Objective<'a, 'p> {
     pub fn relief_hessian(&self, d: &Array2<f64>) -> Option<Array2<f64>> {
         let r = self.dem_relief.as_ref()?;
         let u = self.dct.inverse(&(&self.gs * d));
-        let (_, g) = self.relief_term(r, &u, true);
+        let (_, g) = self.relief_term(r, &u, self.dem_height, true);
         let gh = self.dct.forward(&g.expect("asked for"));
         Some(Zip::from(&gh).and(&self.gs).map_collect(|&x, &g| -g * x))
     }
@@ -484,7 +509,7 @@ impl<'a, 'p> Objective<'a, 'p> {
             .and(&self.dem_target)
             .map_collect(|&l, &g, &z, &t| {
                 let d = g * z - t;
-                l * d * d
+                (l + self.dem_height) * d * d
             });
         let reg = Zip::from(&self.lam)
             .and(zh)
@@ -492,11 +517,13 @@ impl<'a, 'p> Objective<'a, 'p> {
             .map_collect(|&l, &z, &t| l * (z - t) * (z - t));
         let mut dem = ops::sum(dem.view());
         if let Some(r) = &self.dem_relief {
-            dem -= self.relief_term(r, &self.dem_residual(zh), false).0;
+            dem -= self
+                .relief_term(r, &self.dem_residual(zh), self.dem_height, false)
+                .0;
         }
         let mut reg = ops::sum(reg.view());
         if let Some(r) = &self.membrane_relief {
-            reg -= self.relief_term(r, &self.correction(z), false).0;
+            reg -= self.relief_term(r, &self.correction(z), 0.0, false).0;
         }
         (dem, reg)
     }
@@ -538,14 +565,16 @@ impl<'a, 'p> Objective<'a, 'p> {
             .and(&self.gs)
             .and(zh)
             .and(&self.dem_target)
-            .map_collect(|&l, &g, &z, &t| 2.0 * l * self.delta * g * (g * z - t));
+            .map_collect(|&l, &g, &z, &t| {
+                2.0 * (l + self.dem_height) * self.delta * g * (g * z - t)
+            });
         Zip::from(&mut quad_hat)
             .and(&self.lam)
             .and(zh)
             .and(&self.dem_hat)
             .for_each(|o, &l, &z, &d| *o += 2.0 * l * self.eta * (z - d));
         if let Some(r) = &self.dem_relief {
-            let (_, gu) = self.relief_term(r, &self.dem_residual(zh), true);
+            let (_, gu) = self.relief_term(r, &self.dem_residual(zh), self.dem_height, true);
             let gh = self.dct.forward(&gu.expect("asked for"));
             Zip::from(&mut quad_hat)
                 .and(&gh)
@@ -554,7 +583,7 @@ impl<'a, 'p> Objective<'a, 'p> {
         }
         let mut g = data + self.dct.inverse(&quad_hat);
         if let Some(r) = &self.membrane_relief {
-            let (_, gu) = self.relief_term(r, &self.correction(z), true);
+            let (_, gu) = self.relief_term(r, &self.correction(z), 0.0, true);
             g.scaled_add(-self.eta, &gu.expect("asked for"));
         }
         if let Some(k) = &self.tie {
@@ -573,11 +602,13 @@ impl<'a, 'p> Objective<'a, 'p> {
         self.quadratic_hessian_with(self.delta, self.eta)
     }
 
-    /// 2(λ/ε²)(δ'ĝ_s² + η') for a given δ' and η'.
+    /// 2(λ/ε²)(δ'ĝ_s² + η') + 2δ'ĝ_s²/ℓ² for a given δ' and η' (ℓ of
+    /// [`Objective::with_dem_height_length`]).
     pub fn quadratic_hessian_with(&self, delta: f64, eta: f64) -> Array2<f64> {
+        let h = self.dem_height;
         Zip::from(&self.lam)
             .and(&self.gs)
-            .map_collect(|&l, &g| 2.0 * l * (delta * g * g + eta))
+            .map_collect(|&l, &g| 2.0 * (l * (delta * g * g + eta) + h * delta * g * g))
     }
 }
 

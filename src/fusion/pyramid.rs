@@ -161,6 +161,7 @@ pub fn coarse_params(params: &FusionParams, f: usize) -> FusionParams {
     let div = |s: f64| s / f;
     FusionParams {
         sigma_dem: div(params.sigma_dem).max(0.5),
+        dem_height_length_px: div(params.dem_height_length_px),
         albedo_sigmas: params.albedo_sigmas.iter().copied().map(div).collect(),
         final_albedo_sigma: div(params.final_albedo_sigma),
         multi_albedo_sigma: div(params.multi_albedo_sigma),
