@@ -19,25 +19,34 @@ pub use observations::{Selection, Weights};
 
 use crate::photometry::{ReflectanceModel, Vec3};
 use crate::spectral::{self, Dct2d};
-use ndarray::{Array2, ArrayView2, Zip};
+use ndarray::{Array2, ArrayView2, CowArray, Ix2, Zip};
 use objective::Objective;
 use serde::{Deserialize, Serialize};
 use std::time::Instant;
 
 /// Unit vectors (east, north, up) to the Sun or to the camera: one for the whole grid, or one
-/// per pixel (as M3's OBS backplanes give them).
+/// per pixel (as M3's OBS backplanes give them), owned or borrowed from the ingested image
+/// (24 bytes per pixel each: a tile does not copy them).
 #[derive(Debug, Clone)]
-pub enum Directions {
+pub enum Directions<'a> {
     Uniform(Vec3),
-    PerPixel(Array2<Vec3>),
+    PerPixel(CowArray<'a, Vec3, Ix2>),
 }
 
-impl Directions {
+impl Directions<'_> {
     #[inline]
     pub fn at(&self, i: usize, j: usize) -> &Vec3 {
         match self {
             Directions::Uniform(v) => v,
             Directions::PerPixel(a) => &a[(i, j)],
+        }
+    }
+
+    /// The same directions, borrowed.
+    pub fn borrowed(&self) -> Directions<'_> {
+        match self {
+            Directions::Uniform(v) => Directions::Uniform(*v),
+            Directions::PerPixel(a) => Directions::PerPixel(a.view().into()),
         }
     }
 }
@@ -46,8 +55,8 @@ impl Directions {
 pub struct Observation<'a> {
     /// Observed reflectance I in the model's units (sr⁻¹ for Hapke); NaN = not seen.
     pub image: ArrayView2<'a, f64>,
-    pub sun: Directions,
-    pub view: Directions,
+    pub sun: Directions<'a>,
+    pub view: Directions<'a>,
 }
 
 /// One fusion problem on a locally metric grid (row 0 north, column 0 west).
@@ -106,8 +115,8 @@ impl<'a> Problem<'a> {
     /// A problem with one image, everything else by default.
     pub fn single(
         image: ArrayView2<'a, f64>,
-        sun: Directions,
-        view: Directions,
+        sun: Directions<'a>,
+        view: Directions<'a>,
         dem: ArrayView2<'a, f64>,
         spacing: f64,
         dem_psf_sigma: f64,

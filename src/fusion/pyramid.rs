@@ -18,8 +18,8 @@ use ndarray::{Array2, ArrayView2, Zip};
 pub struct Coarse {
     pub factor: usize,
     pub images: Vec<Array2<f64>>,
-    pub suns: Vec<Directions>,
-    pub views: Vec<Directions>,
+    pub suns: Vec<Directions<'static>>,
+    pub views: Vec<Directions<'static>>,
     pub dem: Array2<f64>,
 }
 
@@ -88,10 +88,10 @@ pub fn block_mean_vectors(a: ArrayView2<Vec3>, f: usize) -> Array2<Vec3> {
     })
 }
 
-fn block_directions(d: &Directions, f: usize) -> Directions {
+fn block_directions(d: &Directions, f: usize) -> Directions<'static> {
     match d {
         Directions::Uniform(v) => Directions::Uniform(*v),
-        Directions::PerPixel(a) => Directions::PerPixel(block_mean_vectors(a.view(), f)),
+        Directions::PerPixel(a) => Directions::PerPixel(block_mean_vectors(a.view(), f).into()),
     }
 }
 
@@ -138,8 +138,8 @@ impl Coarse {
                 .zip(&self.views)
                 .map(|((image, sun), view)| Observation {
                     image: image.view(),
-                    sun: sun.clone(),
-                    view: view.clone(),
+                    sun: sun.borrowed(),
+                    view: view.borrowed(),
                 })
                 .collect(),
             dem: self.dem.view(),

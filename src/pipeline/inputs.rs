@@ -224,8 +224,8 @@ pub(super) fn fusion_observations(
         .iter()
         .map(|(_, img)| fusion::Observation {
             image: img.reflectance.view(),
-            sun: Directions::PerPixel(img.sun.clone()),
-            view: Directions::PerPixel(img.view.clone()),
+            sun: Directions::PerPixel(img.sun.view().into()),
+            view: Directions::PerPixel(img.view.view().into()),
         })
         .collect()
 }

@@ -111,8 +111,8 @@ pub(super) fn build(
             .iter()
             .map(|&k| fusion::Observation {
                 image: images[k].view(),
-                sun: Directions::PerPixel(suns[k].clone()),
-                view: Directions::PerPixel(views[k].clone()),
+                sun: Directions::PerPixel(suns[k].view().into()),
+                view: Directions::PerPixel(views[k].view().into()),
             })
             .collect(),
         dem: dem.view(),

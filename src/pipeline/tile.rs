@@ -179,6 +179,9 @@ pub(super) fn run_tile(
             e.c0 + c
         )));
     }
+    // The per-pixel longitudes, latitudes and bearings (24 bytes per pixel) are not needed
+    // by the fusion.
+    drop(geo);
     let ids: Vec<usize> = shots.iter().map(|(k, _)| *k).collect();
     let per_obs = |v: &[f64]| {
         ids.iter()
