@@ -793,6 +793,43 @@ mod tests {
         assert_gradient_matches(&obj, &z, &[(3, 4), (6, 9), (5, 15), (11, 25), (0, 29)]);
     }
 
+    /// E_DEM's height part ([`Objective::with_dem_height_length`], ℓ = 3 px so that it weighs
+    /// as much as the gradients), with the relief field of two overlapping observations that
+    /// lowers both parts: the gradient still matches E, and the part is in E.
+    #[test]
+    fn gradient_matches_finite_differences_with_the_dem_height_part() {
+        let (z, dem) = surfaces(12, 30);
+        let (a, b) = two_strips(1.1);
+        let model = Hapke::moon();
+        let pr = two_observations(&a, &b, &dem, &model);
+        let w = || {
+            crate::fusion::observations::weights(
+                &pr,
+                vec![1.0, 1.1],
+                0.03,
+                Some(vec![1.0, 0.7]),
+                0.0,
+                4.0,
+            )
+        };
+        let plain = Objective::new(&pr, 3.0, 0.2, 1.2, 1.5, 0.03, w()).with_multi_delta(0.3);
+        let obj = Objective::new(&pr, 3.0, 0.2, 1.2, 1.5, 0.03, w())
+            .with_multi_delta(0.3)
+            .with_dem_height_length(300.0);
+        assert_eq!(obj.dem_height, 1.0 / (300.0 * 300.0));
+        let zh = obj.dct.forward(&z);
+        let (with, without) = (
+            obj.quadratic(z.view(), &zh).0,
+            plain.quadratic(z.view(), &zh).0,
+        );
+        assert!(with > 1.2 * without, "{with} vs {without}");
+        assert_gradient_matches(
+            &obj,
+            &z,
+            &[(0, 0), (3, 4), (6, 9), (5, 15), (11, 25), (0, 29)],
+        );
+    }
+
     /// With the edge-aware membrane's per-pixel weights (and the plain, weaker membrane where
     /// two observations overlap) the gradient still matches E.
     #[test]
