@@ -771,6 +771,19 @@ mod tests {
         pr
     }
 
+    /// The weights of [`two_observations`] over [`two_strips`]`(1.1)`: gains 1 and 1.1, noise
+    /// weights 1 and 0.7, Ī = 0.03, 4-px edge ramps.
+    fn two_strip_weights(pr: &Problem) -> Weights {
+        crate::fusion::observations::weights(
+            pr,
+            vec![1.0, 1.1],
+            0.03,
+            Some(vec![1.0, 0.7]),
+            0.0,
+            4.0,
+        )
+    }
+
     /// Two overlapping observations under different Suns, with gains, noise weights and edge
     /// ramps: the summed photometric term's gradient matches E too.
     #[test]
@@ -779,14 +792,7 @@ mod tests {
         let (a, b) = two_strips(1.1);
         let model = Hapke::moon();
         let pr = two_observations(&a, &b, &dem, &model);
-        let w = crate::fusion::observations::weights(
-            &pr,
-            vec![1.0, 1.1],
-            0.03,
-            Some(vec![1.0, 0.7]),
-            0.0,
-            4.0,
-        );
+        let w = two_strip_weights(&pr);
         assert!(w.weight[1][(3, 9)] > 0.0 && w.weight[1][(3, 9)] < 0.7);
         let obj = Objective::new(&pr, 3.0, 0.2, 1.2, 1.5, 0.03, w).with_multi_delta(0.3);
         assert!(obj.dem_relief.as_ref().unwrap()[(5, 15)] > 0.5);
@@ -802,16 +808,7 @@ mod tests {
         let (a, b) = two_strips(1.1);
         let model = Hapke::moon();
         let pr = two_observations(&a, &b, &dem, &model);
-        let w = || {
-            crate::fusion::observations::weights(
-                &pr,
-                vec![1.0, 1.1],
-                0.03,
-                Some(vec![1.0, 0.7]),
-                0.0,
-                4.0,
-            )
-        };
+        let w = || two_strip_weights(&pr);
         let plain = Objective::new(&pr, 3.0, 0.2, 1.2, 1.5, 0.03, w()).with_multi_delta(0.3);
         let obj = Objective::new(&pr, 3.0, 0.2, 1.2, 1.5, 0.03, w())
             .with_multi_delta(0.3)
