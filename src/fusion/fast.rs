@@ -2,7 +2,8 @@
 //! curvature at pixels with large |I − R| — each step solved by conjugate gradients in the DCT
 //! basis, preconditioned by the DCT-diagonal operator of the quadratic terms (docs/science.md), with a
 //! backtracking line search on the true energy. A stage ends when no height moves by more than
-//! `step_tolerance` × ε in a step (or E stagnates, or `max_iterations`).
+//! `step_tolerance` × ε in a step, or the steps to come are estimated not to ([`remaining`]),
+//! or E stagnates, or after `max_iterations`.
 
 use super::objective::{Energy, Iterate, Objective, Photo};
 use super::{ops, FusionParams, IterationRecord};
@@ -211,6 +212,7 @@ pub fn minimise(
         },
         mut log,
     ) = super::start(obj, z, rho, observe);
+    let mut previous = None;
     for iteration in 1..=params.max_iterations {
         let g = obj.gradient(z.view(), &zh, &photo);
         let curv = obj.curvature(z.view(), rho, &photo, params.curvature_residual);
@@ -248,9 +250,47 @@ pub fn minimise(
             inner,
             max_step: moved,
         });
-        if gain < params.tolerance || moved < params.step_tolerance * obj.problem.spacing {
+        let tol = params.step_tolerance * obj.problem.spacing;
+        if gain < params.tolerance || moved < tol || remaining(previous, moved) < tol {
             break;
         }
+        previous = Some(moved);
     }
     log
+}
+
+/// The largest height change still to come, estimated from the largest changes of the last two
+/// steps m₀ and m₁: with the iteration contracting by r = m₁/m₀ per step, the steps after m₁
+/// add up to at most m₁·r/(1 − r) at any pixel. Infinite while it does not contract (r ≥ 1,
+/// or only one step so far), so that only `step_tolerance` can end the stage then.
+///
+/// Gauss–Newton with the residual curvature converges nearly quadratically on these
+/// energies (largest changes 38, 2.8, 0.07 m in the 1 MP benchmark's last stage): after the
+/// second of those steps r = 0.07 predicts 0.2 m to come, under the 1.4 m tolerance, and the
+/// third step — a fifth of the stage's conjugate gradients — is not taken.
+pub fn remaining(previous: Option<f64>, moved: f64) -> f64 {
+    match previous {
+        Some(m0) if moved < m0 => {
+            let r = moved / m0;
+            moved * r / (1.0 - r)
+        }
+        _ => f64::INFINITY,
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::remaining;
+
+    #[test]
+    fn the_remaining_change_is_the_tail_of_the_geometric_series() {
+        // Steps 8, 4, 2, 1, … add up to 4 after the second: 4·½/(1 − ½).
+        assert_eq!(remaining(Some(8.0), 4.0), 4.0);
+        // Contraction by 0.1 after a step of 1: 0.1 + 0.01 + … = 1/9.
+        assert!((remaining(Some(10.0), 1.0) - 1.0 / 9.0).abs() < 1e-15);
+        // No estimate from one step, nor while the steps do not shrink.
+        assert_eq!(remaining(None, 1.0), f64::INFINITY);
+        assert_eq!(remaining(Some(1.0), 1.0), f64::INFINITY);
+        assert_eq!(remaining(Some(1.0), 2.0), f64::INFINITY);
+    }
 }

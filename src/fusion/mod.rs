@@ -207,7 +207,9 @@ pub struct FusionParams {
     /// Like `step_tolerance`, a local rule, so a tile stops where the whole region would.
     pub stage_step_tolerance: f64,
     /// A `fast` stage stops when no height changes by more than this many grid spacings ε in
-    /// one Gauss–Newton step (0.01: 1.4 m at 140 m/px). The largest change is local, where
+    /// one Gauss–Newton step (0.01: 1.4 m at 140 m/px), or when the contraction of the last two
+    /// steps' largest changes says the steps to come would not (`fast::remaining`). The
+    /// largest change is local, where
     /// the energy decrease is a sum over the domain, so a tile and the whole region stop
     /// equally converged at every pixel (docs/science.md, "Tiles").
     pub step_tolerance: f64,
