@@ -577,7 +577,8 @@ fn validate_layers(layers: &[Layer]) -> std::result::Result<(), String> {
 pub const MIN_HALO: usize = 32;
 
 /// ⌈4 × the largest Gaussian σ a tile applies⌉ (its albedo stages, final albedo, σ_DEM
-/// combined with the DEM's point spread `dem_psf`), at least [`MIN_HALO`] pixels: with the
+/// combined with the DEM's point spread `dem_psf`, and with the track weighting's σ_t along
+/// the columns), at least [`MIN_HALO`] pixels: with the
 /// default blend of halo/4, every pixel a tile contributes to the mosaic is ≥ 3σ inside its
 /// window. It also covers the photometric support band (3 σ_DEM,
 /// [`crate::fusion::support::band`]). With a coarse reference (`reference`,
@@ -593,10 +594,15 @@ pub fn auto_halo(p: &FusionParams, dem_psf: f64, reference: bool) -> usize {
     } else {
         &p.albedo_sigmas[..]
     };
+    let tracks = if p.dem_track_weight < 1.0 {
+        p.dem_track_sigma_px.hypot(dem)
+    } else {
+        0.0
+    };
     let largest = stages
         .iter()
         .copied()
-        .chain([p.final_albedo_sigma, dem])
+        .chain([p.final_albedo_sigma, dem, tracks])
         .fold(0.0f64, f64::max);
     ((4.0 * largest).ceil() as usize).max(MIN_HALO)
 }
@@ -638,12 +644,14 @@ directory = "out"
         );
         // The halo depends on the DEM (σ_DEM, its point spread): the plan sets it. With a DEM
         // 4× coarser the largest σ is the first albedo stage, 100 px, when tiles solve it;
-        // with the plan's coarse reference it is the second, 10 px.
+        // with the plan's coarse reference it is the track weighting's 10 px along the columns
+        // through the DEM term's blur (σ_DEM 3 px, point spread 4/√2 px): 4·√(100 + 9 + 8) =
+        // 43.3 px.
         assert_eq!(o.tiling.halo, None);
         assert!(!o.sigma_dem_given);
         let psf = crate::fusion::dem_psf_sigma(4.0);
         assert_eq!(auto_halo(&o.solver, psf, false), 400);
-        assert_eq!(auto_halo(&o.solver, psf, true), 40);
+        assert_eq!(auto_halo(&o.solver, psf, true), 44);
         let given = MINIMAL.replace("[output]", "[solver]\nsigma_dem = 5.0\n[output]");
         let Workflow::Orbital(g) =
             Workflow::parse(&given, Path::new("w.toml"), Path::new(".")).unwrap()

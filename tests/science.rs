@@ -441,3 +441,46 @@ fn a_photometric_slope_bias_does_not_tilt_the_region() {
         "heights held: {held:.2e} against {free:.2e}"
     );
 }
+
+/// The input DEM's track offsets (the synthetic LOLA-like DEM offsets each coarse column, as
+/// near-polar tracks offset north–south strips of a gridded product) are east–west slopes that
+/// the Sun in the east-south-east shows in the image. With E_DEM's track weighting
+/// (`dem_track_weight`, docs/science.md "The DEM's tracks") the image, not the DEM, decides
+/// them: the column means of the fused error (where the offsets live) and the error as a
+/// whole come out lower than with the plain term (`dem_track_weight = 1`).
+#[test]
+fn the_dem_track_offsets_give_way_to_the_image() {
+    let scene = generate(&SceneSpec {
+        size: 256,
+        seed: 10,
+        ..SceneSpec::default()
+    });
+    let column_means = |z: &ndarray::Array2<f64>| {
+        let d = z - &scene.truth_height;
+        let means: Vec<f64> = d.columns().into_iter().map(|c| c.mean().unwrap()).collect();
+        let m = means.iter().sum::<f64>() / means.len() as f64;
+        (means.iter().map(|x| (x - m).powi(2)).sum::<f64>() / means.len() as f64).sqrt()
+    };
+    let run = |weight: f64| {
+        let params = FusionParams {
+            dem_track_weight: weight,
+            ..FusionParams::default()
+        };
+        let f = fuse(&scene.problem(), &params).unwrap();
+        (score(&scene, &f).0, column_means(&f.height))
+    };
+    let input = column_means(&scene.input_dem);
+    let (plain, plain_cols) = run(1.0);
+    let (tracks, tracks_cols) = run(FusionParams::default().dem_track_weight);
+    eprintln!(
+        "column means of the error: input {input:.2} m, plain {plain_cols:.2} m, track-weighted {tracks_cols:.2} m; RMSE {plain:.2} → {tracks:.2} m"
+    );
+    assert!(
+        tracks_cols <= 0.8 * plain_cols,
+        "column means {tracks_cols:.2} m against {plain_cols:.2} m with the plain term"
+    );
+    assert!(
+        tracks <= plain - 0.1,
+        "RMSE {tracks:.2} m against {plain:.2} m"
+    );
+}

@@ -256,6 +256,16 @@ pub struct FusionParams {
     /// only. Without it a slope bias of the photometric model integrates into a tilt that grows
     /// with the region (docs/science.md, "Long wavelengths").
     pub dem_height_length_px: f64,
+    /// a: E_DEM's weight on across-track (east–west) slopes of structure that is smooth along
+    /// the track (north–south, over `dem_track_sigma_px`), relative to the rest
+    /// ([`objective::Objective::with_dem_tracks`]). A gridded altimetry DEM's largest
+    /// errors are offsets between neighbouring near-polar tracks: constant along a track,
+    /// they are east–west slopes of north–south structure, and where the image measures
+    /// those slopes the DEM should not hold them as firmly as the rest. 1: the plain term.
+    pub dem_track_weight: f64,
+    /// σ_t, pixels: the length along the track (grid columns) over which structure counts as
+    /// smooth for `dem_track_weight`, a Gaussian along the columns.
+    pub dem_track_sigma_px: f64,
 }
 
 impl Default for FusionParams {
@@ -284,6 +294,8 @@ impl Default for FusionParams {
             multi_eta_factor: 1.0,
             coarse_factor: 4,
             dem_height_length_px: 30.0,
+            dem_track_weight: 0.1,
+            dem_track_sigma_px: 10.0,
         }
     }
 }
@@ -467,7 +479,7 @@ fn validate(pr: &Problem, params: &FusionParams) -> Result<(), FusionError> {
         }
     }
     let sel = &pr.selection;
-    let checks: [(&'static str, f64, bool, &'static str); 19] = [
+    let checks: [(&'static str, f64, bool, &'static str); 21] = [
         (
             "multi_delta_factor",
             params.multi_delta_factor,
@@ -560,6 +572,18 @@ fn validate(pr: &Problem, params: &FusionParams) -> Result<(), FusionError> {
             params.step_tolerance,
             params.step_tolerance >= 0.0,
             "must be ≥ 0 (grid spacings)",
+        ),
+        (
+            "dem_track_weight",
+            params.dem_track_weight,
+            (0.0..=1.0).contains(&params.dem_track_weight),
+            "must be in [0, 1] (1: the DEM term without track weighting)",
+        ),
+        (
+            "dem_track_sigma_px",
+            params.dem_track_sigma_px,
+            params.dem_track_sigma_px >= 0.0,
+            "must be ≥ 0 (pixels along the columns)",
         ),
         (
             "curvature_residual",
@@ -740,7 +764,8 @@ pub(crate) fn objective<'a, 'p>(
         w,
     )
     .with_multi_delta(params.multi_delta_factor)
-    .with_dem_height_length(params.dem_height_length_px * pr.spacing))
+    .with_dem_height_length(params.dem_height_length_px * pr.spacing)
+    .with_dem_tracks(params.dem_track_weight, params.dem_track_sigma_px))
 }
 
 /// Run the whole fusion: albedo stages, each followed by a surface solve. With

@@ -216,6 +216,47 @@ impl<'a, 'p> Objective<'a, 'p> {
         self
     }
 
+    /// Weigh E_DEM's across-track slopes of along-track-smooth structure by `weight` (a)
+    /// against the rest. Tracks run along the grid's columns (north–south on a north-up grid:
+    /// LOLA's orbits are near-polar), and S_t is a Gaussian of `sigma_px` pixels along them:
+    ///
+    /// E_DEM = Σ_x |∂_y u|² + ⟨∂_x u, (1 − (1 − a)·S_t) ∂_x u⟩ + Σ_x u²/ℓ²,
+    ///
+    /// u = B_s z − T the blurred difference. A gridded altimetry DEM's largest errors are the
+    /// offsets between neighbouring tracks: constant along a track, their east–west slopes are
+    /// smooth along the columns, which is the part S_t keeps. Where the image measures those
+    /// slopes it should decide them, not the DEM (docs/science.md, "The DEM's tracks"). S_t is
+    /// diagonal in the DCT basis (ĝ_t(k_y)), so the term stays diagonal there: each
+    /// coefficient's weight goes from λ_k/ε² + h to λ_y/ε² + (1 − (1 − a)ĝ_t)λ_x/ε² + h, which
+    /// is folded as the square root of its ratio into ĝ_s and the target T̂. So u itself carries
+    /// the weighting, and the relief fields, which lower E_DEM pixel by pixel, lower this form
+    /// of it and never more than all of it. S_t reaches 3σ_t along a column: a tile's halo
+    /// covers 4σ_t (workflow::auto_halo). Call after [`Self::with_dem_height_length`];
+    /// a = 1 changes nothing.
+    pub fn with_dem_tracks(mut self, weight: f64, sigma_px: f64) -> Self {
+        if weight >= 1.0 {
+            return self;
+        }
+        let (ny, nx) = self.gs.dim();
+        let e2 = self.problem.spacing * self.problem.spacing;
+        let ly = spectral::laplacian_eigenvalues(ny);
+        let lx = spectral::laplacian_eigenvalues(nx);
+        let gt = spectral::gaussian_transfer(ny, sigma_px);
+        let h = self.dem_height;
+        let factor = Array2::from_shape_fn((ny, nx), |(ky, kx)| {
+            let (y, x) = (ly[ky] / e2, lx[kx] / e2);
+            let all = y + x + h;
+            if all > 0.0 {
+                ((y + x * (1.0 - (1.0 - weight) * gt[ky]) + h) / all).sqrt()
+            } else {
+                1.0
+            }
+        });
+        self.gs *= &factor;
+        self.dem_target *= &factor;
+        self
+    }
+
     /// Set the membrane's per-pixel weight η·ω(x) for the albedo stage that starts from
     /// surface `z`: ω = (1 − c)·m + c·f, c the multi-coverage of [`Weights::multiplicity`],
     /// f = `multi_factor` and m = 1/√(1 + |∇(z − z_DEM)|²/k²) (∇ the central difference,
@@ -820,6 +861,57 @@ mod tests {
             plain.quadratic(z.view(), &zh).0,
         );
         assert!(with > 1.2 * without, "{with} vs {without}");
+        assert_gradient_matches(
+            &obj,
+            &z,
+            &[(0, 0), (3, 4), (6, 9), (5, 15), (11, 25), (0, 29)],
+        );
+    }
+
+    /// E_DEM with the track weighting ([`Objective::with_dem_tracks`]), against the DCT
+    /// basis: over a zero DEM, E_DEM of a surface that is one cosine across the columns (the
+    /// shape of a track offset: constant along them) is a × the plain term's, while one cosine
+    /// along the columns keeps its weight; with the relief field of two overlapping
+    /// observations and the height part the gradient still matches E.
+    #[test]
+    fn the_track_weighting_lowers_e_dem_for_across_track_slopes_only() {
+        let (ny, nx) = (12, 30);
+        let flat = Array2::zeros((ny, nx));
+        let image = Array2::from_elem((ny, nx), 0.03);
+        let model = Hapke::moon();
+        let pr = Problem::single(
+            image.view(),
+            Directions::Uniform(crate::synth::direction(50.0, 100.0)),
+            Directions::Uniform(crate::synth::direction(5.0, 200.0)),
+            flat.view(),
+            100.0,
+            1.5,
+            &model,
+        );
+        let plain = Objective::new(&pr, 3.0, 0.2, 1.2, 1.5, 0.03, weights_of(&pr, 0.03));
+        let tracks = Objective::new(&pr, 3.0, 0.2, 1.2, 1.5, 0.03, weights_of(&pr, 0.03))
+            .with_dem_tracks(0.1, 2.0);
+        let pi = std::f64::consts::PI;
+        let across = Array2::from_shape_fn((ny, nx), |(_, j)| {
+            (pi * 3.0 * (j as f64 + 0.5) / nx as f64).cos()
+        });
+        let along = Array2::from_shape_fn((ny, nx), |(i, _)| {
+            (pi * 3.0 * (i as f64 + 0.5) / ny as f64).cos()
+        });
+        let dem_energy =
+            |o: &Objective, z: &Array2<f64>| o.quadratic(z.view(), &o.dct.forward(z)).0;
+        let ratio = dem_energy(&tracks, &across) / dem_energy(&plain, &across);
+        assert!((ratio - 0.1).abs() < 1e-9, "across the columns: {ratio}");
+        let ratio = dem_energy(&tracks, &along) / dem_energy(&plain, &along);
+        assert!((ratio - 1.0).abs() < 1e-9, "along the columns: {ratio}");
+
+        let (z, dem) = surfaces(ny, nx);
+        let (a, b) = two_strips(1.1);
+        let pr = two_observations(&a, &b, &dem, &model);
+        let obj = Objective::new(&pr, 3.0, 0.2, 1.2, 1.5, 0.03, two_strip_weights(&pr))
+            .with_multi_delta(0.3)
+            .with_dem_height_length(300.0)
+            .with_dem_tracks(0.1, 2.0);
         assert_gradient_matches(
             &obj,
             &z,

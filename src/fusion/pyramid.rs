@@ -162,6 +162,7 @@ pub fn coarse_params(params: &FusionParams, f: usize) -> FusionParams {
     FusionParams {
         sigma_dem: div(params.sigma_dem).max(0.5),
         dem_height_length_px: div(params.dem_height_length_px),
+        dem_track_sigma_px: div(params.dem_track_sigma_px),
         albedo_sigmas: params.albedo_sigmas.iter().copied().map(div).collect(),
         final_albedo_sigma: div(params.final_albedo_sigma),
         multi_albedo_sigma: div(params.multi_albedo_sigma),
