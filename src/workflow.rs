@@ -50,6 +50,11 @@ pub struct Orbital {
     /// effective resolution ([`crate::fusion::dem_sigma`]); the plan and run keys include this flag.
     #[serde(skip)]
     pub sigma_dem_given: bool,
+    /// Whether `[solver] dem_track_weight` was given. Absent, the plan keeps the default only
+    /// where the DEM is a gridded LOLA product whose tracks run along the grid's columns
+    /// (`pipeline::plan::track_weight`); the plan and run keys include this flag.
+    #[serde(skip)]
+    pub dem_track_weight_given: bool,
 }
 
 /// `[fetch]`: what `sfsfuse run` downloads first (docs/fetch.md).
@@ -504,11 +509,14 @@ impl Workflow {
                         sel.min_incidence_deg, sel.max_incidence_deg
                     )));
                 }
-                o.sigma_dem_given = text
-                    .parse::<toml::Table>()
-                    .ok()
-                    .and_then(|t| t.get("solver")?.get("sigma_dem").map(|_| ()))
-                    .is_some();
+                let given = |key: &str| {
+                    text.parse::<toml::Table>()
+                        .ok()
+                        .and_then(|t| t.get("solver")?.get(key).map(|_| ()))
+                        .is_some()
+                };
+                o.sigma_dem_given = given("sigma_dem");
+                o.dem_track_weight_given = given("dem_track_weight");
                 validate_layers(&o.output.layers).map_err(fail)?;
             }
             Workflow::Lab(l) => {
@@ -644,14 +652,14 @@ directory = "out"
         );
         // The halo depends on the DEM (σ_DEM, its point spread): the plan sets it. With a DEM
         // 4× coarser the largest σ is the first albedo stage, 100 px, when tiles solve it;
-        // with the plan's coarse reference it is the track weighting's 10 px along the columns
-        // through the DEM term's blur (σ_DEM 3 px, point spread 4/√2 px): 4·√(100 + 9 + 8) =
-        // 43.3 px.
+        // with the plan's coarse reference it is the track weighting's 9 px along the columns
+        // through the DEM term's blur (σ_DEM 3 px, point spread 4/√2 px): 4·√(81 + 9 + 8) =
+        // 39.6 px, as the second albedo stage's 4 × 10 px.
         assert_eq!(o.tiling.halo, None);
         assert!(!o.sigma_dem_given);
         let psf = crate::fusion::dem_psf_sigma(4.0);
         assert_eq!(auto_halo(&o.solver, psf, false), 400);
-        assert_eq!(auto_halo(&o.solver, psf, true), 44);
+        assert_eq!(auto_halo(&o.solver, psf, true), 40);
         let given = MINIMAL.replace("[output]", "[solver]\nsigma_dem = 5.0\n[output]");
         let Workflow::Orbital(g) =
             Workflow::parse(&given, Path::new("w.toml"), Path::new(".")).unwrap()

@@ -295,7 +295,7 @@ impl Default for FusionParams {
             coarse_factor: 4,
             dem_height_length_px: 30.0,
             dem_track_weight: 0.1,
-            dem_track_sigma_px: 10.0,
+            dem_track_sigma_px: 9.0,
         }
     }
 }

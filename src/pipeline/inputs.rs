@@ -130,17 +130,16 @@ impl Dem {
         }
     }
 
-    /// The spacing of the independent heights behind the DEM at latitude `lat` (degrees), and
-    /// why. A LOLA-only GDR (`LDEM_*`) is gridded from altimeter tracks and interpolated
-    /// between them: where its pixels are finer than the gaps between tracks, MAP_SCALE
-    /// overstates its resolution. The gaps are about [`LOLA_TRACK_GAP_M`] at the equator and
-    /// shrink with cos(latitude) as the polar orbits converge. Other DEMs (SLDEM2015, merged
-    /// with stereo and not interpolated; GeoTIFFs) are taken at their pixel size.
-    pub(super) fn effective_resolution(&self, lat: f64) -> (f64, String) {
-        let pixel = self.pixel_m();
-        let Dem::Pds(d) = self else {
-            return (pixel, "GeoTIFF pixel size".into());
-        };
+    /// Whether this is a gridded LOLA product (PRODUCT_ID or file name `LDEM…`): heights
+    /// interpolated between laser tracks, whose offsets E_DEM's track weighting is for.
+    pub(super) fn is_lola_grid(&self) -> bool {
+        self.product_id().is_some_and(|id| id.starts_with("LDEM"))
+    }
+
+    /// A PDS product's PRODUCT_ID (else its label's file name), upper case; `None` for a
+    /// GeoTIFF.
+    fn product_id(&self) -> Option<String> {
+        let Dem::Pds(d) = self else { return None };
         let id = d
             .label
             .get("PRODUCT_ID")
@@ -151,8 +150,21 @@ impl Dem {
                     .file_stem()
                     .map(|s| s.to_string_lossy().into_owned())
             })
-            .unwrap_or_default()
-            .to_ascii_uppercase();
+            .unwrap_or_default();
+        Some(id.to_ascii_uppercase())
+    }
+
+    /// The spacing of the independent heights behind the DEM at latitude `lat` (degrees), and
+    /// why. A LOLA-only GDR (`LDEM_*`) is gridded from altimeter tracks and interpolated
+    /// between them: where its pixels are finer than the gaps between tracks, MAP_SCALE
+    /// overstates its resolution. The gaps are about [`LOLA_TRACK_GAP_M`] at the equator and
+    /// shrink with cos(latitude) as the polar orbits converge. Other DEMs (SLDEM2015, merged
+    /// with stereo and not interpolated; GeoTIFFs) are taken at their pixel size.
+    pub(super) fn effective_resolution(&self, lat: f64) -> (f64, String) {
+        let pixel = self.pixel_m();
+        let Some(id) = self.product_id() else {
+            return (pixel, "GeoTIFF pixel size".into());
+        };
         if !id.starts_with("LDEM") {
             return (pixel, format!("{id}: MAP_SCALE"));
         }

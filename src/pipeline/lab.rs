@@ -164,6 +164,8 @@ pub(super) fn run_lab(l: &Lab, wf: &Workflow, progress: &Progress) -> Result<Run
         dem_resolution_m: None,
         dem_resolution_source: None,
         sigma_dem: None,
+        dem_track_weight: None,
+        dem_track_source: None,
         reference: None,
         threads: rayon::current_num_threads(),
         tiles: vec![TileRecord {

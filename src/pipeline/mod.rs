@@ -133,12 +133,16 @@ pub fn file_sha256(path: &Path) -> Result<String> {
 }
 
 /// What both keys hash first: the tool version and the resolved workflow (with whether
-/// `[solver] sigma_dem` was given, which serialisation does not show).
+/// `[solver] sigma_dem` and `dem_track_weight` were given, which serialisation does not show).
 fn key_text(wf: &Workflow) -> String {
     let mut text = format!("sfsfuse {}\n", env!("CARGO_PKG_VERSION"));
     text.push_str(&serde_json::to_string(wf).expect("workflows serialise"));
     if let Workflow::Orbital(o) = wf {
         text.push_str(&format!("\nsigma_dem_given={}", o.sigma_dem_given));
+        text.push_str(&format!(
+            "\ndem_track_weight_given={}",
+            o.dem_track_weight_given
+        ));
     }
     text
 }

@@ -114,6 +114,7 @@ pub(super) fn product_metadata(
         .collect();
     let solver = FusionParams {
         sigma_dem: plan.sigma_dem,
+        dem_track_weight: plan.dem_track_weight,
         ..o.solver.clone()
     };
     let join = |v: &[f64]| {
@@ -227,6 +228,9 @@ pub(super) struct RunRecord<'a> {
     pub(super) dem_resolution_m: Option<f64>,
     pub(super) dem_resolution_source: Option<String>,
     pub(super) sigma_dem: Option<f64>,
+    /// E_DEM's track weighting the tiles used and why (orbital runs).
+    pub(super) dem_track_weight: Option<f64>,
+    pub(super) dem_track_source: Option<String>,
     /// The plan's coarse reference (orbital runs with one).
     pub(super) reference: Option<ReferenceInfo>,
     pub(super) threads: usize,
@@ -515,6 +519,8 @@ pub(super) fn mosaic(
         dem_resolution_m: Some(plan.dem_resolution_m),
         dem_resolution_source: Some(plan.dem_resolution_source.clone()),
         sigma_dem: Some(plan.sigma_dem),
+        dem_track_weight: Some(plan.dem_track_weight),
+        dem_track_source: Some(plan.dem_track_source.clone()),
         reference: plan.reference.clone(),
         threads: rayon::current_num_threads(),
         tiles: records,

@@ -28,6 +28,11 @@ pub struct Plan {
     /// σ_DEM the tiles solve with, pixels (`[solver] sigma_dem`, or from the DEM's effective
     /// resolution).
     pub sigma_dem: f64,
+    /// E_DEM's track weighting a the tiles solve with, and why ([`track_weight`]).
+    #[serde(default = "plain_tracks")]
+    pub dem_track_weight: f64,
+    #[serde(default)]
+    pub dem_track_source: String,
     /// One per M3 observation, in input order.
     pub swaths: Vec<SwathIndex>,
     /// Radiometric gain g_k of each observation, relative to the first of its overlapping
@@ -41,6 +46,73 @@ pub struct Plan {
     /// tiles solve every stage themselves (`pipeline::reference`).
     #[serde(default)]
     pub reference: Option<ReferenceInfo>,
+}
+
+fn plain_tracks() -> f64 {
+    1.0
+}
+
+/// How far grid north may turn from the columns over the region for E_DEM's track weighting to
+/// apply by default, degrees: over the weighting's 10 px along a column a track then drifts by
+/// under 0.9 px.
+pub const MAX_TRACK_TURN_DEG: f64 = 5.0;
+
+/// The largest angle between true north and the grid's columns over the region, degrees,
+/// from [`crate::grid::Projector::north_bearing`] at its corners, edge midpoints and centre
+/// (points the projection cannot invert are skipped).
+pub(super) fn north_turn_deg(grid: &Grid, pr: &crate::grid::Projector) -> f64 {
+    let (w, h) = (
+        grid.cols as f64 * grid.spacing,
+        grid.rows as f64 * grid.spacing,
+    );
+    let mut turn: f64 = 0.0;
+    for fy in [0.0, 0.5, 1.0] {
+        for fx in [0.0, 0.5, 1.0] {
+            let (x, y) = (grid.x0 + fx * w, grid.y0 - fy * h);
+            if let Some(b) = pr
+                .inverse(x, y)
+                .and_then(|(lon, lat)| pr.north_bearing(lon, lat))
+            {
+                turn = turn.max(b.to_degrees().abs());
+            }
+        }
+    }
+    turn
+}
+
+/// E_DEM's track weighting for a run ([`FusionParams::dem_track_weight`]) and why: the
+/// workflow's when given; otherwise `default` only where the DEM is a gridded LOLA product
+/// (`lola_grid`: heights interpolated between near-polar tracks, whose offsets the weighting
+/// is for) and grid north stays within [`MAX_TRACK_TURN_DEG`] of the columns over the region
+/// (`turn_deg`, [`north_turn_deg`]; near a pole, or on a grid centred far away in longitude,
+/// the tracks cross the columns); else 1, the plain term.
+pub fn track_weight(
+    given: Option<f64>,
+    default: f64,
+    lola_grid: bool,
+    turn_deg: f64,
+) -> (f64, String) {
+    if let Some(w) = given {
+        return (w, "[solver] dem_track_weight".into());
+    }
+    if !lola_grid {
+        return (
+            1.0,
+            "the DEM is not a gridded LOLA product (LDEM): no track offsets weighed".into(),
+        );
+    }
+    if turn_deg > MAX_TRACK_TURN_DEG {
+        return (
+            1.0,
+            format!(
+                "grid north turns up to {turn_deg:.1}° from the columns over the region (more than {MAX_TRACK_TURN_DEG}°): LOLA's tracks do not run along them"
+            ),
+        );
+    }
+    (
+        default,
+        format!("LOLA grid, north within {turn_deg:.2}° of the columns"),
+    )
 }
 
 /// The most pixels the gain estimate looks at: the run's grid is decimated to at most this.
@@ -312,8 +384,16 @@ pub(super) fn plan(
     } else {
         fusion::dem_sigma(factor)
     };
+    let (dem_track_weight, dem_track_source) = track_weight(
+        o.dem_track_weight_given
+            .then_some(o.solver.dem_track_weight),
+        o.solver.dem_track_weight,
+        inputs.lola[0].is_lola_grid(),
+        north_turn_deg(&grid, &pr),
+    );
     let params = FusionParams {
         sigma_dem,
+        dem_track_weight,
         ..o.solver.clone()
     };
     let reference_factor = super::reference::factor(&grid, &params);
@@ -379,6 +459,8 @@ pub(super) fn plan(
         dem_resolution_m,
         dem_resolution_source,
         sigma_dem,
+        dem_track_weight,
+        dem_track_source,
         swaths,
         reference: built.as_ref().map(|(info, _)| info.clone()),
     };
@@ -406,6 +488,10 @@ pub(super) fn plan(
         p.dem_psf_sigma,
         p.sigma_dem
     ));
+    progress.note(&format!(
+        "plan: E_DEM track weight {} ({})",
+        p.dem_track_weight, p.dem_track_source
+    ));
     if let Some(r) = &p.reference {
         progress.note(&format!(
             "plan: coarse reference on {} × {} px of {} × {} grid pixels ({} Gauss–Newton steps, {:.1} s)",
@@ -427,4 +513,43 @@ pub(super) fn plan(
         ));
     }
     Ok((p, built.map(|(_, values)| values)))
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use crate::grid::Crs;
+
+    /// A 512² grid of 140 m pixels centred on the projection's origin.
+    fn grid(crs: Crs) -> Grid {
+        let half = 256.0 * 140.0;
+        Grid::new(crs, 512, 512, -half, half, 140.0).unwrap()
+    }
+
+    /// On a stereographic grid centred on the region north stays within a fraction of a
+    /// degree of the columns (meridians converge by Δλ·sin φ: ±36 km at −13.4° turn by ≈ 0.3°); on a
+    /// south-polar grid around the pole it points every way.
+    #[test]
+    fn north_turns_little_on_a_centred_grid_and_every_way_at_a_pole() {
+        let centred = grid(Crs::Stereographic {
+            lat_0: -13.4,
+            lon_0: 357.2,
+        });
+        let turn = north_turn_deg(&centred, &centred.crs.projector().unwrap());
+        assert!(turn > 0.1 && turn < 1.0, "{turn}°");
+        let polar = grid(Crs::PolarStereographic { north: false });
+        let turn = north_turn_deg(&polar, &polar.crs.projector().unwrap());
+        assert!(turn > 90.0, "{turn}°");
+    }
+
+    #[test]
+    fn the_track_weighting_applies_to_lola_grids_along_the_columns_only() {
+        assert_eq!(track_weight(None, 0.1, true, 0.5).0, 0.1);
+        assert_eq!(track_weight(None, 0.1, true, 6.0).0, 1.0);
+        assert_eq!(track_weight(None, 0.1, false, 0.5).0, 1.0);
+        // Given in the workflow, it is kept whatever the DEM and the grid.
+        let (w, why) = track_weight(Some(0.3), 0.1, false, 40.0);
+        assert_eq!((w, why.as_str()), (0.3, "[solver] dem_track_weight"));
+        assert!(track_weight(None, 0.1, true, 6.0).1.contains("6.0°"));
+    }
 }

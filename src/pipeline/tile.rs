@@ -203,6 +203,7 @@ pub(super) fn run_tile(
     // then covers the first stage's σ_ρ).
     let params = FusionParams {
         sigma_dem: plan.sigma_dem,
+        dem_track_weight: plan.dem_track_weight,
         coarse_factor: 1,
         ..o.solver.clone()
     };
