@@ -694,6 +694,24 @@ mod tests {
         (z, dem)
     }
 
+    /// One observation of `image` over `dem` (Sun 50° from the zenith at azimuth 100°, view 5°
+    /// off nadir, 100 m pixels, DEM point spread 1.5 px).
+    fn single<'a>(
+        image: ArrayView2<'a, f64>,
+        dem: ArrayView2<'a, f64>,
+        model: &'a Hapke,
+    ) -> Problem<'a> {
+        Problem::single(
+            image,
+            Directions::Uniform(crate::synth::direction(50.0, 100.0)),
+            Directions::Uniform(crate::synth::direction(5.0, 200.0)),
+            dem,
+            100.0,
+            1.5,
+            model,
+        )
+    }
+
     /// Every finite pixel usable, unit gains, no edge ramps.
     fn weights_of(pr: &Problem, scale: f64) -> Weights {
         let k = pr.observations.len();
@@ -732,15 +750,7 @@ mod tests {
         let image =
             Array2::from_shape_fn((ny, nx), |(i, j)| 0.03 + 0.002 * ((i * 3 + j) % 5) as f64);
         let model = Hapke::moon();
-        let pr = Problem::single(
-            image.view(),
-            Directions::Uniform(crate::synth::direction(50.0, 100.0)),
-            Directions::Uniform(crate::synth::direction(5.0, 200.0)),
-            dem.view(),
-            100.0,
-            1.5,
-            &model,
-        );
+        let pr = single(image.view(), dem.view(), &model);
         let obj = Objective::new(&pr, 3.0, 0.2, 1.2, 1.5, 0.03, weights_of(&pr, 0.03));
         assert_gradient_matches(&obj, &z, &[(0, 0), (3, 4), (11, 9), (6, 0), (0, 7)]);
     }
@@ -759,15 +769,7 @@ mod tests {
             }
         });
         let model = Hapke::moon();
-        let pr = Problem::single(
-            image.view(),
-            Directions::Uniform(crate::synth::direction(50.0, 100.0)),
-            Directions::Uniform(crate::synth::direction(5.0, 200.0)),
-            dem.view(),
-            100.0,
-            1.5,
-            &model,
-        );
+        let pr = single(image.view(), dem.view(), &model);
         let obj = Objective::new(&pr, 3.0, 0.2, 1.2, 1.5, 0.03, weights_of(&pr, 0.03));
         assert!(obj.tie.is_some());
         assert!(obj.tie_energy(z.view()) > 0.0);
@@ -795,15 +797,7 @@ mod tests {
         dem: &'a Array2<f64>,
         model: &'a Hapke,
     ) -> Problem<'a> {
-        let mut pr = Problem::single(
-            a.view(),
-            Directions::Uniform(crate::synth::direction(50.0, 100.0)),
-            Directions::Uniform(crate::synth::direction(5.0, 200.0)),
-            dem.view(),
-            100.0,
-            1.5,
-            model,
-        );
+        let mut pr = single(a.view(), dem.view(), model);
         pr.observations.push(crate::fusion::Observation {
             image: b.view(),
             sun: Directions::Uniform(crate::synth::direction(65.0, 230.0)),
@@ -879,15 +873,7 @@ mod tests {
         let flat = Array2::zeros((ny, nx));
         let image = Array2::from_elem((ny, nx), 0.03);
         let model = Hapke::moon();
-        let pr = Problem::single(
-            image.view(),
-            Directions::Uniform(crate::synth::direction(50.0, 100.0)),
-            Directions::Uniform(crate::synth::direction(5.0, 200.0)),
-            flat.view(),
-            100.0,
-            1.5,
-            &model,
-        );
+        let pr = single(image.view(), flat.view(), &model);
         let plain = Objective::new(&pr, 3.0, 0.2, 1.2, 1.5, 0.03, weights_of(&pr, 0.03));
         let tracks = Objective::new(&pr, 3.0, 0.2, 1.2, 1.5, 0.03, weights_of(&pr, 0.03))
             .with_dem_tracks(0.1, 2.0);
