@@ -441,6 +441,8 @@ impl Workflow {
             }
         };
         let fail = |why: String| Error::Usage(format!("{}: {why}", path.display()));
+        // Whether `[solver] KEY` is in the file (serde's defaults hide it).
+        let given = |key: &str| table.get("solver").and_then(|t| t.get(key)).is_some();
         match &mut wf {
             Workflow::Orbital(o) => {
                 o.inputs.m3.iter_mut().for_each(abs);
@@ -509,17 +511,16 @@ impl Workflow {
                         sel.min_incidence_deg, sel.max_incidence_deg
                     )));
                 }
-                let given = |key: &str| {
-                    text.parse::<toml::Table>()
-                        .ok()
-                        .and_then(|t| t.get("solver")?.get(key).map(|_| ()))
-                        .is_some()
-                };
                 o.sigma_dem_given = given("sigma_dem");
                 o.dem_track_weight_given = given("dem_track_weight");
                 validate_layers(&o.output.layers).map_err(fail)?;
             }
             Workflow::Lab(l) => {
+                // A range scan has no altimeter tracks: E_DEM's track weighting is off unless
+                // asked for.
+                if !given("dem_track_weight") {
+                    l.solver.dem_track_weight = 1.0;
+                }
                 abs(&mut l.inputs.image);
                 abs(&mut l.inputs.depth);
                 abs(&mut l.output.directory);
@@ -618,6 +619,32 @@ pub fn auto_halo(p: &FusionParams, dem_psf: f64, reference: bool) -> usize {
 #[cfg(test)]
 mod tests {
     use super::*;
+
+    /// A range scan has no altimeter tracks: a lab workflow leaves E_DEM's track weighting off
+    /// (1) unless `[solver] dem_track_weight` is given.
+    #[test]
+    fn lab_workflows_leave_the_track_weighting_off_unless_given() {
+        let lab = r#"kind = "lab"
+[inputs]
+image = "image.tif"
+depth = "depth.png"
+pixel_size_m = 5e-4
+[illumination]
+light = { zenith_deg = 50.0, azimuth_deg = 120.0 }
+[output]
+directory = "out"
+"#;
+        let weight = |text: &str| match Workflow::parse(text, Path::new("w.toml"), Path::new("."))
+            .unwrap()
+        {
+            Workflow::Lab(l) => l.solver.dem_track_weight,
+            Workflow::Orbital(_) => panic!("a lab workflow"),
+        };
+        assert_eq!(weight(lab), 1.0);
+        let given = lab.replace("[output]", "[solver]\ndem_track_weight = 0.2\n[output]");
+        assert_eq!(weight(&given), 0.2);
+        assert_eq!(FusionParams::default().dem_track_weight, 0.1);
+    }
 
     const MINIMAL: &str = r#"
 kind = "orbital"
