@@ -130,10 +130,14 @@ impl Dem {
         }
     }
 
-    /// Whether this is a gridded LOLA product (PRODUCT_ID or file name `LDEM…`): heights
-    /// interpolated between laser tracks, whose offsets E_DEM's track weighting is for.
-    pub(super) fn is_lola_grid(&self) -> bool {
+    /// Whether this DEM shows its altimeter tracks at latitude `lat` (degrees): a gridded LOLA
+    /// product (PRODUCT_ID or file name `LDEM…`) whose pixels are finer than the gap between
+    /// tracks ([`LOLA_TRACK_GAP_M`] × cos(latitude)). Then each track is a strip of pixels
+    /// and its offset a stripe, which E_DEM's track weighting is for; coarser pixels average
+    /// several tracks.
+    pub(super) fn resolves_tracks(&self, lat: f64) -> bool {
         self.product_id().is_some_and(|id| id.starts_with("LDEM"))
+            && self.pixel_m() < LOLA_TRACK_GAP_M * lat.to_radians().cos().abs()
     }
 
     /// A PDS product's PRODUCT_ID (else its label's file name), upper case; `None` for a

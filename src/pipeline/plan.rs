@@ -82,23 +82,24 @@ pub(super) fn north_turn_deg(grid: &Grid, pr: &crate::grid::Projector) -> f64 {
 
 /// E_DEM's track weighting for a run ([`FusionParams::dem_track_weight`]) and why: the
 /// workflow's when given; otherwise `default` only where the DEM is a gridded LOLA product
-/// (`lola_grid`: heights interpolated between near-polar tracks, whose offsets the weighting
-/// is for) and grid north stays within [`MAX_TRACK_TURN_DEG`] of the columns over the region
+/// whose pixels resolve its near-polar tracks (`tracks`: each track a strip of pixels, its
+/// offset a stripe, which the weighting is for) and grid north stays within
+/// [`MAX_TRACK_TURN_DEG`] of the columns over the region
 /// (`turn_deg`, [`north_turn_deg`]; near a pole, or on a grid centred far away in longitude,
 /// the tracks cross the columns); else 1, the plain term.
 pub fn track_weight(
     given: Option<f64>,
     default: f64,
-    lola_grid: bool,
+    tracks: bool,
     turn_deg: f64,
 ) -> (f64, String) {
     if let Some(w) = given {
         return (w, "[solver] dem_track_weight".into());
     }
-    if !lola_grid {
+    if !tracks {
         return (
             1.0,
-            "the DEM is not a gridded LOLA product (LDEM): no track offsets weighed".into(),
+            "the DEM is not a gridded LOLA product (LDEM) with pixels finer than the gap between tracks: no track offsets weighed".into(),
         );
     }
     if turn_deg > MAX_TRACK_TURN_DEG {
@@ -111,7 +112,7 @@ pub fn track_weight(
     }
     (
         default,
-        format!("LOLA grid, north within {turn_deg:.2}° of the columns"),
+        format!("LOLA grid resolving its tracks, north within {turn_deg:.2}° of the columns"),
     )
 }
 
@@ -388,7 +389,7 @@ pub(super) fn plan(
         o.dem_track_weight_given
             .then_some(o.solver.dem_track_weight),
         o.solver.dem_track_weight,
-        inputs.lola[0].is_lola_grid(),
+        inputs.lola[0].resolves_tracks(centre_lat),
         north_turn_deg(&grid, &pr),
     );
     let params = FusionParams {
@@ -543,7 +544,7 @@ mod tests {
     }
 
     #[test]
-    fn the_track_weighting_applies_to_lola_grids_along_the_columns_only() {
+    fn the_track_weighting_applies_to_resolved_lola_tracks_along_the_columns_only() {
         assert_eq!(track_weight(None, 0.1, true, 0.5).0, 0.1);
         assert_eq!(track_weight(None, 0.1, true, 6.0).0, 1.0);
         assert_eq!(track_weight(None, 0.1, false, 0.5).0, 1.0);
