@@ -112,11 +112,7 @@ pub(super) fn product_metadata(
                 .unwrap_or_default(),
         })
         .collect();
-    let solver = FusionParams {
-        sigma_dem: plan.sigma_dem,
-        dem_track_weight: plan.dem_track_weight,
-        ..o.solver.clone()
-    };
+    let solver = plan.solver(&o.solver);
     let join = |v: &[f64]| {
         v.iter()
             .map(|x| format!("{x}"))

@@ -48,6 +48,18 @@ pub struct Plan {
     pub reference: Option<ReferenceInfo>,
 }
 
+impl Plan {
+    /// The workflow's solver parameters with what the plan decided from the DEM: σ_DEM and
+    /// the track weighting (the tiles solve with these, and the products' metadata lists them).
+    pub(super) fn solver(&self, workflow: &FusionParams) -> FusionParams {
+        FusionParams {
+            sigma_dem: self.sigma_dem,
+            dem_track_weight: self.dem_track_weight,
+            ..workflow.clone()
+        }
+    }
+}
+
 fn plain_tracks() -> f64 {
     1.0
 }

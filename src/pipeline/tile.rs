@@ -202,10 +202,8 @@ pub(super) fn run_tile(
     // Without the plan's reference the tile solves every stage on its own window (the halo
     // then covers the first stage's σ_ρ).
     let params = FusionParams {
-        sigma_dem: plan.sigma_dem,
-        dem_track_weight: plan.dem_track_weight,
         coarse_factor: 1,
-        ..o.solver.clone()
+        ..plan.solver(&o.solver)
     };
     let start = plan
         .reference
