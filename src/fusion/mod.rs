@@ -163,6 +163,21 @@ pub fn dem_sigma(factor: f64) -> f64 {
     }
 }
 
+/// E_DEM's track weighting a for a DEM of point spread `dem_psf_sigma` (σ_B, pixels), with the
+/// along-track length `track_sigma` (σ_t, pixels): `weight` where σ_B < σ_t, else 1 (the plain
+/// term). The weighting frees east–west slopes of structure that is smooth along the columns
+/// over σ_t but not across them: track offsets. A DEM blurred by σ_B ≥ σ_t holds nothing
+/// finer than σ_t in either direction, so the weighting would free every east–west slope it
+/// holds, which costs (docs/science.md, "The DEM's tracks": 0.30× → 0.31× the input's error on
+/// the 14×-coarse DEM).
+pub fn track_weight(weight: f64, dem_psf_sigma: f64, track_sigma: f64) -> f64 {
+    if dem_psf_sigma >= track_sigma {
+        1.0
+    } else {
+        weight
+    }
+}
+
 /// Which z-solver minimises each stage's energy.
 #[derive(Debug, Clone, Copy, PartialEq, Eq, Serialize, Deserialize, clap::ValueEnum)]
 #[serde(rename_all = "lowercase")]
@@ -262,6 +277,8 @@ pub struct FusionParams {
     /// errors are offsets between neighbouring near-polar tracks: constant along a track,
     /// they are east–west slopes of north–south structure, and where the image measures
     /// those slopes the DEM should not hold them as firmly as the rest. 1: the plain term.
+    /// A DEM whose point spread is as wide as `dem_track_sigma_px` gets the plain term
+    /// whatever this says ([`track_weight`]).
     pub dem_track_weight: f64,
     /// σ_t, pixels: the length along the track (grid columns) over which structure counts as
     /// smooth for `dem_track_weight`, a Gaussian along the columns.
@@ -765,7 +782,14 @@ pub(crate) fn objective<'a, 'p>(
     )
     .with_multi_delta(params.multi_delta_factor)
     .with_dem_height_length(params.dem_height_length_px * pr.spacing)
-    .with_dem_tracks(params.dem_track_weight, params.dem_track_sigma_px))
+    .with_dem_tracks(
+        track_weight(
+            params.dem_track_weight,
+            pr.dem_psf_sigma,
+            params.dem_track_sigma_px,
+        ),
+        params.dem_track_sigma_px,
+    ))
 }
 
 /// Run the whole fusion: albedo stages, each followed by a surface solve. With

@@ -128,6 +128,26 @@ pub fn track_weight(
     )
 }
 
+/// [`track_weight`]'s choice as the fusion applies it ([`fusion::track_weight`]): the plain term
+/// (1) where the DEM's point spread σ_B is as wide as the along-track length σ_t, whatever was
+/// chosen, with the reason.
+pub fn dem_blur_track_weight(
+    (weight, why): (f64, String),
+    dem_psf_sigma: f64,
+    track_sigma: f64,
+) -> (f64, String) {
+    let effective = fusion::track_weight(weight, dem_psf_sigma, track_sigma);
+    if effective == weight {
+        return (weight, why);
+    }
+    (
+        effective,
+        format!(
+            "the DEM's point spread ({dem_psf_sigma:.1} px) is as wide as dem_track_sigma_px ({track_sigma:.1} px): it holds no structure finer along the tracks than across them (chosen: {weight} from {why})"
+        ),
+    )
+}
+
 /// The most pixels the gain estimate looks at: the run's grid is decimated to at most this.
 pub(super) const GAIN_PIXELS: usize = 1 << 20;
 
@@ -404,6 +424,11 @@ pub(super) fn plan(
         inputs.lola[0].resolves_tracks(centre_lat),
         north_turn_deg(&grid, &pr),
     );
+    let (dem_track_weight, dem_track_source) = dem_blur_track_weight(
+        (dem_track_weight, dem_track_source),
+        dem_psf_sigma,
+        o.solver.dem_track_sigma_px,
+    );
     let params = FusionParams {
         sigma_dem,
         dem_track_weight,
@@ -564,5 +589,11 @@ mod tests {
         let (w, why) = track_weight(Some(0.3), 0.1, false, 40.0);
         assert_eq!((w, why.as_str()), (0.3, "[solver] dem_track_weight"));
         assert!(track_weight(None, 0.1, true, 6.0).1.contains("6.0°"));
+        // A DEM blurred as widely as σ_t: the plain term, whoever chose the weighting.
+        let chosen = track_weight(Some(0.3), 0.1, true, 0.5);
+        let (w, why) = dem_blur_track_weight(chosen.clone(), 9.9, 9.0);
+        assert_eq!(w, 1.0);
+        assert!(why.contains("9.9 px") && why.contains("[solver] dem_track_weight"));
+        assert_eq!(dem_blur_track_weight(chosen.clone(), 2.4, 9.0), chosen);
     }
 }
