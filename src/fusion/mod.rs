@@ -294,7 +294,7 @@ impl Default for FusionParams {
             eta: 0.1,
             sigma_dem: 3.0,
             albedo_sigmas: vec![100.0, 10.0, 4.0],
-            final_albedo_sigma: 1.5,
+            final_albedo_sigma: 1.0,
             shadow_threshold: 0.1,
             max_iterations: 30,
             tolerance: 1e-9,
