@@ -513,6 +513,7 @@ impl Workflow {
                 }
                 o.sigma_dem_given = given("sigma_dem");
                 o.dem_track_weight_given = given("dem_track_weight");
+                validate_solver(&o.solver).map_err(fail)?;
                 validate_layers(&o.output.layers).map_err(fail)?;
             }
             Workflow::Lab(l) => {
@@ -543,6 +544,7 @@ impl Workflow {
                         l.inputs.depth_scale
                     )));
                 }
+                validate_solver(&l.solver).map_err(fail)?;
                 validate_layers(&l.output.layers).map_err(fail)?;
             }
         }
@@ -566,6 +568,12 @@ fn normalise(p: &Path) -> PathBuf {
         }
     }
     out
+}
+
+/// `[solver]`'s values in their ranges ([`crate::fusion::validate_params`]), checked when the
+/// workflow is loaded rather than when the first tile's fusion starts.
+fn validate_solver(p: &FusionParams) -> std::result::Result<(), String> {
+    crate::fusion::validate_params(p).map_err(|e| format!("[solver] {e}"))
 }
 
 fn validate_layers(layers: &[Layer]) -> std::result::Result<(), String> {
@@ -643,6 +651,11 @@ directory = "out"
         assert_eq!(weight(lab), 1.0);
         let given = lab.replace("[output]", "[solver]\ndem_track_weight = 0.2\n[output]");
         assert_eq!(weight(&given), 0.2);
+        let bad = lab.replace("[output]", "[solver]\nmax_iterations = 0\n[output]");
+        let e = Workflow::parse(&bad, Path::new("w.toml"), Path::new("."))
+            .unwrap_err()
+            .to_string();
+        assert!(e.contains("w.toml") && e.contains("max_iterations"), "{e}");
         assert_eq!(FusionParams::default().dem_track_weight, 0.1);
     }
 
@@ -710,6 +723,23 @@ directory = "out"
             .unwrap_err()
             .to_string();
         assert!(e.contains("delat"), "{e}");
+        // Out-of-range solver values are refused on loading, with the file, the key and the
+        // value, for both kinds of workflow.
+        for (line, key) in [
+            ("eta = -0.1", "eta = -0.1"),
+            ("cg_iterations = 0", "cg_iterations = 0"),
+            ("cg_tolerance = 1.5", "cg_tolerance = 1.5"),
+            ("dem_track_weight = 2.0", "dem_track_weight = 2"),
+        ] {
+            let bad = MINIMAL.replace("[output]", &format!("[solver]\n{line}\n[output]"));
+            let e = Workflow::parse(&bad, Path::new("w.toml"), Path::new("."))
+                .unwrap_err()
+                .to_string();
+            assert!(
+                e.contains("w.toml") && e.contains("[solver]") && e.contains(key),
+                "{line}: {e}"
+            );
+        }
         let kind = MINIMAL.replace("kind = \"orbital\"", "kind = \"orbit\"");
         let e = Workflow::parse(&kind, Path::new("w.toml"), Path::new("."))
             .unwrap_err()

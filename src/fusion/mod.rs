@@ -495,8 +495,73 @@ fn validate(pr: &Problem, params: &FusionParams) -> Result<(), FusionError> {
             }
         }
     }
+    validate_params(params)?;
     let sel = &pr.selection;
-    let checks: [(&'static str, f64, bool, &'static str); 21] = [
+    let checks: [(&'static str, f64, bool, &'static str); 3] = [
+        (
+            "dem_psf_sigma",
+            pr.dem_psf_sigma,
+            pr.dem_psf_sigma >= 0.0,
+            "must be ≥ 0",
+        ),
+        (
+            "min_incidence_deg",
+            sel.min_incidence_deg,
+            (0.0..90.0).contains(&sel.min_incidence_deg),
+            "must be in [0, 90)",
+        ),
+        (
+            "max_incidence_deg",
+            sel.max_incidence_deg,
+            sel.max_incidence_deg > sel.min_incidence_deg && sel.max_incidence_deg <= 90.0,
+            "must be above min_incidence_deg and at most 90",
+        ),
+    ];
+    check_all(checks)
+}
+
+/// Every check's value must be finite and pass.
+fn check_all<const N: usize>(
+    checks: [(&'static str, f64, bool, &'static str); N],
+) -> Result<(), FusionError> {
+    for (name, value, ok, why) in checks {
+        if !ok || !value.is_finite() {
+            return Err(FusionError::Parameter { name, value, why });
+        }
+    }
+    Ok(())
+}
+
+/// The ranges of [`FusionParams`] on their own (without a problem): a workflow's `[solver]`
+/// is checked with this when it is loaded, so that a bad value is refused before any input is
+/// read; [`fuse`] checks it again with the problem.
+pub fn validate_params(params: &FusionParams) -> Result<(), FusionError> {
+    let counts = [
+        ("max_iterations", params.max_iterations),
+        ("cg_iterations", params.cg_iterations),
+    ];
+    for (name, n) in counts {
+        if n == 0 {
+            return Err(FusionError::Parameter {
+                name,
+                value: 0.0,
+                why: "must be at least 1: with 0 the surface is never solved for",
+            });
+        }
+    }
+    let checks: [(&'static str, f64, bool, &'static str); 20] = [
+        (
+            "cg_tolerance",
+            params.cg_tolerance,
+            params.cg_tolerance > 0.0 && params.cg_tolerance < 1.0,
+            "must be in (0, 1) (a relative residual)",
+        ),
+        (
+            "tolerance",
+            params.tolerance,
+            params.tolerance >= 0.0,
+            "must be ≥ 0 (a relative energy decrease)",
+        ),
         (
             "multi_delta_factor",
             params.multi_delta_factor,
@@ -520,18 +585,6 @@ fn validate(pr: &Problem, params: &FusionParams) -> Result<(), FusionError> {
             params.edge_ramp_px,
             params.edge_ramp_px >= 0.0,
             "must be ≥ 0 pixels",
-        ),
-        (
-            "min_incidence_deg",
-            sel.min_incidence_deg,
-            (0.0..90.0).contains(&sel.min_incidence_deg),
-            "must be in [0, 90)",
-        ),
-        (
-            "max_incidence_deg",
-            sel.max_incidence_deg,
-            sel.max_incidence_deg > sel.min_incidence_deg && sel.max_incidence_deg <= 90.0,
-            "must be above min_incidence_deg and at most 90",
         ),
         ("gamma", params.gamma, params.gamma > 0.0, "must be > 0"),
         ("delta", params.delta, params.delta >= 0.0, "must be ≥ 0"),
@@ -558,12 +611,6 @@ fn validate(pr: &Problem, params: &FusionParams) -> Result<(), FusionError> {
             "sigma_dem",
             params.sigma_dem,
             params.sigma_dem >= 0.0,
-            "must be ≥ 0",
-        ),
-        (
-            "dem_psf_sigma",
-            pr.dem_psf_sigma,
-            pr.dem_psf_sigma >= 0.0,
             "must be ≥ 0",
         ),
         (
@@ -609,11 +656,7 @@ fn validate(pr: &Problem, params: &FusionParams) -> Result<(), FusionError> {
             "must be ≥ 0 (a large value such as 1e9 turns the curvature term off)",
         ),
     ];
-    for (name, value, ok, why) in checks {
-        if !ok || !value.is_finite() {
-            return Err(FusionError::Parameter { name, value, why });
-        }
-    }
+    check_all(checks)?;
     if params.delta == 0.0 && params.eta == 0.0 {
         return Err(FusionError::Parameter {
             name: "delta",
