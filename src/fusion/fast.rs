@@ -13,14 +13,15 @@ use ndarray::{Array2, ArrayView2, Zip};
 /// Dᵀ(H + M)D·v (+ 2K·v, the tie) for the photometric term, into `out`: `hm` = H + M per
 /// pixel (xx, xy, yy), H = Σ_k 2w_k(a_k, b_k)ᵀ(a_k, b_k) the Gauss–Newton Hessian in (p, q)
 /// ([`Photo::gn`]), M the residual curvature of [`Objective::curvature`], acting on
-/// (D_x v, D_y v). `vx` and `vy` are scratch of the grid's shape.
+/// (D_x v, D_y v); `tie2` = 2K. `vx` and `vy` are scratch of the grid's shape. In f32, as the
+/// whole conjugate-gradient iteration ([`newton_step`]).
 fn data_normal_into(
-    obj: &Objective,
-    hm: &Array2<[f64; 3]>,
-    v: &Array2<f64>,
-    [vx, vy, out]: [&mut Array2<f64>; 3],
+    eps: f64,
+    hm: &Array2<[f32; 3]>,
+    tie2: Option<&Array2<f32>>,
+    v: &Array2<f32>,
+    [vx, vy, out]: [&mut Array2<f32>; 3],
 ) {
-    let eps = obj.problem.spacing;
     ops::gradient_into(v.view(), eps, vx, vy);
     Zip::from(&mut *vx)
         .and(&mut *vy)
@@ -31,37 +32,57 @@ fn data_normal_into(
             *y = h[1] * a + h[2] * b;
         });
     ops::gradient_adjoint_into(vx.view(), vy.view(), eps, out);
-    if let Some(k) = &obj.tie {
+    if let Some(k) = tie2 {
         Zip::from(out)
             .and(k)
             .and(v)
-            .par_for_each(|o, &k, &v| *o += 2.0 * k * v);
+            .par_for_each(|o, &k, &v| *o += k * v);
     }
 }
 
-/// The operator of one Newton step in DCT coefficients, with its scratch.
+/// The operator of one Newton step in DCT coefficients, with its scratch, in f32.
 struct Normal<'o, 'a, 'p> {
     obj: &'o Objective<'a, 'p>,
     /// H + M per pixel.
-    hm: Array2<[f64; 3]>,
-    hq: &'o Array2<f64>,
+    hm: Array2<[f32; 3]>,
+    /// 2K, the tie's Hessian per pixel.
+    tie2: Option<Array2<f32>>,
+    /// H_Q, the DCT-diagonal Hessian of the quadratic terms.
+    hq: Array2<f32>,
     fixed_mean: bool,
-    v: Array2<f64>,
-    vx: Array2<f64>,
-    vy: Array2<f64>,
+    v: Array2<f32>,
+    vx: Array2<f32>,
+    vy: Array2<f32>,
 }
 
 impl Normal<'_, '_, '_> {
     /// `out` = A·d̂ (A the Newton system's matrix in DCT coefficients); returns d̂·A·d̂.
-    fn apply(&mut self, d: &Array2<f64>, out: &mut Array2<f64>) -> f64 {
+    fn apply(&mut self, d: &Array2<f32>, out: &mut Array2<f32>) -> f64 {
         let obj = self.obj;
         self.v.assign(d);
-        obj.dct.inverse_in_place(&mut self.v);
-        data_normal_into(obj, &self.hm, &self.v, [&mut self.vx, &mut self.vy, out]);
-        obj.add_membrane_relief_hessian(&self.v, out);
-        obj.dct.forward_in_place(out);
-        if let Some(rh) = obj.relief_hessian(d) {
-            out.scaled_add(obj.delta, &rh);
+        obj.dct_cg.inverse_in_place(&mut self.v);
+        data_normal_into(
+            obj.problem.spacing,
+            &self.hm,
+            self.tie2.as_ref(),
+            &self.v,
+            [&mut self.vx, &mut self.vy, out],
+        );
+        if obj.membrane_relief.is_some() {
+            // The edge-aware membrane's spatial part (several observations or the opt-in
+            // membrane only), in f64.
+            let mut m = Array2::zeros(out.dim());
+            obj.add_membrane_relief_hessian(&self.v.mapv(f64::from), &mut m);
+            Zip::from(&mut *out)
+                .and(&m)
+                .par_for_each(|o, &m| *o += m as f32);
+        }
+        obj.dct_cg.forward_in_place(out);
+        if let Some(rh) = obj.relief_hessian(&d.mapv(f64::from)) {
+            let delta = obj.delta;
+            Zip::from(&mut *out)
+                .and(&rh)
+                .par_for_each(|o, &r| *o += (delta * r) as f32);
         }
         if self.fixed_mean {
             // d̂₀ = 0 here (the preconditioner zeroes it), so d̂·A·d̂ does not see this entry.
@@ -74,13 +95,25 @@ impl Normal<'_, '_, '_> {
                 let mut dad = 0.0;
                 for ((o, &h), &d) in o.iter_mut().zip(h).zip(d) {
                     *o += h * d;
-                    dad += d * *o;
+                    dad += f64::from(d) * f64::from(*o);
                 }
                 [dad]
             });
         let [dad] = ops::sum_row_parts(parts.view());
         dad
     }
+}
+
+/// Σ aᵢ·bᵢ of two f32 arrays, accumulated in f64 row by row and then in row order (the result
+/// does not depend on the number of threads).
+fn dot32(a: &Array2<f32>, b: &Array2<f32>) -> f64 {
+    let parts = Zip::from(a.rows()).and(b.rows()).par_map_collect(|a, b| {
+        [a.iter()
+            .zip(b)
+            .map(|(&x, &y)| f64::from(x) * f64::from(y))
+            .sum::<f64>()]
+    });
+    ops::sum_row_parts(parts.view())[0]
 }
 
 /// Preconditioned CG for (Dᵀ(H + M)D + 2K + H_Q + H_R)Δ (H_R the DEM term's relief field,
@@ -90,10 +123,15 @@ impl Normal<'_, '_, '_> {
 /// either, the mean is solved for too. Each iteration is two transforms and
 /// five passes over the grid: the operator's, the residual update fused with both inner
 /// products, and the direction update fused with the solution's.
+///
+/// The iteration runs in f32 (vectors, operator, transforms; inner products accumulated in
+/// f64): it only has to reach a relative residual of `cg_tolerance` (0.02), far above f32's
+/// rounding, and the transforms and passes are bound by memory traffic, which f32 halves.
+/// The step it returns is checked by the line search on the energy in f64.
 fn newton_step(
     obj: &Objective,
     photo: &Photo,
-    curv: Array2<[f64; 3]>,
+    curv: Array2<[f32; 3]>,
     hq: &Array2<f64>,
     g: &Array2<f64>,
     params: &FusionParams,
@@ -104,11 +142,15 @@ fn newton_step(
     // H + M, in the curvature's storage.
     let mut hm = curv;
     Zip::from(&mut hm).and(&photo.gn).par_for_each(|m, h| {
-        *m = [h[0] + m[0], h[1] + m[1], h[2] + m[2]];
+        *m = [
+            (h[0] + f64::from(m[0])) as f32,
+            (h[1] + f64::from(m[1])) as f32,
+            (h[2] + f64::from(m[2])) as f32,
+        ];
     });
-    let (ax, ay) = hm
-        .iter()
-        .fold((0.0, 0.0), |(x, y), h| (x + h[0] / n, y + h[2] / n));
+    let (ax, ay) = hm.iter().fold((0.0, 0.0), |(x, y), h| {
+        (x + f64::from(h[0]) / n, y + f64::from(h[2]) / n)
+    });
     let cx = spectral::difference_symbol(nx, ops::stencil_response);
     let cy = spectral::difference_symbol(ny, ops::stencil_response);
     let tie = obj.tie.as_ref().map(|k| 2.0 * ops::sum(k.view()) / n);
@@ -124,33 +166,34 @@ fn newton_step(
         minv += hq;
     }
     minv += tie.unwrap_or(0.0);
-    minv.mapv_inplace(|m| if m > 0.0 { 1.0 / m } else { 0.0 });
     // The mean height is seen by the tie and by E_DEM's height part; with neither it stays
     // the DEM's.
     let fixed_mean = tie.is_none() && obj.dem_height == 0.0;
+    let mut minv = minv.mapv(|m| if m > 0.0 { (1.0 / m) as f32 } else { 0.0 });
     if fixed_mean {
         minv[(0, 0)] = 0.0; // the mean height is fixed by the DEM
     }
     let mut normal = Normal {
         obj,
         hm,
-        hq,
+        tie2: obj.tie.as_ref().map(|k| k.mapv(|k| (2.0 * k) as f32)),
+        hq: hq.mapv(|h| h as f32),
         fixed_mean,
         v: Array2::zeros((ny, nx)),
         vx: Array2::zeros((ny, nx)),
         vy: Array2::zeros((ny, nx)),
     };
-    let mut r = g.mapv(|x| -x);
-    obj.dct.forward_in_place(&mut r);
+    let mut r = g.mapv(|x| -x as f32);
+    obj.dct_cg.forward_in_place(&mut r);
     if fixed_mean {
         r[(0, 0)] = 0.0;
     }
-    let mut y = Array2::zeros(r.dim());
+    let mut y = Array2::<f32>::zeros(r.dim());
     let mut s = &r * &minv;
     let mut d = s.clone();
-    let mut ad = Array2::zeros(r.dim());
-    let mut rs = ops::dot(r.view(), s.view());
-    let r0 = ops::dot(r.view(), r.view()).sqrt();
+    let mut ad = Array2::<f32>::zeros(r.dim());
+    let mut rs = dot32(&r, &s);
+    let r0 = dot32(&r, &r).sqrt();
     let mut it = 0;
     while it < params.cg_iterations && r0 > 0.0 {
         it += 1;
@@ -158,7 +201,7 @@ fn newton_step(
         if dad <= 0.0 {
             break;
         }
-        let alpha = rs / dad;
+        let alpha = (rs / dad) as f32;
         // r ← r − α·Ad, s ← M⁻¹r, with |r|² and r·s in the same pass.
         let [rr, rs_new] = ops::sum_row_parts(
             Zip::from(r.rows_mut())
@@ -170,8 +213,9 @@ fn newton_step(
                     for (((r, s), &ad), &m) in r.iter_mut().zip(s.iter_mut()).zip(ad).zip(m) {
                         *r -= alpha * ad;
                         *s = *r * m;
-                        rr += *r * *r;
-                        rs += *r * *s;
+                        let (r, s) = (f64::from(*r), f64::from(*s));
+                        rr += r * r;
+                        rs += r * s;
                     }
                     [rr, rs]
                 })
@@ -181,7 +225,7 @@ fn newton_step(
             y.scaled_add(alpha, &d);
             break;
         }
-        let beta = rs_new / rs;
+        let beta = (rs_new / rs) as f32;
         rs = rs_new;
         // y ← y + α·d, then d ← s + β·d.
         Zip::from(&mut y)
@@ -192,8 +236,8 @@ fn newton_step(
                 *d = s + beta * *d;
             });
     }
-    obj.dct.inverse_in_place(&mut y);
-    (y, it)
+    obj.dct_cg.inverse_in_place(&mut y);
+    (y.mapv(f64::from), it)
 }
 
 pub fn minimise(

@@ -97,6 +97,9 @@ pub struct Iterate {
 pub struct Objective<'a, 'p> {
     pub problem: &'a Problem<'p>,
     pub dct: Dct2d,
+    /// The transform of f32 arrays, for the conjugate-gradient iterations of `fast`'s Newton
+    /// steps.
+    pub dct_cg: Dct2d<f32>,
     /// λ_kl/ε².
     pub lam: Array2<f64>,
     /// 1/ℓ² (m⁻²; 0: none): E_DEM measures the heights of the blurred difference u as well as
@@ -183,6 +186,7 @@ impl<'a, 'p> Objective<'a, 'p> {
         };
         Self {
             problem,
+            dct_cg: Dct2d::new_f32(ny, nx),
             dct,
             lam,
             gs,
@@ -499,26 +503,28 @@ impl<'a, 'p> Objective<'a, 'p> {
     /// small but converges only linearly (halving the error each step) where the image is
     /// brighter than any slope can make R — there R sits at its maximum over the slopes,
     /// ∂R/∂(p, q) = 0, and only this term sees the curvature. ∇²R is the forward difference of
-    /// the analytic gradient over 1e-6 in p and q.
+    /// the analytic gradient over 1e-6 in p and q. Stored in f32 (each pixel's sum over the
+    /// observations is formed in f64): it only enters the Newton systems, which are solved in
+    /// f32 (`fast::newton_step`).
     pub fn curvature(
         &self,
         z: ArrayView2<f64>,
         rho: ArrayView2<f64>,
         photo: &Photo,
         min_residual: f64,
-    ) -> Array2<[f64; 3]> {
+    ) -> Array2<[f32; 3]> {
         let pr = self.problem;
         let model: &dyn ReflectanceModel = pr.model;
         let (p, q) = ops::gradient(z, pr.spacing);
-        let mut out = Array2::from_elem(z.dim(), [0.0; 3]);
         let s = self.scale;
-        for (k, o) in pr.observations.iter().enumerate() {
-            let ph = &photo.obs[k];
-            let wk = &self.weights.weight[k];
-            Zip::indexed(&mut out).par_for_each(|(i, j), m| {
+        let mut out = Array2::from_elem(z.dim(), [0.0f32; 3]);
+        Zip::indexed(&mut out).par_for_each(|(i, j), out| {
+            let mut m = [0.0f64; 3];
+            for (k, o) in pr.observations.iter().enumerate() {
+                let ph = &photo.obs[k];
                 let r = ph.res[(i, j)];
                 if !ph.used[(i, j)] || r.abs() <= min_residual {
-                    return;
+                    continue;
                 }
                 let h = 1e-6;
                 let (pp, qq, w) = (p[(i, j)], q[(i, j)], rho[(i, j)]);
@@ -533,12 +539,13 @@ impl<'a, 'p> Objective<'a, 'p> {
                 let rxy = 0.5 * (xp.dr_dq - gy + yp.dr_dp - gx) / h;
                 let c = -2.0 * r / s;
                 let t = psd_part([c * rxx, c * rxy, c * ryy]);
-                let w = wk[(i, j)];
+                let w = self.weights.weight[k][(i, j)];
                 m[0] += w * t[0];
                 m[1] += w * t[1];
                 m[2] += w * t[2];
-            });
-        }
+            }
+            *out = m.map(|x| x as f32);
+        });
         out
     }
 
@@ -966,7 +973,7 @@ mod tests {
         let obj = Objective::new(&pr, 1.0, 0.1, 1.0, 0.0, s, weights_of(&pr, s));
         let rho = Array2::from_elem((ny, nx), 0.6);
         let photo = obj.photo(z.view(), rho.view());
-        let m = obj.curvature(z.view(), rho.view(), &photo, 0.0)[(2, 2)];
+        let m = obj.curvature(z.view(), rho.view(), &photo, 0.0)[(2, 2)].map(f64::from);
         let ph = &photo.obs[0];
         let (a, b) = (ph.a[(2, 2)], ph.b[(2, 2)]);
         assert!(ph.res[(2, 2)] > 0.1, "the pixel must be brighter than R");
@@ -984,6 +991,7 @@ mod tests {
             (2.0 * a * b + m[1], hxy),
             (2.0 * b * b + m[2], hyy),
         ] {
+            // f32 storage: a few parts in 10⁷ on top of the differences' 10⁻⁵.
             assert!(
                 (got - want).abs() < 1e-5 * want.abs().max(1.0),
                 "{got} vs {want}"

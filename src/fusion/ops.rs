@@ -6,8 +6,15 @@
 //! the edge): p = ∂z/∂x (east), q = ∂z/∂y (north, i.e. towards row − 1). The
 //! quadratic terms use forward differences, which the DCT diagonalises (see `spectral`).
 
+use crate::spectral::Real;
 use ndarray::{Array2, ArrayView1, ArrayView2, Axis};
 use rayon::prelude::*;
+
+/// `x` as `T` (rounded to f32 when `T` is f32).
+#[inline]
+fn to<T: Real>(x: f64) -> T {
+    T::from(x).expect("finite f64 converts")
+}
 
 /// Interior coefficients (c₁, c₂) of the photometric gradient,
 /// p·ε = c₁·(v[j+1] − v[j−1]) + c₂·(v[j+2] − v[j−2]): the fourth-order central difference
@@ -67,26 +74,26 @@ fn coef(n: usize, j: usize, k: usize) -> f64 {
 
 /// (Dᵀu)[k]·ε for one line, gathered from u[k−2..=k+2] via `get`.
 #[inline]
-fn adjoint_at(n: usize, k: usize, get: impl Fn(usize) -> f64) -> f64 {
+fn adjoint_at<T: Real>(n: usize, k: usize, get: impl Fn(usize) -> T) -> T {
     let lo = k.saturating_sub(2);
     let hi = (k + 2).min(n.saturating_sub(1));
-    (lo..=hi).map(|j| coef(n, j, k) * get(j)).sum()
+    (lo..=hi).map(|j| to::<T>(coef(n, j, k)) * get(j)).sum()
 }
 
 /// D v·ε along one contiguous line.
-fn diff_line(v: &[f64], out: &mut [f64]) {
+fn diff_line<T: Real>(v: &[T], out: &mut [T]) {
     let n = v.len();
     if n < 2 {
-        out.iter_mut().for_each(|o| *o = 0.0);
+        out.iter_mut().for_each(|o| *o = T::zero());
         return;
     }
-    let (c1, c2) = STENCIL;
+    let (c1, c2) = (to::<T>(STENCIL.0), to::<T>(STENCIL.1));
     out[0] = v[1] - v[0];
     out[n - 1] = v[n - 1] - v[n - 2];
     // The central difference one point from each end (n ≥ 3).
     if n >= 3 {
         for j in [1, n - 2] {
-            out[j] = 0.5 * (v[j + 1] - v[j - 1]);
+            out[j] = to::<T>(0.5) * (v[j + 1] - v[j - 1]);
         }
     }
     // The interior j ∈ [2, n − 3], branch-free: out[j] from v[j − 2 ..= j + 2].
@@ -98,9 +105,9 @@ fn diff_line(v: &[f64], out: &mut [f64]) {
 }
 
 /// Dᵀu·ε along one contiguous line.
-fn adjoint_line(u: &[f64], out: &mut [f64]) {
+fn adjoint_line<T: Real>(u: &[T], out: &mut [T]) {
     let n = u.len();
-    let (c1, c2) = STENCIL;
+    let (c1, c2) = (to::<T>(STENCIL.0), to::<T>(STENCIL.1));
     // Where every row j ∈ [k − 2, k + 2] that reaches k is interior (k ∈ [4, n − 5]), branch-free.
     let (lo, hi) = if n >= 9 { (4, n - 4) } else { (n, n) };
     for k in (0..lo).chain(hi..n) {
@@ -122,10 +129,10 @@ pub fn gradient(z: ArrayView2<f64>, eps: f64) -> (Array2<f64>, Array2<f64>) {
 }
 
 /// [`gradient`] into `p` and `q` (standard layout, the shape of `z`).
-pub fn gradient_into(z: ArrayView2<f64>, eps: f64, p: &mut Array2<f64>, q: &mut Array2<f64>) {
+pub fn gradient_into<T: Real>(z: ArrayView2<T>, eps: f64, p: &mut Array2<T>, q: &mut Array2<T>) {
     let ny = z.nrows();
     let z = z.as_standard_layout();
-    let inv = 1.0 / eps;
+    let inv = to::<T>(1.0 / eps);
     p.axis_iter_mut(Axis(0))
         .into_par_iter()
         .zip(q.axis_iter_mut(Axis(0)))
@@ -133,19 +140,20 @@ pub fn gradient_into(z: ArrayView2<f64>, eps: f64, p: &mut Array2<f64>, q: &mut 
         .for_each(|(i, (mut prow, mut qrow))| {
             let pr = prow.as_slice_mut().expect("standard layout");
             diff_line(z.row(i).as_slice().expect("standard layout"), pr);
-            pr.iter_mut().for_each(|x| *x *= inv);
+            pr.iter_mut().for_each(|x| *x = *x * inv);
             // y points north = towards smaller row index: q = −(D along rows).
             // (coef is 0 everywhere on a single row.)
             let qr = qrow.as_slice_mut().expect("standard layout");
-            qr.iter_mut().for_each(|x| *x = 0.0);
+            qr.iter_mut().for_each(|x| *x = T::zero());
             let lo = i.saturating_sub(2);
             let hi = (i + 2).min(ny - 1);
             for k in lo..=hi {
                 let c = coef(ny, i, k);
                 if c != 0.0 {
+                    let c = to::<T>(c);
                     let r = z.row(k);
-                    for (o, x) in qr.iter_mut().zip(r.as_slice().expect("standard layout")) {
-                        *o -= c * x * inv;
+                    for (o, &x) in qr.iter_mut().zip(r.as_slice().expect("standard layout")) {
+                        *o = *o - c * x * inv;
                     }
                 }
             }
@@ -160,16 +168,16 @@ pub fn gradient_adjoint(u: ArrayView2<f64>, v: ArrayView2<f64>, eps: f64) -> Arr
 }
 
 /// [`gradient_adjoint`] into `out` (standard layout, the shape of `u`).
-pub fn gradient_adjoint_into(
-    u: ArrayView2<f64>,
-    v: ArrayView2<f64>,
+pub fn gradient_adjoint_into<T: Real>(
+    u: ArrayView2<T>,
+    v: ArrayView2<T>,
     eps: f64,
-    out: &mut Array2<f64>,
+    out: &mut Array2<T>,
 ) {
     let ny = u.nrows();
     let u = u.as_standard_layout();
     let v = v.as_standard_layout();
-    let inv = 1.0 / eps;
+    let inv = to::<T>(1.0 / eps);
     out.axis_iter_mut(Axis(0))
         .into_par_iter()
         .enumerate()
@@ -182,13 +190,14 @@ pub fn gradient_adjoint_into(
             for j in lo..=hi {
                 let c = coef(ny, j, k);
                 if c != 0.0 {
+                    let c = to::<T>(c);
                     let vr = v.row(j);
-                    for (x, y) in o.iter_mut().zip(vr.as_slice().expect("standard layout")) {
-                        *x -= c * y;
+                    for (x, &y) in o.iter_mut().zip(vr.as_slice().expect("standard layout")) {
+                        *x = *x - c * y;
                     }
                 }
             }
-            o.iter_mut().for_each(|x| *x *= inv);
+            o.iter_mut().for_each(|x| *x = *x * inv);
         });
 }
 
