@@ -40,15 +40,33 @@ fn data_normal_into(
     }
 }
 
+/// The parts of the Newton systems that stay the same over a stage's steps.
+struct Fixed {
+    /// H_Q, the DCT-diagonal Hessian of the quadratic terms (for the preconditioner).
+    hq: Array2<f64>,
+    /// H_Q in f32, for the operator.
+    hq32: Array2<f32>,
+    /// 2K, the tie's Hessian per pixel, in f32.
+    tie2: Option<Array2<f32>>,
+}
+
+impl Fixed {
+    fn new(obj: &Objective) -> Self {
+        let hq = obj.quadratic_hessian();
+        Self {
+            hq32: hq.mapv(|h| h as f32),
+            hq,
+            tie2: obj.tie.as_ref().map(|k| k.mapv(|k| (2.0 * k) as f32)),
+        }
+    }
+}
+
 /// The operator of one Newton step in DCT coefficients, with its scratch, in f32.
 struct Normal<'o, 'a, 'p> {
     obj: &'o Objective<'a, 'p>,
     /// H + M per pixel.
     hm: Array2<[f32; 3]>,
-    /// 2K, the tie's Hessian per pixel.
-    tie2: Option<Array2<f32>>,
-    /// H_Q, the DCT-diagonal Hessian of the quadratic terms.
-    hq: Array2<f32>,
+    fixed: &'o Fixed,
     fixed_mean: bool,
     v: Array2<f32>,
     vx: Array2<f32>,
@@ -64,7 +82,7 @@ impl Normal<'_, '_, '_> {
         data_normal_into(
             obj.problem.spacing,
             &self.hm,
-            self.tie2.as_ref(),
+            self.fixed.tie2.as_ref(),
             &self.v,
             [&mut self.vx, &mut self.vy, out],
         );
@@ -89,7 +107,7 @@ impl Normal<'_, '_, '_> {
             out[(0, 0)] = 0.0;
         }
         let parts = Zip::from(out.rows_mut())
-            .and(self.hq.rows())
+            .and(self.fixed.hq32.rows())
             .and(d.rows())
             .par_map_collect(|mut o, h, d| {
                 let mut dad = 0.0;
@@ -132,7 +150,7 @@ fn newton_step(
     obj: &Objective,
     photo: &Photo,
     curv: Array2<[f32; 3]>,
-    hq: &Array2<f64>,
+    fixed: &Fixed,
     g: &Array2<f64>,
     params: &FusionParams,
 ) -> (Array2<f64>, usize) {
@@ -163,7 +181,7 @@ fn newton_step(
             obj.eta * (1.0 - obj.mean_membrane_relief()),
         );
     } else {
-        minv += hq;
+        minv += &fixed.hq;
     }
     minv += tie.unwrap_or(0.0);
     // The mean height is seen by the tie and by E_DEM's height part; with neither it stays
@@ -176,8 +194,7 @@ fn newton_step(
     let mut normal = Normal {
         obj,
         hm,
-        tie2: obj.tie.as_ref().map(|k| k.mapv(|k| (2.0 * k) as f32)),
-        hq: hq.mapv(|h| h as f32),
+        fixed,
         fixed_mean,
         v: Array2::zeros((ny, nx)),
         vx: Array2::zeros((ny, nx)),
@@ -247,7 +264,7 @@ pub fn minimise(
     params: &FusionParams,
     observe: &mut dyn FnMut(&Energy),
 ) -> Vec<IterationRecord> {
-    let hq = obj.quadratic_hessian();
+    let fixed = Fixed::new(obj);
     let (
         Iterate {
             mut photo,
@@ -260,7 +277,7 @@ pub fn minimise(
     for iteration in 1..=params.max_iterations {
         let g = obj.gradient(z.view(), &zh, &photo);
         let curv = obj.curvature(z.view(), rho, &photo, params.curvature_residual);
-        let (step, inner) = newton_step(obj, &photo, curv, &hq, &g, params);
+        let (step, inner) = newton_step(obj, &photo, curv, &fixed, &g, params);
         let slope = ops::dot(g.view(), step.view());
         if slope >= 0.0 {
             break;
