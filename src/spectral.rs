@@ -26,7 +26,7 @@ impl Real for f64 {}
 
 /// `x` as `T` (rounded to f32 when `T` is f32).
 #[inline]
-fn to<T: Real>(x: f64) -> T {
+pub(crate) fn to<T: Real>(x: f64) -> T {
     T::from(x).expect("finite f64 converts")
 }
 

@@ -6,15 +6,9 @@
 //! the edge): p = ∂z/∂x (east), q = ∂z/∂y (north, i.e. towards row − 1). The
 //! quadratic terms use forward differences, which the DCT diagonalises (see `spectral`).
 
-use crate::spectral::Real;
+use crate::spectral::{to, Real};
 use ndarray::{Array2, ArrayView1, ArrayView2, Axis};
 use rayon::prelude::*;
-
-/// `x` as `T` (rounded to f32 when `T` is f32).
-#[inline]
-fn to<T: Real>(x: f64) -> T {
-    T::from(x).expect("finite f64 converts")
-}
 
 /// Interior coefficients (c₁, c₂) of the photometric gradient,
 /// p·ε = c₁·(v[j+1] − v[j−1]) + c₂·(v[j+2] − v[j−2]): the fourth-order central difference
