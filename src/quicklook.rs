@@ -277,6 +277,9 @@ pub fn write_sheet(path: &Path, panels: &[Panel], columns: usize) -> Result<()> 
         let mut enc = png::Encoder::new(&mut bytes, width as u32, height as u32);
         enc.set_color(png::ColorType::Rgb);
         enc.set_depth(png::BitDepth::Eight);
+        // fdeflate's fast mode: a quick look is for looking at; it takes a quarter of the
+        // default's time (0.1 s of a 512² run) for a file ≈ 1.6× as large.
+        enc.set_compression(png::Compression::Fast);
         let png_err = |e| Error::Png {
             path: path.into(),
             source: e,

@@ -268,6 +268,44 @@ fn a_killed_run_resumes_to_the_same_products() {
     std::fs::remove_dir_all(&dir).unwrap();
 }
 
+/// A single tile over the whole region takes the full-resolution inputs its plan's reference
+/// ingested; a rerun that reuses the plan (its tile file removed) ingests them itself. The
+/// products are the same to the byte.
+#[test]
+fn a_single_tile_fuses_the_plans_ingest_exactly_as_its_own() {
+    let p = scene_products(256, 10);
+    let dir = scratch("single-ingest");
+    let out = dir.join("out");
+    let wf = write_workflow(
+        &dir,
+        &workflow(p, &out, 256, "[solver]\nalbedo_sigmas = [30.0, 10.0, 4.0]"),
+    );
+    let run = || {
+        let o = sfsfuse()
+            .args(["run", "--progress", "lines"])
+            .arg(&wf)
+            .output()
+            .unwrap();
+        let err = String::from_utf8_lossy(&o.stderr).into_owned();
+        assert!(o.status.success(), "{err}");
+        err
+    };
+    let first = run();
+    assert!(first.contains("1 tiles of 256 px"), "{first}");
+    let made = output_bytes(&out);
+    std::fs::remove_dir_all(out.join("tiles")).unwrap();
+    let again = run();
+    assert!(again.contains("plan: reusing"), "{again}");
+    assert!(again.contains("tile 0 fused"), "{again}");
+    for ((name, a), (_, b)) in made.iter().zip(&output_bytes(&out)) {
+        assert!(
+            a == b,
+            "{name}.tif differs between the plan's ingest and the tile's own"
+        );
+    }
+    std::fs::remove_dir_all(&dir).unwrap();
+}
+
 /// Tiles run one at a time (as cluster tasks do), then the mosaic; the mosaic refuses to run
 /// with tiles missing and lists them.
 #[test]

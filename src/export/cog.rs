@@ -367,6 +367,13 @@ pub(super) fn halve(a: ArrayView2<f32>, format: SampleFormat) -> Array2<f32> {
     })
 }
 
+/// zlib level of the tiles' DEFLATE: 1, the fastest (greedy matching). On the products of
+/// `sfsfuse run` (float predictor first) level 6, zlib's and GDAL's default, gives files only
+/// ≈ 5 % smaller and takes ≈ 4× as long, which was ≈ 10 % of a whole run on a 512² region
+/// (docs/performance.md). `gdal_translate -co COMPRESS=DEFLATE -co ZLEVEL=9` recompresses for an
+/// archive.
+pub(super) const DEFLATE_LEVEL: u32 = 1;
+
 /// Every tile of one level, DEFLATE-compressed after the floating-point predictor; tiles at the
 /// right and bottom edges are padded with no-data.
 pub(super) fn compress_level(a: ArrayView2<f32>, format: SampleFormat) -> Vec<Vec<u8>> {
@@ -394,7 +401,7 @@ pub(super) fn compress_level(a: ArrayView2<f32>, format: SampleFormat) -> Vec<Ve
                     SampleFormat::Byte => raw.extend_from_slice(&byte_predictor(&row)),
                 }
             }
-            let mut z = ZlibEncoder::new(Vec::new(), Compression::new(6));
+            let mut z = ZlibEncoder::new(Vec::new(), Compression::new(DEFLATE_LEVEL));
             z.write_all(&raw).expect("writing to memory");
             z.finish().expect("writing to memory")
         })

@@ -232,6 +232,27 @@ pub(super) fn observations_on(
     Ok(shots)
 }
 
+/// Every input on one window of the grid: the observations that reach it
+/// ([`observations_on`]) and the DEM ([`dem_on`]; NaN where no product covers a pixel).
+pub(super) struct Ingested {
+    pub(super) shots: Vec<(usize, ingest::ImageOnGrid)>,
+    pub(super) dem: Array2<f64>,
+}
+
+/// [`Ingested`] on `window` (a tile's window, or a band of the reference's rows).
+pub(super) fn ingest_window(
+    o: &Orbital,
+    inputs: &Inputs,
+    swaths: &[SwathIndex],
+    window: &Grid,
+) -> Result<Ingested> {
+    let pr = projector(&window.crs)?;
+    let geo = window.geographic(&pr);
+    let shots = observations_on(o, inputs, swaths, window, &pr, &geo)?;
+    let dem = dem_on(o, inputs, &geo);
+    Ok(Ingested { shots, dem })
+}
+
 /// The fusion's view of [`observations_on`]'s images.
 pub(super) fn fusion_observations(
     shots: &[(usize, ingest::ImageOnGrid)],

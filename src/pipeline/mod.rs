@@ -249,7 +249,7 @@ pub fn list_tiles(wf: &Workflow, progress: &Progress) -> Result<Vec<TileStatus>>
         ));
     };
     let inputs = Inputs::open(o, progress)?;
-    let (plan, _) = plan(o, wf, &inputs, progress)?;
+    let (plan, _, _) = plan(o, wf, &inputs, progress)?;
     Ok(plan
         .tiles
         .iter()
@@ -310,7 +310,9 @@ fn run_orbital(
 ) -> Result<RunSummary> {
     let out = &o.output.directory;
     let inputs = Inputs::open(o, progress)?;
-    let (plan, reference) = plan(o, wf, &inputs, progress)?;
+    let (plan, reference, ingested) = plan(o, wf, &inputs, progress)?;
+    // The single tile over the whole grid takes the reference's ingest (plan).
+    let ingested = std::sync::Mutex::new(ingested);
     let wanted: Vec<usize> = match &req.tiles {
         Some(ids) => {
             if let Some(&bad) = ids.iter().find(|&&i| i >= plan.tiles.len()) {
@@ -333,6 +335,17 @@ fn run_orbital(
     if skipped > 0 {
         progress.note(&format!("{skipped} tile(s) already done: skipped"));
     }
+    // The mosaic names the inputs by their SHA-256: hash them while the tiles run, whose
+    // solver leaves part of the cores idle. On an error the thread is left to finish alone: it
+    // only reads.
+    let sums = if req.tiles.is_none() && !pending.is_empty() {
+        let files = inputs.files()?;
+        Some(std::thread::spawn(move || {
+            checksums(&files, &Progress::new(crate::progress::Mode::Quiet))
+        }))
+    } else {
+        None
+    };
     if !pending.is_empty() {
         let tiles = out.join("tiles");
         std::fs::create_dir_all(&tiles).map_err(|e| Error::io(&tiles, e))?;
@@ -340,7 +353,8 @@ fn run_orbital(
         let results: Vec<Result<TileRecord>> = pending
             .par_iter()
             .map(|t| {
-                let r = run_tile(o, &inputs, &plan, reference.as_ref(), t);
+                let cached = ingested.lock().map_or(None, |mut c| c.take());
+                let r = run_tile(o, &inputs, &plan, reference.as_ref(), t, cached);
                 if let Ok(rec) = &r {
                     progress.step(&format!(
                         "tile {} {} in {:.1} s ({} iterations)",
@@ -376,7 +390,10 @@ fn run_orbital(
         seconds: 0.0,
     };
     if req.tiles.is_none() {
-        let (outputs, record, sanity) = mosaic(o, wf, &inputs, &plan, progress)?;
+        let files = sums
+            .map(|h| h.join().unwrap_or_else(|p| std::panic::resume_unwind(p)))
+            .transpose()?;
+        let (outputs, record, sanity) = mosaic(o, wf, &inputs, &plan, files, progress)?;
         summary.mosaic = true;
         summary.outputs = outputs;
         summary.record = Some(record);

@@ -305,6 +305,7 @@ impl MetricsAcc {
     }
 }
 
+/// Each input file with its size and SHA-256, in order.
 pub(super) fn checksums(files: &[PathBuf], progress: &Progress) -> Result<Vec<InputFile>> {
     progress.steps("checksums", files.len() as u64);
     let v = files
@@ -332,12 +333,15 @@ pub(super) fn write_record(out: &Path, record: &RunRecord) -> Result<PathBuf> {
     Ok(path)
 }
 
-/// Blend every tile into the products and write the run record.
+/// Blend every tile into the products and write the run record. `files`: the inputs with
+/// their checksums if they were hashed already ([`checksums`]), else they are hashed here,
+/// once every tile is known to be there.
 pub(super) fn mosaic(
     o: &Orbital,
     wf: &Workflow,
     inputs: &Inputs,
     plan: &Plan,
+    files: Option<Vec<InputFile>>,
     progress: &Progress,
 ) -> Result<(Vec<PathBuf>, PathBuf, Sanity)> {
     let out = &o.output.directory;
@@ -363,9 +367,18 @@ pub(super) fn mosaic(
     }
     let (rows, cols) = (plan.grid.rows, plan.grid.cols);
     let heads: Vec<(TileRecord, u64)> = found.into_iter().flatten().collect();
+    let files = match files {
+        Some(f) => {
+            progress.note(&format!(
+                "checksums: {} input files, hashed while the tiles ran",
+                f.len()
+            ));
+            f
+        }
+        None => checksums(&inputs.files()?, progress)?,
+    };
     // What the products are, from the inputs' contents and the parameters only (no path or
     // time: the same inputs give the same files wherever they lie and the run writes).
-    let files = checksums(&inputs.files()?, progress)?;
     let key = run_key(wf, &files);
     let meta = product_metadata(o, inputs, plan, &key);
     let mut writers = Vec::new();

@@ -316,13 +316,15 @@ pub(super) fn make_grid(o: &Orbital, inputs: &Inputs, res: f64) -> Result<Grid> 
 }
 
 /// Make the plan, or load it when one with the same key exists (and its reference file, when
-/// it has one, matches its checksum); with the plan, the reference's values.
+/// it has one, matches its checksum); with the plan, the reference's values, and when the
+/// plan was made now and has a single tile over the whole grid, the full-resolution inputs
+/// the reference ingested (the tile's, [`super::reference::build`]).
 pub(super) fn plan(
     o: &Orbital,
     wf: &Workflow,
     inputs: &Inputs,
     progress: &Progress,
-) -> Result<(Plan, Option<Array2<f64>>)> {
+) -> Result<(Plan, Option<Array2<f64>>, Option<Ingested>)> {
     let out = &o.output.directory;
     let key = plan_key(wf, &inputs.files()?)?;
     let path = out.join("plan.json");
@@ -337,7 +339,7 @@ pub(super) fn plan(
                 match reference {
                     Ok(reference) => {
                         progress.note(&format!("plan: reusing {}", path.display()));
-                        return Ok((p, reference));
+                        return Ok((p, reference, None));
                     }
                     Err(e) => e.to_string(),
                 }
@@ -477,7 +479,14 @@ pub(super) fn plan(
                 dem_psf_sigma,
                 params: &params,
             };
-            super::reference::build(o, inputs, &grid, &run, f)?
+            let whole = Window {
+                r0: 0,
+                c0: 0,
+                rows: grid.rows,
+                cols: grid.cols,
+            };
+            let single = tiles.len() == 1 && tiles[0].ext == whole;
+            super::reference::build(o, inputs, &grid, &run, f, single)?
         }
         None => None,
     };
@@ -500,7 +509,7 @@ pub(super) fn plan(
         dem_track_weight,
         dem_track_source,
         swaths,
-        reference: built.as_ref().map(|(info, _)| info.clone()),
+        reference: built.as_ref().map(|b| b.info.clone()),
     };
     write_atomic(
         &path,
@@ -550,7 +559,11 @@ pub(super) fn plan(
             list(&p.noise_weights)
         ));
     }
-    Ok((p, built.map(|(_, values)| values)))
+    let (reference, ingested) = match built {
+        Some(b) => (Some(b.values), b.ingested),
+        None => (None, None),
+    };
+    Ok((p, reference, ingested))
 }
 
 #[cfg(test)]

@@ -13,7 +13,9 @@ use crate::fusion::pyramid;
 /// The most coarse pixels the reference is solved on: beyond ≈ 1 MP of coarse pixels the block
 /// factor grows with the region, so the plan's memory does not.
 pub const REFERENCE_PIXELS: usize = 1 << 20;
-/// Fine pixels ingested at once while the reference's inputs are block-averaged.
+/// Fine pixels ingested at once (in bands of whole blocks) while the reference's inputs are
+/// block-averaged: 2 MP, so that a region of up to 2 MP — one tile at the default tile size —
+/// is ingested in one band, which its single tile then takes over ([`build`]).
 const BAND_PIXELS: usize = 1 << 21;
 const MAGIC: &[u8; 8] = b"SFSREF01";
 /// The reference's file in the output directory.
@@ -54,16 +56,27 @@ pub(super) struct RunWide<'a> {
     pub params: &'a FusionParams,
 }
 
+/// A reference just built: its record, its values, and the full-resolution inputs when
+/// [`build`] kept them.
+pub(super) struct Built {
+    pub(super) info: ReferenceInfo,
+    pub(super) values: Array2<f64>,
+    pub(super) ingested: Option<Ingested>,
+}
+
 /// Build the reference of block `f` over `grid`, write it to the output directory and return
 /// its record and its values; `Ok(None)` when no DEM reaches the grid at all (the tiles then
-/// say where) or no observation has a usable pixel.
+/// say where) or no observation has a usable pixel. With `keep` (the plan has one tile, over
+/// the whole grid), when one band of the banded ingest covered the whole grid, also that
+/// full-resolution ingest: the tile's own would be the same.
 pub(super) fn build(
     o: &Orbital,
     inputs: &Inputs,
     grid: &Grid,
     run: &RunWide,
     f: usize,
-) -> Result<Option<(ReferenceInfo, Array2<f64>)>> {
+    keep: bool,
+) -> Result<Option<Built>> {
     let t0 = Instant::now();
     let (cr, cc) = pyramid::coarse_dim((grid.rows, grid.cols), f);
     let n = inputs.obs.len();
@@ -71,16 +84,16 @@ pub(super) fn build(
     let mut suns = vec![Array2::from_elem((cr, cc), [f64::NAN; 3]); n];
     let mut views = suns.clone();
     let mut dem = Array2::from_elem((cr, cc), f64::NAN);
+    let mut kept = None;
     // Bands of whole blocks, so each band's block means are the grid's.
-    let band = (BAND_PIXELS / (grid.cols * f * f)).max(1);
+    let band = (BAND_PIXELS / (grid.cols * f)).max(1);
     for i0 in (0..cr).step_by(band) {
         let i1 = (i0 + band).min(cr);
         let (r0, r1) = (i0 * f, (i1 * f).min(grid.rows));
         let win = grid.window(r0 as isize, 0, r1 - r0, grid.cols);
-        let pr = projector(&win.crs)?;
-        let geo = win.geographic(&pr);
-        for (k, img) in observations_on(o, inputs, run.swaths, &win, &pr, &geo)? {
-            let rows = s![i0..i1, ..];
+        let ingested = ingest_window(o, inputs, run.swaths, &win)?;
+        for (k, img) in &ingested.shots {
+            let (k, rows) = (*k, s![i0..i1, ..]);
             images[k]
                 .slice_mut(rows)
                 .assign(&pyramid::block_mean(img.reflectance.view(), f));
@@ -92,7 +105,12 @@ pub(super) fn build(
                 .assign(&pyramid::block_mean_vectors(img.view.view(), f));
         }
         dem.slice_mut(s![i0..i1, ..])
-            .assign(&pyramid::block_mean(dem_on(o, inputs, &geo).view(), f));
+            .assign(&pyramid::block_mean(ingested.dem.view(), f));
+        // One band over the whole grid is exactly what a single tile over the whole grid
+        // ingests: hand it on rather than ingest it again.
+        if keep && r0 == 0 && r1 == grid.rows {
+            kept = Some(ingested);
+        }
     }
     fill_holes(&mut dem);
     if !dem.iter().all(|v| v.is_finite()) {
@@ -147,7 +165,11 @@ pub(super) fn build(
         iterations: stage.iterations.len(),
         seconds: t0.elapsed().as_secs_f64(),
     };
-    Ok(Some((info, correction)))
+    Ok(Some(Built {
+        info,
+        values: correction,
+        ingested: kept,
+    }))
 }
 
 fn encode(a: &Array2<f64>) -> Vec<u8> {

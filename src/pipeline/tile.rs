@@ -139,25 +139,28 @@ pub(super) fn read_tile_rows(
         .collect())
 }
 
-/// Run one tile and write its file atomically.
+/// Run one tile and write its file atomically. `ingested`: the tile's inputs when the plan
+/// has them already (one tile over the whole grid, [`super::reference::build`]).
 pub(super) fn run_tile(
     o: &Orbital,
     inputs: &Inputs,
     plan: &Plan,
     reference: Option<&Array2<f64>>,
     tile: &Tile,
+    ingested: Option<Ingested>,
 ) -> Result<TileRecord> {
     let t0 = Instant::now();
     let e = tile.ext;
     let grid = plan
         .grid
         .window(e.r0 as isize, e.c0 as isize, e.rows, e.cols);
-    let pr = projector(&grid.crs)?;
-    let geo = grid.geographic(&pr);
     let dim = (e.rows, e.cols);
-    // Every observation that reaches the tile; the `image` layer shows the first one that
-    // covers a pixel.
-    let shots = observations_on(o, inputs, &plan.swaths, &grid, &pr, &geo)?;
+    // Every observation that reaches the tile, and the DEM; the `image` layer shows the first
+    // observation that covers a pixel.
+    let Ingested { shots, dem } = match ingested {
+        Some(i) => i,
+        None => ingest_window(o, inputs, &plan.swaths, &grid)?,
+    };
     let mut image = Array2::from_elem(dim, f64::NAN);
     for (_, img) in &shots {
         Zip::from(&mut image)
@@ -168,10 +171,11 @@ pub(super) fn run_tile(
                 }
             });
     }
-    // The DEM: the first product that covers a pixel.
-    let dem = dem_on(o, inputs, &geo);
     if let Some(((r, c), _)) = dem.indexed_iter().find(|(_, v)| !v.is_finite()) {
-        let (lon, lat) = (geo.lon[(r, c)], geo.lat[(r, c)]);
+        let (x, y) = grid.xy(r as f64, c as f64);
+        let (lon, lat) = projector(&grid.crs)?
+            .inverse(x, y)
+            .unwrap_or((f64::NAN, f64::NAN));
         return Err(Error::Usage(format!(
             "tile {}: no LOLA DEM of [inputs] lola covers grid pixel ({}, {}) at lon {lon:.4}, lat {lat:.4} (with the interpolation's support): add a DEM that covers the region or shrink [region]",
             tile.id,
@@ -179,9 +183,6 @@ pub(super) fn run_tile(
             e.c0 + c
         )));
     }
-    // The per-pixel longitudes, latitudes and bearings (24 bytes per pixel) are not needed
-    // by the fusion.
-    drop(geo);
     let ids: Vec<usize> = shots.iter().map(|(k, _)| *k).collect();
     let per_obs = |v: &[f64]| {
         ids.iter()
