@@ -5,7 +5,7 @@
 //! `step_tolerance` × ε in a step, or the steps to come are estimated not to ([`remaining`]),
 //! or E stagnates, or after `max_iterations`.
 
-use super::objective::{Energy, Iterate, Objective, Photo};
+use super::objective::{relief_gradient_into, Energy, Iterate, Objective, Photo};
 use super::{ops, FusionParams, IterationRecord};
 use crate::spectral;
 use ndarray::{Array2, ArrayView2, Zip};
@@ -48,15 +48,25 @@ struct Fixed {
     hq32: Array2<f32>,
     /// 2K, the tie's Hessian per pixel, in f32.
     tie2: Option<Array2<f32>>,
+    /// E_DEM's relief field r ([`Objective::dem_relief`]) and the filter ĝ_s, in f32.
+    dem_relief: Option<(Array2<f32>, Array2<f32>)>,
+    /// The membrane's relief field r_η ([`Objective::membrane_relief`]), in f32.
+    membrane_relief: Option<Array2<f32>>,
 }
 
 impl Fixed {
     fn new(obj: &Objective) -> Self {
         let hq = obj.quadratic_hessian();
+        let f32_of = |a: &Array2<f64>| a.mapv(|x| x as f32);
         Self {
-            hq32: hq.mapv(|h| h as f32),
+            hq32: f32_of(&hq),
             hq,
             tie2: obj.tie.as_ref().map(|k| k.mapv(|k| (2.0 * k) as f32)),
+            dem_relief: obj
+                .dem_relief
+                .as_ref()
+                .map(|r| (f32_of(r), f32_of(&obj.gs))),
+            membrane_relief: obj.membrane_relief.as_ref().map(f32_of),
         }
     }
 }
@@ -71,6 +81,9 @@ struct Normal<'o, 'a, 'p> {
     v: Array2<f32>,
     vx: Array2<f32>,
     vy: Array2<f32>,
+    /// Scratch of the relief fields' parts (empty without them).
+    u: Array2<f32>,
+    g: Array2<f32>,
 }
 
 impl Normal<'_, '_, '_> {
@@ -86,21 +99,32 @@ impl Normal<'_, '_, '_> {
             &self.v,
             [&mut self.vx, &mut self.vy, out],
         );
-        if obj.membrane_relief.is_some() {
-            // The edge-aware membrane's spatial part (several observations or the opt-in
-            // membrane only), in f64.
-            let mut m = Array2::zeros(out.dim());
-            obj.add_membrane_relief_hessian(&self.v.mapv(f64::from), &mut m);
+        let e2 = (obj.problem.spacing * obj.problem.spacing) as f32;
+        if let Some(r) = &self.fixed.membrane_relief {
+            // The edge-aware membrane's spatial part (the opt-in membrane, or η lowered where
+            // several observations overlap): −η·2Dᵀ(r_η∘Dv)/ε².
+            relief_gradient_into(r, &self.v, e2, 0.0, &mut self.g);
+            let eta = obj.eta as f32;
             Zip::from(&mut *out)
-                .and(&m)
-                .par_for_each(|o, &m| *o += m as f32);
+                .and(&self.g)
+                .par_for_each(|o, &g| *o -= eta * g);
         }
         obj.dct_cg.forward_in_place(out);
-        if let Some(rh) = obj.relief_hessian(&d.mapv(f64::from)) {
-            let delta = obj.delta;
+        if let Some((r, gs)) = &self.fixed.dem_relief {
+            // E_DEM's relief part where several observations overlap, in DCT coefficients:
+            // −δ·ĝ_s·DCT(2Dᵀ(r∘Du)/ε² + 2h·r∘u), u = IDCT(ĝ_s·d̂).
+            Zip::from(&mut self.u)
+                .and(gs)
+                .and(d)
+                .par_for_each(|u, &g, &d| *u = g * d);
+            obj.dct_cg.inverse_in_place(&mut self.u);
+            relief_gradient_into(r, &self.u, e2, obj.dem_height as f32, &mut self.g);
+            obj.dct_cg.forward_in_place(&mut self.g);
+            let delta = obj.delta as f32;
             Zip::from(&mut *out)
-                .and(&rh)
-                .par_for_each(|o, &r| *o += (delta * r) as f32);
+                .and(gs)
+                .and(&self.g)
+                .par_for_each(|o, &gs, &g| *o -= delta * gs * g);
         }
         if self.fixed_mean {
             // d̂₀ = 0 here (the preconditioner zeroes it), so d̂·A·d̂ does not see this entry.
@@ -134,8 +158,9 @@ fn dot32(a: &Array2<f32>, b: &Array2<f32>) -> f64 {
     ops::sum_row_parts(parts.view())[0]
 }
 
-/// Preconditioned CG for (Dᵀ(H + M)D + 2K + H_Q + H_R)Δ (H_R the DEM term's relief field,
-/// [`Objective::relief_hessian`]) = −g in DCT coefficients (K the tie's
+/// Preconditioned CG for (Dᵀ(H + M)D + 2K + H_Q + H_R)Δ (H_R the relief fields' parts:
+/// −δ·ĝ_s·DCT(2Dᵀ(r∘Du)/ε² + 2h·r∘u) with u = IDCT(ĝ_s·Δ̂) for E_DEM's, −η·2Dᵀ(r_η∘DΔ)/ε² for
+/// the membrane's, [`relief_gradient_into`]) = −g in DCT coefficients (K the tie's
 /// per-pixel weight); returns (Δ, iterations). Without a tie or E_DEM's height part
 /// ([`Objective::dem_height`]) no term sees the mean height, which stays the DEM's; with
 /// either, the mean is solved for too. Each iteration is two transforms and
@@ -199,6 +224,18 @@ fn newton_step(
         v: Array2::zeros((ny, nx)),
         vx: Array2::zeros((ny, nx)),
         vy: Array2::zeros((ny, nx)),
+        u: Array2::zeros(if fixed.dem_relief.is_some() {
+            (ny, nx)
+        } else {
+            (0, 0)
+        }),
+        g: Array2::zeros(
+            if fixed.dem_relief.is_some() || fixed.membrane_relief.is_some() {
+                (ny, nx)
+            } else {
+                (0, 0)
+            },
+        ),
     };
     let mut r = g.mapv(|x| -x as f32);
     obj.dct_cg.forward_in_place(&mut r);

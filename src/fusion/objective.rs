@@ -39,7 +39,7 @@ use super::ops;
 use super::support;
 use super::Problem;
 use crate::photometry::ReflectanceModel;
-use crate::spectral::{self, Dct2d};
+use crate::spectral::{self, to, Dct2d, Real};
 use ndarray::{Array2, ArrayView2, Zip};
 use serde::{Deserialize, Serialize};
 
@@ -293,15 +293,6 @@ impl<'a, 'p> Objective<'a, 'p> {
         }
     }
 
-    /// The membrane relief's part of the quadratic Hessian applied to a spatial field v,
-    /// −η·2Dᵀ(r_η∘Dv)/ε², added into `out`.
-    pub fn add_membrane_relief_hessian(&self, v: &Array2<f64>, out: &mut Array2<f64>) {
-        if let Some(r) = &self.membrane_relief {
-            let (_, g) = self.relief_term(r, v, 0.0, true);
-            out.scaled_add(-self.eta, &g.expect("asked for"));
-        }
-    }
-
     /// The mean of r_η(x) (0 without it): the preconditioner uses η·(1 − mean r_η).
     pub fn mean_membrane_relief(&self) -> f64 {
         self.membrane_relief
@@ -375,23 +366,11 @@ impl<'a, 'p> Objective<'a, 'p> {
                 *sum += height * r[(i, j)] * u[(i, j)] * u[(i, j)];
             });
         let g = grad.then(|| {
-            Zip::indexed(&fx).par_map_collect(|(i, j), &x| {
-                let west = if j > 0 { fx[(i, j - 1)] } else { 0.0 };
-                let north = if i > 0 { fy[(i - 1, j)] } else { 0.0 };
-                2.0 * (west - x + north - fy[(i, j)]) / e2 + 2.0 * height * r[(i, j)] * u[(i, j)]
-            })
+            let mut g = Array2::zeros((ny, nx));
+            relief_gradient_into(r, u, e2, height, &mut g);
+            g
         });
         (ops::sum(sum.view()), g)
-    }
-
-    /// The relief part of the quadratic Hessian applied to DCT coefficients d̂:
-    /// −ĝ_s·DCT(2Dᵀ(r∘D IDCT(ĝ_s d̂))/ε²) (to be multiplied by δ); `None` without relief.
-    pub fn relief_hessian(&self, d: &Array2<f64>) -> Option<Array2<f64>> {
-        let r = self.dem_relief.as_ref()?;
-        let u = self.dct.inverse(&(&self.gs * d));
-        let (_, g) = self.relief_term(r, &u, self.dem_height, true);
-        let gh = self.dct.forward(&g.expect("asked for"));
-        Some(Zip::from(&gh).and(&self.gs).map_collect(|&x, &g| -g * x))
     }
 
     /// The mean of r(x) (0 without relief): the preconditioner uses δ·(1 − mean r).
@@ -660,6 +639,43 @@ impl<'a, 'p> Objective<'a, 'p> {
     }
 }
 
+/// The gradient with respect to u of a relief field's Σ r·|D u|²/ε² + h·Σ r·u²
+/// ([`Objective::relief_term`]): 2Dᵀ(r∘Du)/ε² + 2h·r∘u, into `out`. D takes forward differences
+/// to the east and to the south, 0 past the last column or row (Neumann), and r on an edge is
+/// the mean of its two pixels. Each pixel computes the four edge fluxes it touches, in the same
+/// arithmetic as the energy's, so f64 gives the same bits however the work is split; f32 serves
+/// the conjugate gradients (`fast`).
+pub(crate) fn relief_gradient_into<T: Real>(
+    r: &Array2<T>,
+    u: &Array2<T>,
+    e2: T,
+    height: T,
+    out: &mut Array2<T>,
+) {
+    let (ny, nx) = u.dim();
+    let half = to::<T>(0.5);
+    let two = to::<T>(2.0);
+    let fx = |i: usize, j: usize| {
+        if j + 1 < nx {
+            half * (r[(i, j)] + r[(i, j + 1)]) * (u[(i, j + 1)] - u[(i, j)])
+        } else {
+            T::zero()
+        }
+    };
+    let fy = |i: usize, j: usize| {
+        if i + 1 < ny {
+            half * (r[(i, j)] + r[(i + 1, j)]) * (u[(i + 1, j)] - u[(i, j)])
+        } else {
+            T::zero()
+        }
+    };
+    Zip::indexed(out).par_for_each(|(i, j), g| {
+        let west = if j > 0 { fx(i, j - 1) } else { T::zero() };
+        let north = if i > 0 { fy(i - 1, j) } else { T::zero() };
+        *g = two * (west - fx(i, j) + north - fy(i, j)) / e2 + two * height * r[(i, j)] * u[(i, j)];
+    });
+}
+
 /// The positive semi-definite part of the symmetric 2 × 2 matrix (xx, xy, yy): its negative
 /// eigenvalues set to 0.
 pub fn psd_part([a, b, c]: [f64; 3]) -> [f64; 3] {
@@ -687,6 +703,55 @@ pub fn psd_part([a, b, c]: [f64; 3]) -> [f64; 3] {
 #[cfg(test)]
 mod tests {
     use super::*;
+
+    /// `relief_gradient_into` is the gradient of Σ_edges r_e·(Δu)²/ε² + h·Σ r·u², r_e the
+    /// mean of an edge's two pixels (written out here edge by edge), by central differences;
+    /// and f32 agrees with f64 to f32's precision (the conjugate gradients use f32).
+    #[test]
+    fn the_relief_gradient_is_the_relief_energys() {
+        let (ny, nx, e2, h) = (7, 9, 3.0, 0.4);
+        let r = Array2::from_shape_fn((ny, nx), |(i, j)| 0.2 + 0.1 * ((i * 3 + j * 5) % 7) as f64);
+        let u = Array2::from_shape_fn((ny, nx), |(i, j)| ((i * 7 + j * 3) as f64 * 0.37).sin());
+        let energy = |u: &Array2<f64>| {
+            let mut e = 0.0;
+            for i in 0..ny {
+                for j in 0..nx {
+                    if j + 1 < nx {
+                        let d = u[(i, j + 1)] - u[(i, j)];
+                        e += 0.5 * (r[(i, j)] + r[(i, j + 1)]) * d * d / e2;
+                    }
+                    if i + 1 < ny {
+                        let d = u[(i + 1, j)] - u[(i, j)];
+                        e += 0.5 * (r[(i, j)] + r[(i + 1, j)]) * d * d / e2;
+                    }
+                    e += h * r[(i, j)] * u[(i, j)] * u[(i, j)];
+                }
+            }
+            e
+        };
+        let mut g = Array2::zeros((ny, nx));
+        relief_gradient_into(&r, &u, e2, h, &mut g);
+        for ((i, j), &gij) in g.indexed_iter() {
+            let step = 1e-6;
+            let (mut up, mut down) = (u.clone(), u.clone());
+            up[(i, j)] += step;
+            down[(i, j)] -= step;
+            let fd = (energy(&up) - energy(&down)) / (2.0 * step);
+            assert!((gij - fd).abs() < 1e-7, "({i}, {j}): {gij} against {fd}");
+        }
+        let mut g32 = Array2::<f32>::zeros((ny, nx));
+        relief_gradient_into(
+            &r.mapv(|x| x as f32),
+            &u.mapv(|x| x as f32),
+            3.0,
+            0.4,
+            &mut g32,
+        );
+        let scale = g.iter().fold(0.0f64, |m, x| m.max(x.abs()));
+        for (a, b) in g.iter().zip(&g32) {
+            assert!((a - f64::from(*b)).abs() < 1e-5 * scale, "{a} against {b}");
+        }
+    }
     use crate::fusion::Directions;
     use crate::photometry::Hapke;
 

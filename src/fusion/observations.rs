@@ -22,7 +22,7 @@
 
 use super::support;
 use super::{Directions, Problem};
-use crate::photometry::{Albedo, ReflectanceModel};
+use crate::photometry::{incidence, Albedo, AlbedoCurve, ReflectanceModel};
 use ndarray::{Array2, ArrayView2, Axis, Zip};
 use rayon::prelude::*;
 use serde::{Deserialize, Serialize};
@@ -397,6 +397,7 @@ pub fn invert_albedo(
         .enumerate()
         .for_each(|(i, ((mut rrow, mut orow), mut srow))| {
             let mut data: Vec<(f64, f64, &Directions, &Directions)> = Vec::new();
+            let mut curves: Vec<(f64, f64, AlbedoCurve)> = Vec::new();
             for j in 0..dim.1 {
                 data.clear();
                 let (pp, qq) = (p[(i, j)], q[(i, j)]);
@@ -421,15 +422,17 @@ pub fn invert_albedo(
                 }
                 let mut r = swr / sw;
                 if data.len() > 1 {
+                    // R_k(ρ) at this pixel's slope: the albedo-free factors once per
+                    // observation, then every Gauss–Newton step is a few arithmetic operations.
+                    curves.clear();
+                    curves.extend(data.iter().filter_map(|&(wk, ik, s, v)| {
+                        incidence(pp, qq, s.at(i, j), v.at(i, j))
+                            .map(|g| (wk, ik, model.albedo_curve(&g.cos)))
+                    }));
                     for _ in 0..4 {
                         let (mut num, mut den) = (0.0, 0.0);
-                        let h = 1e-6;
-                        for &(wk, ik, s, v) in &data {
-                            let (s, v) = (s.at(i, j), v.at(i, j));
-                            let f0 = model.shade(pp, qq, r, s, v).r;
-                            let jac = (model.shade(pp, qq, r + h, s, v).r
-                                - model.shade(pp, qq, (r - h).max(0.0), s, v).r)
-                                / (r + h - (r - h).max(0.0));
+                        for (wk, ik, curve) in &curves {
+                            let (f0, jac) = curve.eval(r);
                             num += wk * jac * (ik - f0);
                             den += wk * jac * jac;
                         }

@@ -5,7 +5,7 @@
 //! r is the bidirectional reflectance (radiance over irradiance at normal incidence), i.e. what
 //! M3 radiance divided by the solar irradiance gives; I/F = π·r.
 
-use super::{Albedo, Cosines, Dual, ReflectanceCos, ReflectanceModel};
+use super::{Albedo, AlbedoCurve, Cosines, Dual, ReflectanceCos, ReflectanceModel};
 use serde::{Deserialize, Serialize};
 use std::f64::consts::PI;
 
@@ -161,18 +161,19 @@ impl Hapke {
         let (mu0e, mue, s) = roughness(mu0, mu, cos_g, self.theta_bar_deg.to_radians());
         (mu0e, mue, s, m)
     }
+}
 
-    fn r_from_parts<const N: usize>(
-        &self,
-        w: Dual<N>,
-        mu0e: Dual<N>,
-        mue: Dual<N>,
-        s: Dual<N>,
-        m: f64,
-    ) -> Dual<N> {
-        let hh = self.h_function.eval(mu0e, w) * self.h_function.eval(mue, w);
-        w * (1.0 / (4.0 * PI)) * mu0e / (mu0e + mue) * (hh + (m - 1.0)) * s
-    }
+/// r = w/(4π)·μ0e/(μ0e + μe)·(H(μ0e)H(μe) + M − 1)·S.
+fn r_from_parts<const N: usize>(
+    h: HFunction,
+    w: Dual<N>,
+    mu0e: Dual<N>,
+    mue: Dual<N>,
+    s: Dual<N>,
+    m: f64,
+) -> Dual<N> {
+    let hh = h.eval(mu0e, w) * h.eval(mue, w);
+    w * (1.0 / (4.0 * PI)) * mu0e / (mu0e + mue) * (hh + (m - 1.0)) * s
 }
 
 /// (ψ/π)·e with ψ = acos(cos ψ), skipping the arc cosine where e is exactly 0 (a near-nadir
@@ -290,10 +291,74 @@ fn roughness<const N: usize>(
     }
 }
 
+/// Hapke's r(w) at fixed cosines: the w-free factors (μ0e, μe, S, M) computed once
+/// ([`Hapke::w_curve`]). With H81 an evaluation is one square root and four divisions:
+/// r = w·k·(H(a)H(b) + M − 1), k = a/(a + b)·S/4π,
+/// H(a)H(b) = (1 + 2a)(1 + 2b)/((1 + 2γa)(1 + 2γb)), γ = √(1 − w), and
+/// ∂(H(a)H(b))/∂w = H(a)H(b)·(a/(1 + 2γa) + b/(1 + 2γb))/γ.
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub struct WCurve {
+    h_function: HFunction,
+    /// μ0e, μe, S, M.
+    a: f64,
+    b: f64,
+    s: f64,
+    m: f64,
+    /// a/(a + b)·S/4π and (1 + 2a)(1 + 2b).
+    k: f64,
+    n: f64,
+}
+
+impl WCurve {
+    /// (r, ∂r/∂w) at w.
+    pub fn eval(&self, w: f64) -> (f64, f64) {
+        let (a, b, k, n, m) = (self.a, self.b, self.k, self.n, self.m);
+        match self.h_function {
+            HFunction::H81 => {
+                let gamma = (1.0 - w).sqrt();
+                let (da, db) = (1.0 + 2.0 * gamma * a, 1.0 + 2.0 * gamma * b);
+                let hh = n / (da * db);
+                let bracket = hh + m - 1.0;
+                let dhh = hh * (a / da + b / db) / gamma;
+                (w * k * bracket, k * (bracket + w * dhh))
+            }
+            HFunction::H02 => {
+                let f = r_from_parts(
+                    self.h_function,
+                    Dual::<1>::var(w, 0),
+                    Dual::constant(a),
+                    Dual::constant(b),
+                    Dual::constant(self.s),
+                    m,
+                );
+                (f.v, f.d[0])
+            }
+        }
+    }
+}
+
+impl Hapke {
+    /// r(w) at cosines `c` ([`WCurve`]).
+    pub fn w_curve(&self, c: &Cosines) -> WCurve {
+        let (mu0e, mue, s, m) =
+            self.w_free(Dual::<0>::constant(c.mu0), Dual::constant(c.mu), c.cos_g);
+        let (a, b, s) = (mu0e.v, mue.v, s.v);
+        WCurve {
+            h_function: self.h_function,
+            a,
+            b,
+            s,
+            m,
+            k: a / (a + b) * s / (4.0 * PI),
+            n: (1.0 + 2.0 * a) * (1.0 + 2.0 * b),
+        }
+    }
+}
+
 impl ReflectanceModel for Hapke {
     fn reflectance(&self, albedo: f64, c: &Cosines) -> ReflectanceCos {
         let (mu0e, mue, s, m) = self.w_free(Dual::<2>::var(c.mu0, 0), Dual::var(c.mu, 1), c.cos_g);
-        let r = self.r_from_parts(Dual::constant(albedo), mu0e, mue, s, m);
+        let r = r_from_parts(self.h_function, Dual::constant(albedo), mu0e, mue, s, m);
         ReflectanceCos {
             r: r.v,
             dr_dmu0: r.d[0],
@@ -302,44 +367,16 @@ impl ReflectanceModel for Hapke {
     }
 
     /// Newton on w with a bisection fallback; r(w) is strictly increasing (docs/photometry.md).
-    /// The w-free factors are computed once, in plain f64 (`Dual<0>`); with H81 a step is then
-    /// one square root and four divisions: r = w·k·(H(a)H(b) + M − 1), k = a/(a + b)·S/4π,
-    /// H(a)H(b) = (1 + 2a)(1 + 2b)/((1 + 2γa)(1 + 2γb)), γ = √(1 − w), and
-    /// ∂(H(a)H(b))/∂w = H(a)H(b)·(a/(1 + 2γa) + b/(1 + 2γb))/γ. r(w_max) is evaluated only
+    /// The w-free factors are computed once, in plain f64 ([`WCurve`]: with H81 a step is then
+    /// one square root and four divisions). r(w_max) is evaluated only
     /// when the iteration reaches w_max (the observation may be out of range), and the
     /// iteration stops at 10⁻¹² relative, far below any use of the albedo.
     fn invert_cosines(&self, observed: f64, c: &Cosines) -> Albedo {
         if observed <= 0.0 {
             return Albedo::Value(0.0);
         }
-        let (mu0e, mue, s, m) =
-            self.w_free(Dual::<0>::constant(c.mu0), Dual::constant(c.mu), c.cos_g);
-        let (a, b, s) = (mu0e.v, mue.v, s.v);
-        let k = a / (a + b) * s / (4.0 * PI);
-        let n = (1.0 + 2.0 * a) * (1.0 + 2.0 * b);
-        // (r, ∂r/∂w) at w.
-        let r = |w: f64| -> (f64, f64) {
-            match self.h_function {
-                HFunction::H81 => {
-                    let gamma = (1.0 - w).sqrt();
-                    let (da, db) = (1.0 + 2.0 * gamma * a, 1.0 + 2.0 * gamma * b);
-                    let hh = n / (da * db);
-                    let bracket = hh + m - 1.0;
-                    let dhh = hh * (a / da + b / db) / gamma;
-                    (w * k * bracket, k * (bracket + w * dhh))
-                }
-                HFunction::H02 => {
-                    let f = self.r_from_parts(
-                        Dual::<1>::var(w, 0),
-                        Dual::constant(a),
-                        Dual::constant(b),
-                        Dual::constant(s),
-                        m,
-                    );
-                    (f.v, f.d[0])
-                }
-            }
-        };
+        let curve = self.w_curve(c);
+        let r = |w: f64| curve.eval(w);
         let (mut lo, mut hi) = (0.0, W_MAX);
         let mut in_range = false;
         // Start from the secant through the origin and w = 0.5 (r(w)/w varies slowly in w).
@@ -380,6 +417,10 @@ impl ReflectanceModel for Hapke {
             return Albedo::OutOfRange;
         }
         Albedo::Value(w)
+    }
+
+    fn albedo_curve(&self, c: &Cosines) -> AlbedoCurve {
+        AlbedoCurve::Hapke(self.w_curve(c))
     }
 }
 

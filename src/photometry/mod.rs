@@ -12,7 +12,7 @@ mod dual;
 mod hapke;
 
 pub use dual::Dual;
-pub use hapke::{HFunction, Hapke, PhaseFunction};
+pub use hapke::{HFunction, Hapke, PhaseFunction, WCurve};
 
 use serde::{Deserialize, Serialize};
 
@@ -67,6 +67,25 @@ pub enum Albedo {
     /// The observation exceeds what the model can produce at the largest admissible albedo
     /// (saturation or wrong geometry): flagged rather than invented.
     OutOfRange,
+}
+
+/// R(ρ) at one pixel's fixed cosines ([`ReflectanceModel::albedo_curve`]).
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub enum AlbedoCurve {
+    /// R = u·ρ: the models linear in the albedo (Lambert, the metallic lobes); u = R(ρ = 1).
+    Linear(f64),
+    /// Hapke's dependence on w, its w-free factors computed once.
+    Hapke(WCurve),
+}
+
+impl AlbedoCurve {
+    /// (R, ∂R/∂ρ) at albedo `rho`.
+    pub fn eval(&self, rho: f64) -> (f64, f64) {
+        match self {
+            AlbedoCurve::Linear(u) => (u * rho, *u),
+            AlbedoCurve::Hapke(c) => c.eval(rho),
+        }
+    }
 }
 
 /// Geometry of one pixel for a surface of gradient (p, q): the cosines and their p, q partials.
@@ -124,6 +143,11 @@ pub trait ReflectanceModel: Send + Sync + std::fmt::Debug {
 
     /// Solve R(ρ; μ0, μ, g) = `observed` for ρ (called only with μ0 > 0, μ > 0).
     fn invert_cosines(&self, observed: f64, c: &Cosines) -> Albedo;
+
+    /// R as a function of the albedo alone at these cosines, with what does not depend on
+    /// the albedo computed once (called only with μ0 > 0, μ > 0): the joint albedo of several
+    /// observations evaluates it many times per pixel.
+    fn albedo_curve(&self, c: &Cosines) -> AlbedoCurve;
 
     /// R, ∂R/∂p, ∂R/∂q for a surface of gradient (p, q) under the given Sun and view vectors.
     fn shade(&self, p: f64, q: f64, albedo: f64, sun: &Vec3, view: &Vec3) -> Shade {
@@ -185,6 +209,9 @@ impl ReflectanceModel for Lambert {
     fn invert_cosines(&self, observed: f64, c: &Cosines) -> Albedo {
         invert_linear(observed, self.reflectance(1.0, c).r)
     }
+    fn albedo_curve(&self, c: &Cosines) -> AlbedoCurve {
+        AlbedoCurve::Linear(self.reflectance(1.0, c).r)
+    }
 }
 
 /// One specular lobe A·cos^B(θr) of the metallic model.
@@ -228,6 +255,9 @@ impl ReflectanceModel for Metallic {
     }
     fn invert_cosines(&self, observed: f64, c: &Cosines) -> Albedo {
         invert_linear(observed, self.reflectance(1.0, c).r)
+    }
+    fn albedo_curve(&self, c: &Cosines) -> AlbedoCurve {
+        AlbedoCurve::Linear(self.reflectance(1.0, c).r)
     }
 }
 
