@@ -343,28 +343,21 @@ impl<'a, 'p> Objective<'a, 'p> {
     ) -> (f64, Option<Array2<f64>>) {
         let (ny, nx) = u.dim();
         let e2 = self.problem.spacing * self.problem.spacing;
-        // Weighted differences on the edges to the east (fx) and to the south (fy) of each
-        // pixel, 0 past the last column or row (Neumann).
-        let mut fx = Array2::<f64>::zeros((ny, nx));
-        let mut fy = Array2::<f64>::zeros((ny, nx));
+        // Weighted differences on the edges to the east and to the south of each pixel, none
+        // past the last column or row (Neumann).
         let mut sum = Array2::<f64>::zeros((ny, nx));
-        Zip::indexed(&mut fx)
-            .and(&mut fy)
-            .and(&mut sum)
-            .par_for_each(|(i, j), fx, fy, sum| {
-                if j + 1 < nx {
-                    let d = u[(i, j + 1)] - u[(i, j)];
-                    *fx = 0.5 * (r[(i, j)] + r[(i, j + 1)]) * d;
-                    *sum += *fx * d;
-                }
-                if i + 1 < ny {
-                    let d = u[(i + 1, j)] - u[(i, j)];
-                    *fy = 0.5 * (r[(i, j)] + r[(i + 1, j)]) * d;
-                    *sum += *fy * d;
-                }
-                *sum /= e2;
-                *sum += height * r[(i, j)] * u[(i, j)] * u[(i, j)];
-            });
+        Zip::indexed(&mut sum).par_for_each(|(i, j), sum| {
+            if j + 1 < nx {
+                let d = u[(i, j + 1)] - u[(i, j)];
+                *sum += 0.5 * (r[(i, j)] + r[(i, j + 1)]) * d * d;
+            }
+            if i + 1 < ny {
+                let d = u[(i + 1, j)] - u[(i, j)];
+                *sum += 0.5 * (r[(i, j)] + r[(i + 1, j)]) * d * d;
+            }
+            *sum /= e2;
+            *sum += height * r[(i, j)] * u[(i, j)] * u[(i, j)];
+        });
         let g = grad.then(|| {
             let mut g = Array2::zeros((ny, nx));
             relief_gradient_into(r, u, e2, height, &mut g);
@@ -703,6 +696,8 @@ pub fn psd_part([a, b, c]: [f64; 3]) -> [f64; 3] {
 #[cfg(test)]
 mod tests {
     use super::*;
+    use crate::fusion::Directions;
+    use crate::photometry::Hapke;
 
     /// `relief_gradient_into` is the gradient of Σ_edges r_e·(Δu)²/ε² + h·Σ r·u², r_e the
     /// mean of an edge's two pixels (written out here edge by edge), by central differences;
@@ -752,8 +747,6 @@ mod tests {
             assert!((a - f64::from(*b)).abs() < 1e-5 * scale, "{a} against {b}");
         }
     }
-    use crate::fusion::Directions;
-    use crate::photometry::Hapke;
 
     /// A smooth surface z and a different smooth DEM, metres.
     fn surfaces(ny: usize, nx: usize) -> (Array2<f64>, Array2<f64>) {

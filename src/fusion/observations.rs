@@ -21,8 +21,8 @@
 //!   pixel.
 
 use super::support;
-use super::{Directions, Problem};
-use crate::photometry::{incidence, Albedo, AlbedoCurve, ReflectanceModel};
+use super::Problem;
+use crate::photometry::{incidence, Albedo, AlbedoCurve, Cosines, ReflectanceModel};
 use ndarray::{Array2, ArrayView2, Axis, Zip};
 use rayon::prelude::*;
 use serde::{Deserialize, Serialize};
@@ -396,7 +396,7 @@ pub fn invert_albedo(
         .zip(strength.axis_iter_mut(Axis(0)))
         .enumerate()
         .for_each(|(i, ((mut rrow, mut orow), mut srow))| {
-            let mut data: Vec<(f64, f64, &Directions, &Directions)> = Vec::new();
+            let mut data: Vec<(f64, f64, Cosines)> = Vec::new();
             let mut curves: Vec<(f64, f64, AlbedoCurve)> = Vec::new();
             for j in 0..dim.1 {
                 data.clear();
@@ -408,13 +408,15 @@ pub fn invert_albedo(
                         continue;
                     }
                     let ik = o.image[(i, j)] / w.gains[k];
-                    if let Albedo::Value(r) =
-                        model.invert(ik, pp, qq, o.sun.at(i, j), o.view.at(i, j))
-                    {
+                    // ReflectanceModel::invert, keeping the cosines for the joint step.
+                    let Some(g) = incidence(pp, qq, o.sun.at(i, j), o.view.at(i, j)) else {
+                        continue;
+                    };
+                    if let Albedo::Value(r) = model.invert_cosines(ik, &g.cos) {
                         sw += wk;
                         swr += wk * r;
                         s2 += wk * ik * ik;
-                        data.push((wk, ik, &o.sun, &o.view));
+                        data.push((wk, ik, g.cos));
                     }
                 }
                 if data.is_empty() {
@@ -425,10 +427,10 @@ pub fn invert_albedo(
                     // R_k(ρ) at this pixel's slope: the albedo-free factors once per
                     // observation, then every Gauss–Newton step is a few arithmetic operations.
                     curves.clear();
-                    curves.extend(data.iter().filter_map(|&(wk, ik, s, v)| {
-                        incidence(pp, qq, s.at(i, j), v.at(i, j))
-                            .map(|g| (wk, ik, model.albedo_curve(&g.cos)))
-                    }));
+                    curves.extend(
+                        data.iter()
+                            .map(|(wk, ik, c)| (*wk, *ik, model.albedo_curve(c))),
+                    );
                     for _ in 0..4 {
                         let (mut num, mut den) = (0.0, 0.0);
                         for (wk, ik, curve) in &curves {
