@@ -479,14 +479,7 @@ pub(super) fn plan(
                 dem_psf_sigma,
                 params: &params,
             };
-            let whole = Window {
-                r0: 0,
-                c0: 0,
-                rows: grid.rows,
-                cols: grid.cols,
-            };
-            let single = tiles.len() == 1 && tiles[0].ext == whole;
-            super::reference::build(o, inputs, &grid, &run, f, single)?
+            super::reference::build(o, inputs, &grid, &run, f, &tiles)?
         }
         None => None,
     };

@@ -13,10 +13,9 @@ use crate::fusion::pyramid;
 /// The most coarse pixels the reference is solved on: beyond ≈ 1 MP of coarse pixels the block
 /// factor grows with the region, so the plan's memory does not.
 pub const REFERENCE_PIXELS: usize = 1 << 20;
-/// Fine pixels ingested at once (in bands of whole blocks) while the reference's inputs are
-/// block-averaged: 2 MP, so that a region of up to 2 MP — one tile at the default tile size —
-/// is ingested in one band, which its single tile then takes over ([`build`]).
-const BAND_PIXELS: usize = 1 << 21;
+/// The fewest fine pixels a band of the reference's ingest holds (bands are whole rows of
+/// blocks; [`band_pixels`]).
+const MIN_BAND_PIXELS: usize = 1 << 16;
 const MAGIC: &[u8; 8] = b"SFSREF01";
 /// The reference's file in the output directory.
 pub(super) const REFERENCE_FILE: &str = "reference.bin";
@@ -64,19 +63,45 @@ pub(super) struct Built {
     pub(super) ingested: Option<Ingested>,
 }
 
+/// Fine pixels the reference ingests at once: no more than one tile ingests, so that the plan
+/// is never the run's memory peak (a tile's window is the most any stage of the run holds at
+/// full resolution). A single tile over the whole grid ingests it in one band, which the tile
+/// then takes over ([`build`]); otherwise the largest tile window, and at least
+/// [`MIN_BAND_PIXELS`] (the per-band cost of reading the swaths then stays small). The block
+/// means do not depend on the bands.
+fn band_pixels(grid: &Grid, tiles: &[Tile]) -> usize {
+    let largest = tiles
+        .iter()
+        .map(|t| t.ext.rows * t.ext.cols)
+        .max()
+        .unwrap_or(0);
+    if tiles.len() == 1 {
+        largest.max(grid.rows * grid.cols)
+    } else {
+        largest.max(MIN_BAND_PIXELS)
+    }
+}
+
 /// Build the reference of block `f` over `grid`, write it to the output directory and return
 /// its record and its values; `Ok(None)` when no DEM reaches the grid at all (the tiles then
-/// say where) or no observation has a usable pixel. With `keep` (the plan has one tile, over
-/// the whole grid), when one band of the banded ingest covered the whole grid, also that
-/// full-resolution ingest: the tile's own would be the same.
+/// say where) or no observation has a usable pixel. When the plan has one tile over the whole
+/// grid (`tiles`), also the full-resolution ingest of its one band: the tile's own would be
+/// the same.
 pub(super) fn build(
     o: &Orbital,
     inputs: &Inputs,
     grid: &Grid,
     run: &RunWide,
     f: usize,
-    keep: bool,
+    tiles: &[Tile],
 ) -> Result<Option<Built>> {
+    let whole = Window {
+        r0: 0,
+        c0: 0,
+        rows: grid.rows,
+        cols: grid.cols,
+    };
+    let keep = tiles.len() == 1 && tiles[0].ext == whole;
     let t0 = Instant::now();
     let (cr, cc) = pyramid::coarse_dim((grid.rows, grid.cols), f);
     let n = inputs.obs.len();
@@ -86,7 +111,7 @@ pub(super) fn build(
     let mut dem = Array2::from_elem((cr, cc), f64::NAN);
     let mut kept = None;
     // Bands of whole blocks, so each band's block means are the grid's.
-    let band = (BAND_PIXELS / (grid.cols * f)).max(1);
+    let band = (band_pixels(grid, tiles) / (grid.cols * f)).max(1);
     for i0 in (0..cr).step_by(band) {
         let i1 = (i0 + band).min(cr);
         let (r0, r1) = (i0 * f, (i1 * f).min(grid.rows));
