@@ -41,6 +41,7 @@ use super::Problem;
 use crate::photometry::ReflectanceModel;
 use crate::spectral::{self, to, Dct2d, Real};
 use ndarray::{Array2, ArrayView2, Zip};
+use rayon::prelude::*;
 use serde::{Deserialize, Serialize};
 
 /// The terms of the energy at one iterate.
@@ -376,11 +377,17 @@ impl<'a, 'p> Objective<'a, 'p> {
     /// E_tie at `z`.
     pub fn tie_energy(&self, z: ArrayView2<f64>) -> f64 {
         let Some(k) = &self.tie else { return 0.0 };
-        let t = Zip::from(k)
-            .and(z)
-            .and(self.problem.dem)
-            .map_collect(|&k, &z, &d| k * (z - d) * (z - d));
-        ops::sum(t.view())
+        let parts = Zip::from(k.rows())
+            .and(z.rows())
+            .and(self.problem.dem.rows())
+            .par_map_collect(|k, z, d| {
+                [k.iter()
+                    .zip(z)
+                    .zip(d)
+                    .map(|((&k, &z), &d)| k * (z - d) * (z - d))
+                    .sum::<f64>()]
+            });
+        ops::sum_row_parts(parts.view())[0]
     }
 
     /// Photometric residuals and derivatives of every observation at surface `z` with albedo
@@ -433,30 +440,42 @@ impl<'a, 'p> Objective<'a, 'p> {
         let mut used = Array2::from_elem(dim, false);
         let mut intensity = 0.0;
         for (ph, w) in obs.iter().zip(&self.weights.weight) {
-            Zip::from(&mut fx)
-                .and(&mut fy)
-                .and(&ph.res)
-                .and(&ph.a)
-                .and(&ph.b)
-                .and(w)
-                .par_for_each(|fx, fy, &r, &a, &b, &w| {
-                    *fx += w * r * a;
-                    *fy += w * r * b;
-                });
-            Zip::from(&mut gn)
-                .and(&ph.a)
-                .and(&ph.b)
-                .and(w)
-                .par_for_each(|gn, &a, &b, &w| {
-                    gn[0] += 2.0 * w * a * a;
-                    gn[1] += 2.0 * w * a * b;
-                    gn[2] += 2.0 * w * b * b;
-                });
-            let wr = Zip::from(&ph.res).and(w).map_collect(|&r, &w| w * r);
-            intensity += ops::dot(wr.view(), ph.res.view());
-        }
-        for ph in &obs {
-            Zip::from(&mut used).and(&ph.used).for_each(|u, &p| *u |= p);
+            // One pass per observation: the sums of (fx, fy), the Gauss–Newton Hessian, the
+            // coverage, and Σ (w·r)·r per row, added in row order (as `ops::dot`).
+            let rows = fx
+                .rows_mut()
+                .into_iter()
+                .zip(fy.rows_mut())
+                .zip(gn.rows_mut())
+                .zip(used.rows_mut())
+                .collect::<Vec<_>>();
+            let parts: Vec<f64> = rows
+                .into_par_iter()
+                .enumerate()
+                .map(|(i, (((mut fx, mut fy), mut gn), mut used))| {
+                    let (r, a, b, w, u) = (
+                        ph.res.row(i),
+                        ph.a.row(i),
+                        ph.b.row(i),
+                        w.row(i),
+                        ph.used.row(i),
+                    );
+                    let mut part = 0.0;
+                    for j in 0..r.len() {
+                        let (r, a, b, w) = (r[j], a[j], b[j], w[j]);
+                        fx[j] += w * r * a;
+                        fy[j] += w * r * b;
+                        let g = &mut gn[j];
+                        g[0] += 2.0 * w * a * a;
+                        g[1] += 2.0 * w * a * b;
+                        g[2] += 2.0 * w * b * b;
+                        used[j] |= u[j];
+                        part += w * r * r;
+                    }
+                    part
+                })
+                .collect();
+            intensity += parts.iter().sum::<f64>();
         }
         Photo {
             obs,
@@ -523,25 +542,29 @@ impl<'a, 'p> Objective<'a, 'p> {
 
     /// The quadratic terms (E_DEM, E_reg) at z, from z and its DCT coefficients ẑ.
     pub fn quadratic(&self, z: ArrayView2<f64>, zh: &Array2<f64>) -> (f64, f64) {
-        let dem = Zip::from(&self.lam)
-            .and(&self.gs)
-            .and(zh)
-            .and(&self.dem_target)
-            .map_collect(|&l, &g, &z, &t| {
-                let d = g * z - t;
-                (l + self.dem_height) * d * d
+        // Both sums in one pass, per row and then in row order (as `ops::sum`).
+        let parts = Zip::from(self.lam.rows())
+            .and(self.gs.rows())
+            .and(zh.rows())
+            .and(self.dem_target.rows())
+            .and(self.dem_hat.rows())
+            .par_map_collect(|l, g, z, t, h| {
+                let (mut dem, mut reg) = (0.0, 0.0);
+                for j in 0..l.len() {
+                    let (l, z) = (l[j], z[j]);
+                    let d = g[j] * z - t[j];
+                    dem += (l + self.dem_height) * d * d;
+                    reg += l * (z - h[j]) * (z - h[j]);
+                }
+                [dem, reg]
             });
-        let reg = Zip::from(&self.lam)
-            .and(zh)
-            .and(&self.dem_hat)
-            .map_collect(|&l, &z, &t| l * (z - t) * (z - t));
-        let mut dem = ops::sum(dem.view());
+        let [mut dem, reg] = ops::sum_row_parts(parts.view());
         if let Some(r) = &self.dem_relief {
             dem -= self
                 .relief_term(r, &self.dem_residual(zh), self.dem_height, false)
                 .0;
         }
-        let mut reg = ops::sum(reg.view());
+        let mut reg = reg;
         if let Some(r) = &self.membrane_relief {
             reg -= self.relief_term(r, &self.correction(z), 0.0, false).0;
         }
@@ -581,25 +604,23 @@ impl<'a, 'p> Objective<'a, 'p> {
     pub fn gradient(&self, z: ArrayView2<f64>, zh: &Array2<f64>, photo: &Photo) -> Array2<f64> {
         let data =
             ops::gradient_adjoint(photo.fx.view(), photo.fy.view(), self.problem.spacing) * -2.0;
-        let mut quad_hat = Zip::from(&self.lam)
+        let quad_hat = Zip::from(&self.lam)
             .and(&self.gs)
             .and(zh)
             .and(&self.dem_target)
-            .map_collect(|&l, &g, &z, &t| {
-                2.0 * (l + self.dem_height) * self.delta * g * (g * z - t)
-            });
-        Zip::from(&mut quad_hat)
-            .and(&self.lam)
-            .and(zh)
             .and(&self.dem_hat)
-            .for_each(|o, &l, &z, &d| *o += 2.0 * l * self.eta * (z - d));
+            .par_map_collect(|&l, &g, &z, &t, &d| {
+                2.0 * (l + self.dem_height) * self.delta * g * (g * z - t)
+                    + 2.0 * l * self.eta * (z - d)
+            });
+        let mut quad_hat = quad_hat;
         if let Some(r) = &self.dem_relief {
             let (_, gu) = self.relief_term(r, &self.dem_residual(zh), self.dem_height, true);
             let gh = self.dct.forward(&gu.expect("asked for"));
             Zip::from(&mut quad_hat)
                 .and(&gh)
                 .and(&self.gs)
-                .for_each(|o, &x, &g| *o -= self.delta * g * x);
+                .par_for_each(|o, &x, &g| *o -= self.delta * g * x);
         }
         let mut g = data + self.dct.inverse(&quad_hat);
         if let Some(r) = &self.membrane_relief {
