@@ -12,7 +12,7 @@ use ndarray::{Array2, ArrayView2, Zip};
 
 /// Dᵀ(H + M)D·v (+ 2K·v, the tie) for the photometric term, into `out`: `hm` = H + M per
 /// pixel (xx, xy, yy), H = Σ_k 2w_k(a_k, b_k)ᵀ(a_k, b_k) the Gauss–Newton Hessian in (p, q)
-/// ([`Photo::gn`]), M the residual curvature of [`Objective::curvature`], acting on
+/// ([`Objective::add_gauss_newton_hessian`]), M the residual curvature of [`Objective::curvature`], acting on
 /// (D_x v, D_y v); `tie2` = 2K. `vx` and `vy` are scratch of the grid's shape. In f32, as the
 /// whole conjugate-gradient iteration ([`newton_step`]).
 fn data_normal_into(
@@ -184,13 +184,7 @@ fn newton_step(
     let n = curv.len() as f64;
     // H + M, in the curvature's storage.
     let mut hm = curv;
-    Zip::from(&mut hm).and(&photo.gn).par_for_each(|m, h| {
-        *m = [
-            (h[0] + f64::from(m[0])) as f32,
-            (h[1] + f64::from(m[1])) as f32,
-            (h[2] + f64::from(m[2])) as f32,
-        ];
-    });
+    obj.add_gauss_newton_hessian(photo, &mut hm);
     let (ax, ay) = hm.iter().fold((0.0, 0.0), |(x, y), h| {
         (x + f64::from(h[0]) / n, y + f64::from(h[2]) / n)
     });

@@ -41,7 +41,6 @@ use super::Problem;
 use crate::photometry::ReflectanceModel;
 use crate::spectral::{self, to, Dct2d, Real};
 use ndarray::{Array2, ArrayView2, Zip};
-use rayon::prelude::*;
 use serde::{Deserialize, Serialize};
 
 /// The terms of the energy at one iterate.
@@ -71,15 +70,13 @@ pub struct ObsPhoto {
     pub used: Array2<bool>,
 }
 
-/// Photometric quantities of all observations at the current surface, and their weighted sums
-/// (w_k the per-pixel weights of [`Weights`]).
+/// Photometric quantities of all observations at the current surface, and E_I (w_k the
+/// per-pixel weights of [`Weights`]). The weighted sums over the observations that the
+/// gradient and the Newton systems need are formed where they are used
+/// ([`Objective::photo_forces`], [`Objective::add_gauss_newton_hessian`]), not stored: a line
+/// search's trial would store them for nothing.
 pub struct Photo {
     pub obs: Vec<ObsPhoto>,
-    /// Σ_k w_k r_k a_k and Σ_k w_k r_k b_k: ∂E_I/∂z = −2 Dᵀ(fx, fy).
-    pub fx: Array2<f64>,
-    pub fy: Array2<f64>,
-    /// Σ_k 2 w_k (a_k², a_k b_k, b_k²): the Gauss–Newton Hessian of E_I in (p, q) per pixel.
-    pub gn: Array2<[f64; 3]>,
     /// E_I = Σ_k Σ w_k r_k².
     pub intensity: f64,
     /// True where at least one observation is used.
@@ -434,57 +431,72 @@ impl<'a, 'p> Objective<'a, 'p> {
                 ObsPhoto { res, a, b, used }
             })
             .collect();
-        let mut fx = Array2::zeros(dim);
-        let mut fy = Array2::zeros(dim);
-        let mut gn = Array2::from_elem(dim, [0.0; 3]);
         let mut used = Array2::from_elem(dim, false);
         let mut intensity = 0.0;
         for (ph, w) in obs.iter().zip(&self.weights.weight) {
-            // One pass per observation: the sums of (fx, fy), the Gauss–Newton Hessian, the
-            // coverage, and Σ (w·r)·r per row, added in row order (as `ops::dot`).
-            let rows = fx
-                .rows_mut()
-                .into_iter()
-                .zip(fy.rows_mut())
-                .zip(gn.rows_mut())
-                .zip(used.rows_mut())
-                .collect::<Vec<_>>();
-            let parts: Vec<f64> = rows
-                .into_par_iter()
-                .enumerate()
-                .map(|(i, (((mut fx, mut fy), mut gn), mut used))| {
-                    let (r, a, b, w, u) = (
-                        ph.res.row(i),
-                        ph.a.row(i),
-                        ph.b.row(i),
-                        w.row(i),
-                        ph.used.row(i),
-                    );
+            // One pass per observation: the coverage, and Σ (w·r)·r per row, added in row
+            // order (as `ops::dot`).
+            let parts = Zip::from(used.rows_mut())
+                .and(ph.used.rows())
+                .and(ph.res.rows())
+                .and(w.rows())
+                .par_map_collect(|mut used, u, r, w| {
                     let mut part = 0.0;
-                    for j in 0..r.len() {
-                        let (r, a, b, w) = (r[j], a[j], b[j], w[j]);
-                        fx[j] += w * r * a;
-                        fy[j] += w * r * b;
-                        let g = &mut gn[j];
-                        g[0] += 2.0 * w * a * a;
-                        g[1] += 2.0 * w * a * b;
-                        g[2] += 2.0 * w * b * b;
-                        used[j] |= u[j];
+                    for (((used, &u), &r), &w) in used.iter_mut().zip(u).zip(r).zip(w) {
+                        *used |= u;
                         part += w * r * r;
                     }
-                    part
-                })
-                .collect();
-            intensity += parts.iter().sum::<f64>();
+                    [part]
+                });
+            intensity += ops::sum_row_parts(parts.view())[0];
         }
         Photo {
             obs,
-            fx,
-            fy,
-            gn,
             intensity,
             used,
         }
+    }
+
+    /// (fx, fy) = Σ_k w_k r_k (a_k, b_k) of `photo`: ∂E_I/∂z = −2 Dᵀ(fx, fy).
+    pub fn photo_forces(&self, photo: &Photo) -> (Array2<f64>, Array2<f64>) {
+        let dim = photo.used.dim();
+        let mut fx = Array2::zeros(dim);
+        let mut fy = Array2::zeros(dim);
+        for (ph, w) in photo.obs.iter().zip(&self.weights.weight) {
+            Zip::from(&mut fx)
+                .and(&mut fy)
+                .and(&ph.res)
+                .and(&ph.a)
+                .and(&ph.b)
+                .and(w)
+                .par_for_each(|fx, fy, &r, &a, &b, &w| {
+                    *fx += w * r * a;
+                    *fy += w * r * b;
+                });
+        }
+        (fx, fy)
+    }
+
+    /// H = Σ_k 2 w_k (a_k², a_k b_k, b_k²), the Gauss–Newton Hessian of E_I in (p, q) per
+    /// pixel, summed in f64 and added to `m` (the residual curvature, [`Objective::curvature`]):
+    /// `m` ← H + M in f32, the Newton systems' storage.
+    pub fn add_gauss_newton_hessian(&self, photo: &Photo, m: &mut Array2<[f32; 3]>) {
+        let obs = &photo.obs;
+        let weights = &self.weights.weight;
+        Zip::indexed(m).par_for_each(|ix, m| {
+            let mut h = [0.0f64; 3];
+            for (ph, w) in obs.iter().zip(weights) {
+                let (a, b, w) = (ph.a[ix], ph.b[ix], w[ix]);
+                h[0] += 2.0 * w * a * a;
+                h[1] += 2.0 * w * a * b;
+                h[2] += 2.0 * w * b * b;
+            }
+            *m = [
+                (h[0] + f64::from(m[0])) as f32,
+                (h[1] + f64::from(m[1])) as f32,
+                (h[2] + f64::from(m[2])) as f32,
+            ];
+        });
     }
 
     /// The residual part of E_I's Hessian in (p, q) per pixel, Σ_k w_k·(−2r_k·∇²R_k/Ī) with
@@ -602,8 +614,8 @@ impl<'a, 'p> Objective<'a, 'p> {
 
     /// ∂E/∂z (spatial) at `z`, given ẑ and the photometric state.
     pub fn gradient(&self, z: ArrayView2<f64>, zh: &Array2<f64>, photo: &Photo) -> Array2<f64> {
-        let data =
-            ops::gradient_adjoint(photo.fx.view(), photo.fy.view(), self.problem.spacing) * -2.0;
+        let (fx, fy) = self.photo_forces(photo);
+        let data = ops::gradient_adjoint(fx.view(), fy.view(), self.problem.spacing) * -2.0;
         let quad_hat = Zip::from(&self.lam)
             .and(&self.gs)
             .and(zh)

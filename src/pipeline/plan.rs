@@ -28,7 +28,7 @@ pub struct Plan {
     /// σ_DEM the tiles solve with, pixels (`[solver] sigma_dem`, or from the DEM's effective
     /// resolution).
     pub sigma_dem: f64,
-    /// E_DEM's track weighting a the tiles solve with, and why ([`track_weight`]).
+    /// E_DEM's track weighting a the tiles solve with, and why (`pipeline::plan::track_weight`).
     #[serde(default = "plain_tracks")]
     pub dem_track_weight: f64,
     #[serde(default)]
