@@ -5,7 +5,7 @@
 //! `step_tolerance` × ε in a step, or the steps to come are estimated not to ([`remaining`]),
 //! or E stagnates, or after `max_iterations`.
 
-use super::objective::{relief_gradient_into, Energy, Iterate, Objective, Photo};
+use super::objective::{relief_gradient_into, Energy, Iterate, Objective};
 use super::{ops, FusionParams, IterationRecord};
 use crate::spectral;
 use ndarray::{Array2, ArrayView2, Zip};
@@ -173,18 +173,14 @@ fn dot32(a: &Array2<f32>, b: &Array2<f32>) -> f64 {
 /// The step it returns is checked by the line search on the energy in f64.
 fn newton_step(
     obj: &Objective,
-    photo: &Photo,
-    curv: Array2<[f32; 3]>,
+    hm: Array2<[f32; 3]>,
     fixed: &Fixed,
     g: &Array2<f64>,
     params: &FusionParams,
 ) -> (Array2<f64>, usize) {
     let (ny, nx) = g.dim();
     let e2 = obj.problem.spacing * obj.problem.spacing;
-    let n = curv.len() as f64;
-    // H + M, in the curvature's storage.
-    let mut hm = curv;
-    obj.add_gauss_newton_hessian(photo, &mut hm);
+    let n = hm.len() as f64;
     let (ax, ay) = hm.iter().fold((0.0, 0.0), |(x, y), h| {
         (x + f64::from(h[0]) / n, y + f64::from(h[2]) / n)
     });
@@ -307,9 +303,15 @@ pub fn minimise(
     let mut previous = None;
     for iteration in 1..=params.max_iterations {
         let g = obj.gradient(z.view(), &zh, &photo);
-        let curv = obj.curvature(z.view(), rho, &photo, params.curvature_residual);
-        let (step, inner) = newton_step(obj, &photo, curv, &fixed, &g, params);
+        // H + M, in the curvature's storage.
+        let mut hm = obj.curvature(z.view(), rho, &photo, params.curvature_residual);
+        obj.add_gauss_newton_hessian(&photo, &mut hm);
+        // The iterate's photometric state and ẑ are not needed again (the line search makes
+        // the next): free them before the conjugate gradients and the trial allocate theirs.
+        drop((photo, zh));
+        let (step, inner) = newton_step(obj, hm, &fixed, &g, params);
         let slope = ops::dot(g.view(), step.view());
+        drop(g);
         if slope >= 0.0 {
             break;
         }
