@@ -187,22 +187,28 @@ fn newton_step(
     let cx = spectral::difference_symbol(nx, ops::stencil_response);
     let cy = spectral::difference_symbol(ny, ops::stencil_response);
     let tie = obj.tie.as_ref().map(|k| 2.0 * ops::sum(k.view()) / n);
-    let mut minv = spectral::separable(&cy, &cx, |sy, sx| (ax * sx + ay * sy) / e2);
-    if obj.dem_relief.is_some() || obj.membrane_relief.is_some() {
-        // The relief fields lower δ where several observations overlap and η on steep
-        // corrections: precondition with their means.
-        minv += &obj.quadratic_hessian_with(
+    // The relief fields lower δ where several observations overlap and η on steep
+    // corrections: precondition with their means.
+    let relief_hq = (obj.dem_relief.is_some() || obj.membrane_relief.is_some()).then(|| {
+        obj.quadratic_hessian_with(
             obj.delta * (1.0 - obj.mean_relief()),
             obj.eta * (1.0 - obj.mean_membrane_relief()),
-        );
-    } else {
-        minv += &fixed.hq;
-    }
-    minv += tie.unwrap_or(0.0);
+        )
+    });
+    let tie_mean = tie.unwrap_or(0.0);
+    // M⁻¹ = 1/((a_x·s_x + a_y·s_y)/ε² + H_Q + 2K̄), formed in f64 per coefficient and stored
+    // in f32 (no f64 table is held through the iterations).
+    let mut minv = Array2::<f32>::zeros((ny, nx));
+    Zip::indexed(&mut minv)
+        .and(relief_hq.as_ref().unwrap_or(&fixed.hq))
+        .par_for_each(|(i, j), m, &hq| {
+            let v = (ax * cx[j] + ay * cy[i]) / e2 + hq + tie_mean;
+            *m = if v > 0.0 { (1.0 / v) as f32 } else { 0.0 };
+        });
+    drop(relief_hq);
     // The mean height is seen by the tie and by E_DEM's height part; with neither it stays
     // the DEM's.
     let fixed_mean = tie.is_none() && obj.dem_height == 0.0;
-    let mut minv = minv.mapv(|m| if m > 0.0 { (1.0 / m) as f32 } else { 0.0 });
     if fixed_mean {
         minv[(0, 0)] = 0.0; // the mean height is fixed by the DEM
     }

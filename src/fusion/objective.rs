@@ -614,8 +614,10 @@ impl<'a, 'p> Objective<'a, 'p> {
 
     /// ∂E/∂z (spatial) at `z`, given ẑ and the photometric state.
     pub fn gradient(&self, z: ArrayView2<f64>, zh: &Array2<f64>, photo: &Photo) -> Array2<f64> {
-        let (fx, fy) = self.photo_forces(photo);
-        let data = ops::gradient_adjoint(fx.view(), fy.view(), self.problem.spacing) * -2.0;
+        let data = {
+            let (fx, fy) = self.photo_forces(photo);
+            ops::gradient_adjoint(fx.view(), fy.view(), self.problem.spacing) * -2.0
+        };
         let quad_hat = Zip::from(&self.lam)
             .and(&self.gs)
             .and(zh)
@@ -634,7 +636,9 @@ impl<'a, 'p> Objective<'a, 'p> {
                 .and(&self.gs)
                 .par_for_each(|o, &x, &g| *o -= self.delta * g * x);
         }
-        let mut g = data + self.dct.inverse(&quad_hat);
+        let spatial = self.dct.inverse(&quad_hat);
+        drop(quad_hat);
+        let mut g = data + spatial;
         if let Some(r) = &self.membrane_relief {
             let (_, gu) = self.relief_term(r, &self.correction(z), 0.0, true);
             g.scaled_add(-self.eta, &gu.expect("asked for"));
