@@ -597,9 +597,19 @@ pub fn swath_positions(
     lon: ArrayView2<f64>,
     lat: ArrayView2<f64>,
 ) -> (Array2<f64>, Array2<f64>) {
-    let (nl, ns) = lon.dim();
-    // Grid (row, col) of every swath pixel centre.
-    let mut gr = Array2::from_elem((nl, ns), f64::NAN);
+    let (gr, gc) = swath_grid_positions(grid, pr, lon, lat);
+    swath_positions_from(grid, gr.view(), gc.view(), 0)
+}
+
+/// Grid (row, column) of every swath pixel centre whose map position is `lon`/`lat` (degrees);
+/// NaN where it does not project.
+pub fn swath_grid_positions(
+    grid: &Grid,
+    pr: &Projector,
+    lon: ArrayView2<f64>,
+    lat: ArrayView2<f64>,
+) -> (Array2<f64>, Array2<f64>) {
+    let mut gr = Array2::from_elem(lon.dim(), f64::NAN);
     let mut gc = gr.clone();
     Zip::from(&mut gr)
         .and(&mut gc)
@@ -610,6 +620,57 @@ pub fn swath_positions(
                 (*r, *c) = grid.pixel(x, y);
             }
         });
+    (gr, gc)
+}
+
+/// The samples `[s0, s1)` of a swath (grid positions `gr`, `gc` of its pixel centres,
+/// [`swath_grid_positions`]) that [`swath_positions`] and a bilinear interpolation of the
+/// swath can use on `grid`: every sample within L + 1 grid pixels of the grid, L the longest
+/// edge of the swath's mesh, widened by two samples on each side (a triangle that reaches a
+/// grid pixel has its vertices within L of it, and the interpolation's neighbours are the
+/// triangle's). `None` where no sample is that near. A tile narrower than the swath then
+/// resamples only its own part of each line, with the same values as the whole line gives.
+pub fn swath_samples(
+    grid: &Grid,
+    gr: ArrayView2<f64>,
+    gc: ArrayView2<f64>,
+) -> Option<(usize, usize)> {
+    let (nl, ns) = gr.dim();
+    let mut edge = 0.0f64;
+    for i in 0..nl {
+        for j in 0..ns {
+            for (a, b) in [(i, j + 1), (i + 1, j), (i + 1, j + 1)] {
+                if a < nl && b < ns {
+                    let d = (gr[(a, b)] - gr[(i, j)]).hypot(gc[(a, b)] - gc[(i, j)]);
+                    if d.is_finite() {
+                        edge = edge.max(d);
+                    }
+                }
+            }
+        }
+    }
+    let m = edge + 1.0;
+    let (rows, cols) = (grid.rows as f64, grid.cols as f64);
+    let (mut lo, mut hi) = (usize::MAX, 0);
+    Zip::indexed(gr).and(gc).for_each(|(_, j), &r, &c| {
+        if r >= -m && r <= rows - 1.0 + m && c >= -m && c <= cols - 1.0 + m {
+            lo = lo.min(j);
+            hi = hi.max(j);
+        }
+    });
+    (lo <= hi).then(|| (lo.saturating_sub(2), (hi + 3).min(ns)))
+}
+
+/// [`swath_positions`] from the grid positions of the samples `[sample_offset, …)` of each
+/// line ([`swath_grid_positions`], [`swath_samples`]); the samples it returns count from the
+/// swath's first, as the whole line's would.
+pub fn swath_positions_from(
+    grid: &Grid,
+    gr: ArrayView2<f64>,
+    gc: ArrayView2<f64>,
+    sample_offset: usize,
+) -> (Array2<f64>, Array2<f64>) {
+    let (nl, ns) = gr.dim();
     let mut line = Array2::from_elem((grid.rows, grid.cols), f64::NAN);
     let mut sample = line.clone();
     let mut fill = |v: [(f64, f64, f64, f64); 3]| {
@@ -650,7 +711,8 @@ pub fn swath_positions(
     };
     for i in 0..nl.saturating_sub(1) {
         for j in 0..ns.saturating_sub(1) {
-            let p = |a: usize, b: usize| (gr[(a, b)], gc[(a, b)], a as f64, b as f64);
+            let p =
+                |a: usize, b: usize| (gr[(a, b)], gc[(a, b)], a as f64, (b + sample_offset) as f64);
             let (a, b, c, d) = (p(i, j), p(i, j + 1), p(i + 1, j), p(i + 1, j + 1));
             fill([a, b, d]);
             fill([a, d, c]);

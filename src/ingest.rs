@@ -14,7 +14,7 @@ use crate::error::{Error, Result};
 use crate::grid::{self, enu_to_grid, Geographic, Grid, Interpolation, Projector};
 use crate::photometry::Vec3;
 use crate::synth::direction;
-use ndarray::{Array2, Zip};
+use ndarray::{s, Array2, Zip};
 use pds::lola::{LolaDem, Projection};
 use pds::m3::Observation;
 use pds::solar::{reflectance, SolarSpectrum};
@@ -421,16 +421,29 @@ pub fn m3_on_grid(
         )));
     };
     let n = end - first;
-    let lon = read2(&loc, 0, first, n)?;
-    let lat = read2(&loc, 1, first, n)?;
+    let (gr, gc) = {
+        let lon = read2(&loc, 0, first, n)?;
+        let lat = read2(&loc, 1, first, n)?;
+        grid::swath_grid_positions(grid, pr, lon.view(), lat.view())
+    };
+    // Only the samples that can reach the grid are resampled (a tile narrower than the
+    // swath); sample positions still count from the line's first sample.
+    let (s0, s1) = grid::swath_samples(grid, gr.view(), gc.view()).unwrap_or((0, gr.ncols()));
+    let cols = s![.., s0..s1];
+    let (line, sample) = grid::swath_positions_from(grid, gr.slice(cols), gc.slice(cols), s0);
+    drop((gr, gc));
     let (refl, (lo, up), e, _) = reflectance_lines(obs, &obsr, solar, nm, first, n)?;
+    let refl = refl.slice(cols).to_owned();
     let enu = |az: &Array2<f64>, zen: &Array2<f64>| -> [Array2<f64>; 3] {
-        let v = Zip::from(az).and(zen).map_collect(|&a, &z| direction(z, a));
+        let v = Zip::from(az.slice(cols))
+            .and(zen.slice(cols))
+            .map_collect(|&a, &z| direction(z, a));
         [v.map(|u| u[0]), v.map(|u| u[1]), v.map(|u| u[2])]
     };
     let sun_enu = enu(&read2(&obsr, 0, first, n)?, &read2(&obsr, 1, first, n)?);
     let view_enu = enu(&read2(&obsr, 2, first, n)?, &read2(&obsr, 3, first, n)?);
-    let (line, sample) = grid::swath_positions(grid, pr, lon.view(), lat.view());
+    // Exact: m ≥ s0 and s0 is a whole number.
+    let s0 = s0 as f64;
     let dim = (grid.rows, grid.cols);
     let nan3 = [f64::NAN; 3];
     let mut out_r = Array2::from_elem(dim, f64::NAN);
@@ -444,6 +457,7 @@ pub fn m3_on_grid(
             if l.is_nan() {
                 return;
             }
+            let m = m - s0;
             *r = grid::interpolate(refl.view(), l, m, Interpolation::Bilinear, false);
             let b = geo.bearing[(i, j)];
             *s = unit_at(&sun_enu, l, m).map_or(nan3, |u| enu_to_grid(u, b));
