@@ -42,9 +42,7 @@ fn data_normal_into(
 
 /// The parts of the Newton systems that stay the same over a stage's steps.
 struct Fixed {
-    /// H_Q, the DCT-diagonal Hessian of the quadratic terms (for the preconditioner).
-    hq: Array2<f64>,
-    /// H_Q in f32, for the operator.
+    /// H_Q in f32, for the operator (the preconditioner forms it in f64 when it needs it).
     hq32: Array2<f32>,
     /// 2K, the tie's Hessian per pixel, in f32.
     tie2: Option<Array2<f32>>,
@@ -56,11 +54,9 @@ struct Fixed {
 
 impl Fixed {
     fn new(obj: &Objective) -> Self {
-        let hq = obj.quadratic_hessian();
         let f32_of = |a: &Array2<f64>| a.mapv(|x| x as f32);
         Self {
-            hq32: f32_of(&hq),
-            hq,
+            hq32: f32_of(&obj.quadratic_hessian()),
             tie2: obj.tie.as_ref().map(|k| k.mapv(|k| (2.0 * k) as f32)),
             dem_relief: obj
                 .dem_relief
@@ -187,25 +183,27 @@ fn newton_step(
     let cx = spectral::difference_symbol(nx, ops::stencil_response);
     let cy = spectral::difference_symbol(ny, ops::stencil_response);
     let tie = obj.tie.as_ref().map(|k| 2.0 * ops::sum(k.view()) / n);
-    // The relief fields lower δ where several observations overlap and η on steep
-    // corrections: precondition with their means.
-    let relief_hq = (obj.dem_relief.is_some() || obj.membrane_relief.is_some()).then(|| {
+    // H_Q in f64 (the relief fields lower δ where several observations overlap and η on
+    // steep corrections: precondition with their means), only while M⁻¹ is formed.
+    let hq = if obj.dem_relief.is_some() || obj.membrane_relief.is_some() {
         obj.quadratic_hessian_with(
             obj.delta * (1.0 - obj.mean_relief()),
             obj.eta * (1.0 - obj.mean_membrane_relief()),
         )
-    });
+    } else {
+        obj.quadratic_hessian()
+    };
     let tie_mean = tie.unwrap_or(0.0);
     // M⁻¹ = 1/((a_x·s_x + a_y·s_y)/ε² + H_Q + 2K̄), formed in f64 per coefficient and stored
     // in f32 (no f64 table is held through the iterations).
     let mut minv = Array2::<f32>::zeros((ny, nx));
     Zip::indexed(&mut minv)
-        .and(relief_hq.as_ref().unwrap_or(&fixed.hq))
+        .and(&hq)
         .par_for_each(|(i, j), m, &hq| {
             let v = (ax * cx[j] + ay * cy[i]) / e2 + hq + tie_mean;
             *m = if v > 0.0 { (1.0 / v) as f32 } else { 0.0 };
         });
-    drop(relief_hq);
+    drop(hq);
     // The mean height is seen by the tie and by E_DEM's height part; with neither it stays
     // the DEM's.
     let fixed_mean = tie.is_none() && obj.dem_height == 0.0;
