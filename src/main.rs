@@ -3,6 +3,7 @@
 use clap::{Parser, Subcommand};
 use sfsfuse::fusion::{FusionParams, SolverKind};
 use sfsfuse::synth::SceneSpec;
+use std::io::Write;
 use std::path::PathBuf;
 use std::process::ExitCode;
 
@@ -269,11 +270,11 @@ fn run(cli: Cli) -> Result<(), sfsfuse::Error> {
                 SolverKind::Paper => FusionParams::paper(),
             };
             let report = sfsfuse::demo::run(&spec, &params, Some(&out))?;
-            emit(json, &report, report.table());
+            emit(json, &report, report.table())?;
         }
         Command::Inspect { path, json } => {
             let i = sfsfuse::inspect::inspect(&path)?;
-            emit(json, &i, i.table());
+            emit(json, &i, i.table())?;
         }
         Command::Run {
             workflow,
@@ -305,7 +306,7 @@ fn run(cli: Cli) -> Result<(), sfsfuse::Error> {
                         )
                     })
                     .collect();
-                emit(json, &tiles, table);
+                emit(json, &tiles, table)?;
                 return Ok(());
             }
             let req = sfsfuse::pipeline::Request {
@@ -316,7 +317,7 @@ fn run(cli: Cli) -> Result<(), sfsfuse::Error> {
             };
             let summary = sfsfuse::pipeline::run(&wf, &req, &progress)?;
             drop(progress);
-            emit(json, &summary, summary.table());
+            emit(json, &summary, summary.table())?;
         }
         Command::Fetch {
             ids,
@@ -347,7 +348,7 @@ fn run(cli: Cli) -> Result<(), sfsfuse::Error> {
             let progress = progress_of(progress);
             let fetched = sfsfuse::fetch::fetch(&ids, &dir, &src, &progress)?;
             drop(progress);
-            emit(json, &fetched, sfsfuse::fetch::table(&fetched));
+            emit(json, &fetched, sfsfuse::fetch::table(&fetched))?;
         }
         Command::Submit {
             workflow,
@@ -378,7 +379,7 @@ fn run(cli: Cli) -> Result<(), sfsfuse::Error> {
             let progress = progress_of(progress);
             let s = sfsfuse::cluster::submit(&workflow, &wf, &opts, &progress)?;
             drop(progress);
-            emit(json, &s, s.table());
+            emit(json, &s, s.table())?;
         }
         Command::Synth {
             out,
@@ -438,7 +439,7 @@ fn run(cli: Cli) -> Result<(), sfsfuse::Error> {
                 p.truth_dem.display(),
                 p.truth_albedo.display()
             );
-            emit(json, &p, table);
+            emit(json, &p, table)?;
         }
         Command::Bench {
             size,
@@ -450,7 +451,7 @@ fn run(cli: Cli) -> Result<(), sfsfuse::Error> {
             let progress = progress_of(progress);
             let report = sfsfuse::bench::run_observations(size, n as usize, &progress)?;
             drop(progress);
-            emit(json, &report, report.table());
+            emit(json, &report, report.table())?;
         }
         Command::Bench {
             size,
@@ -460,7 +461,7 @@ fn run(cli: Cli) -> Result<(), sfsfuse::Error> {
             ..
         } => {
             let report = sfsfuse::bench::run_pipeline(size, tile)?;
-            emit(json, &report, report.table());
+            emit(json, &report, report.table())?;
         }
         Command::Bench {
             size,
@@ -479,21 +480,31 @@ fn run(cli: Cli) -> Result<(), sfsfuse::Error> {
             let progress = progress_of(progress);
             let report = sfsfuse::bench::run(size, paper_sweeps, paper_seconds, &progress)?;
             drop(progress);
-            emit(json, &report, report.table());
+            emit(json, &report, report.table())?;
         }
     }
     Ok(())
 }
 
-/// Print a report as JSON or as its table.
-fn emit<T: serde::Serialize>(json: bool, value: &T, table: String) {
-    if json {
-        println!(
-            "{}",
-            serde_json::to_string_pretty(value).expect("reports serialise")
-        );
+/// Print a report as JSON or as its table. A reader that has gone away (`sfsfuse … | head`)
+/// is not an error: what it wanted it has, and the command's work is done (as ripgrep does);
+/// any other failure to write is.
+fn emit<T: serde::Serialize>(json: bool, value: &T, table: String) -> Result<(), sfsfuse::Error> {
+    let text = if json {
+        let mut t = serde_json::to_string_pretty(value).map_err(|e| {
+            sfsfuse::Error::Usage(format!("the report cannot be written as JSON: {e}"))
+        })?;
+        t.push('\n');
+        t
     } else {
-        print!("{table}");
+        table
+    };
+    let mut out = std::io::stdout().lock();
+    match out.write_all(text.as_bytes()).and_then(|()| out.flush()) {
+        Err(e) if e.kind() != std::io::ErrorKind::BrokenPipe => {
+            Err(sfsfuse::Error::io("<standard output>", e))
+        }
+        _ => Ok(()),
     }
 }
 
@@ -518,7 +529,8 @@ fn main() -> ExitCode {
     match run(Cli::parse()) {
         Ok(()) => ExitCode::SUCCESS,
         Err(e) => {
-            eprintln!("sfsfuse: error: {e}");
+            // Nothing more to do if standard error itself is gone.
+            let _ = writeln!(std::io::stderr(), "sfsfuse: error: {e}");
             ExitCode::FAILURE
         }
     }

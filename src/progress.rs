@@ -3,7 +3,7 @@
 //! file never fills with redraw sequences. Nothing here affects results.
 
 use indicatif::{ProgressBar, ProgressStyle};
-use std::io::IsTerminal;
+use std::io::{IsTerminal, Write};
 use std::sync::Mutex;
 use std::time::{Duration, Instant};
 
@@ -42,10 +42,15 @@ impl Progress {
     fn line(&self, msg: &str) {
         match self.mode {
             Mode::Quiet => {}
-            Mode::Lines => eprintln!("[{:8.1} s] {msg}", self.start.elapsed().as_secs_f64()),
+            Mode::Lines => {
+                let t = self.start.elapsed().as_secs_f64();
+                let _ = writeln!(std::io::stderr(), "[{t:8.1} s] {msg}");
+            }
             Mode::Auto => match self.bar.lock().expect("progress lock").as_ref() {
                 Some(b) => b.println(msg),
-                None => eprintln!("{msg}"),
+                None => {
+                    let _ = writeln!(std::io::stderr(), "{msg}");
+                }
             },
         }
     }

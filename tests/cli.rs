@@ -334,3 +334,44 @@ fn a_bare_label_name_finds_its_data_file_in_any_case() {
     assert_eq!(r["lines"], 720);
     std::fs::remove_dir_all(&dir).unwrap();
 }
+
+/// A reader that goes away (`sfsfuse … | head`) is not an error and never a panic: the report
+/// to a closed standard output and the progress lines to a closed standard error are dropped,
+/// the command finishes its work and exits 0.
+#[test]
+fn a_closed_pipe_is_neither_a_panic_nor_a_failure() {
+    let label = test_data().unwrap().join("lola_ldem4/LDEM_4.LBL");
+    let (reader, writer) = std::io::pipe().unwrap();
+    drop(reader);
+    let o = sfsfuse()
+        .arg("inspect")
+        .arg(&label)
+        .stdout(writer)
+        .stderr(std::process::Stdio::piped())
+        .output()
+        .unwrap();
+    let err = String::from_utf8_lossy(&o.stderr);
+    assert!(o.status.success(), "{:?}: {err}", o.status);
+    assert!(!err.contains("panicked"), "{err}");
+
+    // Progress lines to a closed standard error: the benchmark still runs to its report.
+    let (reader, writer) = std::io::pipe().unwrap();
+    drop(reader);
+    let o = sfsfuse()
+        .args([
+            "bench",
+            "--size",
+            "32",
+            "--paper-seconds",
+            "0.1",
+            "--progress",
+            "lines",
+            "--json",
+        ])
+        .stderr(writer)
+        .output()
+        .unwrap();
+    assert!(o.status.success(), "{:?}", o.status);
+    let r: serde_json::Value = serde_json::from_slice(&o.stdout).unwrap();
+    assert!(r["fusion_seconds"].as_f64().is_some_and(|s| s > 0.0), "{r}");
+}
