@@ -682,10 +682,24 @@ pub fn validate_params(params: &FusionParams) -> Result<(), FusionError> {
 /// R(p, q, ρ; s_k, v_k) at every pixel (0 where the surface faces away from the Sun or the
 /// camera), in the units of I/g_k.
 pub fn render(pr: &Problem, k: usize, z: ArrayView2<f64>, rho: ArrayView2<f64>) -> Array2<f64> {
+    let (ny, nx) = z.dim();
+    render_window(pr, k, z, rho, (0, ny, 0, nx))
+}
+
+/// [`render`] on the rows `r0..r1` and columns `c0..c1` only (the slopes still come from the
+/// whole surface, so each value is [`render`]'s).
+pub fn render_window(
+    pr: &Problem,
+    k: usize,
+    z: ArrayView2<f64>,
+    rho: ArrayView2<f64>,
+    (r0, r1, c0, c1): (usize, usize, usize, usize),
+) -> Array2<f64> {
     let o = &pr.observations[k];
     let (p, q) = ops::gradient(z, pr.spacing);
-    let mut out = Array2::zeros(z.dim());
+    let mut out = Array2::zeros((r1 - r0, c1 - c0));
     Zip::indexed(&mut out).par_for_each(|(i, j), r| {
+        let (i, j) = (r0 + i, c0 + j);
         *r = pr
             .model
             .shade(
