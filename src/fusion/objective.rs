@@ -518,11 +518,12 @@ impl<'a, 'p> Objective<'a, 'p> {
     ) -> Array2<[f32; 3]> {
         let pr = self.problem;
         let model: &dyn ReflectanceModel = pr.model;
-        let (p, q) = ops::gradient(z, pr.spacing);
         let s = self.scale;
         let mut out = Array2::from_elem(z.dim(), [0.0f32; 3]);
         Zip::indexed(&mut out).par_for_each(|(i, j), out| {
             let mut m = [0.0f64; 3];
+            // (p, q) only at the pixels that need them (few: large residuals).
+            let mut slopes = None;
             for (k, o) in pr.observations.iter().enumerate() {
                 let ph = &photo.obs[k];
                 let r = ph.res[(i, j)];
@@ -530,7 +531,8 @@ impl<'a, 'p> Objective<'a, 'p> {
                     continue;
                 }
                 let h = 1e-6;
-                let (pp, qq, w) = (p[(i, j)], q[(i, j)], rho[(i, j)]);
+                let (pp, qq) = *slopes.get_or_insert_with(|| ops::gradient_at(z, pr.spacing, i, j));
+                let w = rho[(i, j)];
                 let (sun, view) = (o.sun.at(i, j), o.view.at(i, j));
                 let at = |dp: f64, dq: f64| model.shade_observed(pp + dp, qq + dq, w, sun, view);
                 // The analytic gradient at (p, q) is the photo's (a, b) × Ī: forward

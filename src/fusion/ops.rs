@@ -154,6 +154,36 @@ pub fn gradient_into<T: Real>(z: ArrayView2<T>, eps: f64, p: &mut Array2<T>, q: 
         });
 }
 
+/// [`gradient`] at one pixel (i, j): the same stencils in the same arithmetic, so the same
+/// values, for callers that need (p, q) at a few pixels only.
+pub fn gradient_at(z: ArrayView2<f64>, eps: f64, i: usize, j: usize) -> (f64, f64) {
+    let (ny, nx) = z.dim();
+    let inv = 1.0 / eps;
+    let v = |k: usize| z[(i, k)];
+    let (c1, c2) = STENCIL;
+    // `diff_line`'s rules along the row.
+    let d = if nx < 2 {
+        0.0
+    } else if j == 0 {
+        v(1) - v(0)
+    } else if j == nx - 1 {
+        v(nx - 1) - v(nx - 2)
+    } else if j == 1 || j == nx - 2 {
+        0.5 * (v(j + 1) - v(j - 1))
+    } else {
+        c1 * (v(j + 1) - v(j - 1)) + c2 * (v(j + 2) - v(j - 2))
+    };
+    // `gradient_into`'s column sum, in its order.
+    let mut q = 0.0;
+    for k in i.saturating_sub(2)..=(i + 2).min(ny - 1) {
+        let c = coef(ny, i, k);
+        if c != 0.0 {
+            q -= c * z[(k, j)] * inv;
+        }
+    }
+    (d * inv, q)
+}
+
 /// Adjoint of [`gradient`]: D_xᵀu + D_yᵀv (a negative divergence).
 pub fn gradient_adjoint(u: ArrayView2<f64>, v: ArrayView2<f64>, eps: f64) -> Array2<f64> {
     let mut out = Array2::zeros(u.dim());
@@ -236,6 +266,24 @@ pub fn sum_row_parts<const N: usize>(parts: ArrayView1<[f64; N]>) -> [f64; N] {
 #[cfg(test)]
 mod tests {
     use super::*;
+
+    #[test]
+    fn gradient_at_one_pixel_is_the_gradient_there_to_the_bit() {
+        for (ny, nx) in [(1, 1), (2, 2), (3, 5), (4, 4), (6, 7), (9, 11)] {
+            let z = Array2::from_shape_fn((ny, nx), |(i, j)| {
+                ((i * 7 + j * 13) as f64).sin() * 100.0 + (i * j) as f64 * 0.37
+            });
+            let (p, q) = gradient(z.view(), 140.0);
+            for ((i, j), _) in z.indexed_iter() {
+                let (a, b) = gradient_at(z.view(), 140.0, i, j);
+                assert_eq!(
+                    (a.to_bits(), b.to_bits()),
+                    (p[(i, j)].to_bits(), q[(i, j)].to_bits()),
+                    "{ny}×{nx} at ({i}, {j})"
+                );
+            }
+        }
+    }
 
     #[test]
     fn gradient_of_a_plane_is_exact_and_north_is_up() {
