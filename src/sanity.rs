@@ -137,9 +137,8 @@ impl TileSums {
         }
         for (k, o) in problem.observations.iter().enumerate() {
             let g = f.gains[k];
-            let rendered_in = fusion::render_window(problem, k, problem.dem, f.albedo.view(), core);
-            let rendered_out =
-                fusion::render_window(problem, k, fused.view(), f.albedo.view(), core);
+            let rendered_in = fusion::render(problem, k, problem.dem, f.albedo.view(), core);
+            let rendered_out = fusion::render(problem, k, fused.view(), f.albedo.view(), core);
             let image = win(o.image);
             let used = f.used_by[k].slice(s![r0..r1, c0..c1]);
             let mut own = ids

@@ -12,8 +12,8 @@ use ndarray::{Array2, ArrayView2, Zip};
 
 /// Dᵀ(H + M)D·v (+ 2K·v, the tie) for the photometric term, into `out`: `hm` = H + M per
 /// pixel (xx, xy, yy), H = Σ_k 2w_k(a_k, b_k)ᵀ(a_k, b_k) the Gauss–Newton Hessian in (p, q)
-/// ([`Objective::add_gauss_newton_hessian`]), M the residual curvature of [`Objective::curvature`], acting on
-/// (D_x v, D_y v); `tie2` = 2K. `vx` and `vy` are scratch of the grid's shape. In f32, as the
+/// ([`Objective::add_gauss_newton_hessian`]), M the residual curvature of
+/// [`Objective::curvature`], acting on (D_x v, D_y v); `tie2` = 2K. `vx` and `vy` are scratch of the grid's shape. In f32, as the
 /// whole conjugate-gradient iteration ([`newton_step`]).
 fn data_normal_into(
     eps: f64,

@@ -679,16 +679,10 @@ pub fn validate_params(params: &FusionParams) -> Result<(), FusionError> {
 }
 
 /// The image observation `k` of the problem renders from surface `z` with albedo `rho`:
-/// R(p, q, ρ; s_k, v_k) at every pixel (0 where the surface faces away from the Sun or the
-/// camera), in the units of I/g_k.
-pub fn render(pr: &Problem, k: usize, z: ArrayView2<f64>, rho: ArrayView2<f64>) -> Array2<f64> {
-    let (ny, nx) = z.dim();
-    render_window(pr, k, z, rho, (0, ny, 0, nx))
-}
-
-/// [`render`] on the rows `r0..r1` and columns `c0..c1` only (the slopes still come from the
-/// whole surface, so each value is [`render`]'s).
-pub fn render_window(
+/// R(p, q, ρ; s_k, v_k) (0 where the surface faces away from the Sun or the camera), in the
+/// units of I/g_k, on the rows `r0..r1` and columns `c0..c1` of the grid (the slopes come
+/// from the whole surface, so a value does not depend on the window).
+pub fn render(
     pr: &Problem,
     k: usize,
     z: ArrayView2<f64>,

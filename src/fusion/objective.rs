@@ -572,13 +572,12 @@ impl<'a, 'p> Objective<'a, 'p> {
                 }
                 [dem, reg]
             });
-        let [mut dem, reg] = ops::sum_row_parts(parts.view());
+        let [mut dem, mut reg] = ops::sum_row_parts(parts.view());
         if let Some(r) = &self.dem_relief {
             dem -= self
                 .relief_term(r, &self.dem_residual(zh), self.dem_height, false)
                 .0;
         }
-        let mut reg = reg;
         if let Some(r) = &self.membrane_relief {
             reg -= self.relief_term(r, &self.correction(z), 0.0, false).0;
         }
@@ -620,7 +619,7 @@ impl<'a, 'p> Objective<'a, 'p> {
             let (fx, fy) = self.photo_forces(photo);
             ops::gradient_adjoint(fx.view(), fy.view(), self.problem.spacing) * -2.0
         };
-        let quad_hat = Zip::from(&self.lam)
+        let mut quad_hat = Zip::from(&self.lam)
             .and(&self.gs)
             .and(zh)
             .and(&self.dem_target)
@@ -629,7 +628,6 @@ impl<'a, 'p> Objective<'a, 'p> {
                 2.0 * (l + self.dem_height) * self.delta * g * (g * z - t)
                     + 2.0 * l * self.eta * (z - d)
             });
-        let mut quad_hat = quad_hat;
         if let Some(r) = &self.dem_relief {
             let (_, gu) = self.relief_term(r, &self.dem_residual(zh), self.dem_height, true);
             let gh = self.dct.forward(&gu.expect("asked for"));

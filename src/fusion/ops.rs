@@ -74,23 +74,33 @@ fn adjoint_at<T: Real>(n: usize, k: usize, get: impl Fn(usize) -> T) -> T {
     (lo..=hi).map(|j| to::<T>(coef(n, j, k)) * get(j)).sum()
 }
 
-/// D v·ε along one contiguous line.
+/// (D v)[j]·ε of a line of `n` values read through `v`: one-sided at the ends, the plain
+/// central difference one point from them, [`STENCIL`] inside.
+#[inline]
+fn diff_at<T: Real>(n: usize, j: usize, v: impl Fn(usize) -> T) -> T {
+    if n < 2 {
+        T::zero()
+    } else if j == 0 {
+        v(1) - v(0)
+    } else if j == n - 1 {
+        v(n - 1) - v(n - 2)
+    } else if j == 1 || j == n - 2 {
+        to::<T>(0.5) * (v(j + 1) - v(j - 1))
+    } else {
+        to::<T>(STENCIL.0) * (v(j + 1) - v(j - 1)) + to::<T>(STENCIL.1) * (v(j + 2) - v(j - 2))
+    }
+}
+
+/// D v·ε along one contiguous line ([`diff_at`]; the interior without branches).
 fn diff_line<T: Real>(v: &[T], out: &mut [T]) {
     let n = v.len();
-    if n < 2 {
-        out.iter_mut().for_each(|o| *o = T::zero());
-        return;
-    }
     let (c1, c2) = (to::<T>(STENCIL.0), to::<T>(STENCIL.1));
-    out[0] = v[1] - v[0];
-    out[n - 1] = v[n - 1] - v[n - 2];
-    // The central difference one point from each end (n ≥ 3).
-    if n >= 3 {
-        for j in [1, n - 2] {
-            out[j] = to::<T>(0.5) * (v[j + 1] - v[j - 1]);
+    for j in [0, 1, n.saturating_sub(2), n.saturating_sub(1)] {
+        if j < n {
+            out[j] = diff_at(n, j, |k| v[k]);
         }
     }
-    // The interior j ∈ [2, n − 3], branch-free: out[j] from v[j − 2 ..= j + 2].
+    // The interior j ∈ [2, n − 3]: out[j] from v[j − 2 ..= j + 2].
     if n >= 5 {
         for (o, w) in out[2..n - 2].iter_mut().zip(v.windows(5)) {
             *o = c1 * (w[3] - w[1]) + c2 * (w[4] - w[0]);
@@ -159,20 +169,7 @@ pub fn gradient_into<T: Real>(z: ArrayView2<T>, eps: f64, p: &mut Array2<T>, q: 
 pub fn gradient_at(z: ArrayView2<f64>, eps: f64, i: usize, j: usize) -> (f64, f64) {
     let (ny, nx) = z.dim();
     let inv = 1.0 / eps;
-    let v = |k: usize| z[(i, k)];
-    let (c1, c2) = STENCIL;
-    // `diff_line`'s rules along the row.
-    let d = if nx < 2 {
-        0.0
-    } else if j == 0 {
-        v(1) - v(0)
-    } else if j == nx - 1 {
-        v(nx - 1) - v(nx - 2)
-    } else if j == 1 || j == nx - 2 {
-        0.5 * (v(j + 1) - v(j - 1))
-    } else {
-        c1 * (v(j + 1) - v(j - 1)) + c2 * (v(j + 2) - v(j - 2))
-    };
+    let d = diff_at(nx, j, |k| z[(i, k)]);
     // `gradient_into`'s column sum, in its order.
     let mut q = 0.0;
     for k in i.saturating_sub(2)..=(i + 2).min(ny - 1) {
