@@ -13,25 +13,16 @@ use ndarray::{Array2, ArrayView2, Zip};
 /// Dᵀ(H + M)D·v (+ 2K·v, the tie) for the photometric term, into `out`: `hm` = H + M per
 /// pixel (xx, xy, yy), H = Σ_k 2w_k(a_k, b_k)ᵀ(a_k, b_k) the Gauss–Newton Hessian in (p, q)
 /// ([`Objective::add_gauss_newton_hessian`]), M the residual curvature of
-/// [`Objective::curvature`], acting on (D_x v, D_y v); `tie2` = 2K. `vx` and `vy` are scratch of the grid's shape. In f32, as the
-/// whole conjugate-gradient iteration ([`newton_step`]).
+/// [`Objective::curvature`], acting on (D_x v, D_y v) ([`ops::weighted_normal_into`]); `tie2`
+/// = 2K. In f32, as the whole conjugate-gradient iteration ([`newton_step`]).
 fn data_normal_into(
     eps: f64,
     hm: &Array2<[f32; 3]>,
     tie2: Option<&Array2<f32>>,
     v: &Array2<f32>,
-    [vx, vy, out]: [&mut Array2<f32>; 3],
+    out: &mut Array2<f32>,
 ) {
-    ops::gradient_into(v.view(), eps, vx, vy);
-    Zip::from(&mut *vx)
-        .and(&mut *vy)
-        .and(hm)
-        .par_for_each(|x, y, h| {
-            let (a, b) = (*x, *y);
-            *x = h[0] * a + h[1] * b;
-            *y = h[1] * a + h[2] * b;
-        });
-    ops::gradient_adjoint_into(vx.view(), vy.view(), eps, out);
+    ops::weighted_normal_into(v.view(), hm, eps, out);
     if let Some(k) = tie2 {
         Zip::from(out)
             .and(k)
@@ -75,8 +66,6 @@ struct Normal<'o, 'a, 'p> {
     fixed: &'o Fixed,
     fixed_mean: bool,
     v: Array2<f32>,
-    vx: Array2<f32>,
-    vy: Array2<f32>,
     /// Scratch of the relief fields' parts (empty without them).
     u: Array2<f32>,
     g: Array2<f32>,
@@ -93,7 +82,7 @@ impl Normal<'_, '_, '_> {
             &self.hm,
             self.fixed.tie2.as_ref(),
             &self.v,
-            [&mut self.vx, &mut self.vy, out],
+            out,
         );
         let e2 = (obj.problem.spacing * obj.problem.spacing) as f32;
         if let Some(r) = &self.fixed.membrane_relief {
@@ -159,9 +148,11 @@ fn dot32(a: &Array2<f32>, b: &Array2<f32>) -> f64 {
 /// the membrane's, [`relief_gradient_into`]) = −g in DCT coefficients (K the tie's
 /// per-pixel weight); returns (Δ, iterations). Without a tie or E_DEM's height part
 /// ([`Objective::dem_height`]) no term sees the mean height, which stays the DEM's; with
-/// either, the mean is solved for too. Each iteration is two transforms and
-/// five passes over the grid: the operator's, the residual update fused with both inner
-/// products, and the direction update fused with the solution's.
+/// either, the mean is solved for too. Each iteration is two transforms and four passes over
+/// the grid: the operator's two (Dᵀ(H + M)D in one, [`ops::weighted_normal_into`]; H_Q with
+/// d̂·A·d̂), the residual update fused with both inner products, and the direction update fused
+/// with the solution's. The step is returned in f32, as the iteration made it (its callers
+/// widen each value exactly where they use it).
 ///
 /// The iteration runs in f32 (vectors, operator, transforms; inner products accumulated in
 /// f64): it only has to reach a relative residual of `cg_tolerance` (0.02), far above f32's
@@ -173,7 +164,7 @@ fn newton_step(
     fixed: &Fixed,
     g: &Array2<f64>,
     params: &FusionParams,
-) -> (Array2<f64>, usize) {
+) -> (Array2<f32>, usize) {
     let (ny, nx) = g.dim();
     let e2 = obj.problem.spacing * obj.problem.spacing;
     let n = hm.len() as f64;
@@ -216,8 +207,6 @@ fn newton_step(
         fixed,
         fixed_mean,
         v: Array2::zeros((ny, nx)),
-        vx: Array2::zeros((ny, nx)),
-        vy: Array2::zeros((ny, nx)),
         u: Array2::zeros(if fixed.dem_relief.is_some() {
             (ny, nx)
         } else {
@@ -237,10 +226,10 @@ fn newton_step(
         r[(0, 0)] = 0.0;
     }
     let mut y = Array2::<f32>::zeros(r.dim());
-    let mut s = &r * &minv;
-    let mut d = s.clone();
+    // The preconditioned residual s = M⁻¹r is formed where it is used (no array is kept).
+    let mut d = &r * &minv;
     let mut ad = Array2::<f32>::zeros(r.dim());
-    let mut rs = dot32(&r, &s);
+    let mut rs = dot32(&r, &d);
     let r0 = dot32(&r, &r).sqrt();
     let mut it = 0;
     while it < params.cg_iterations && r0 > 0.0 {
@@ -250,18 +239,17 @@ fn newton_step(
             break;
         }
         let alpha = (rs / dad) as f32;
-        // r ← r − α·Ad, s ← M⁻¹r, with |r|² and r·s in the same pass.
+        // r ← r − α·Ad, with |r|² and r·M⁻¹r in the same pass.
         let [rr, rs_new] = ops::sum_row_parts(
             Zip::from(r.rows_mut())
-                .and(s.rows_mut())
                 .and(ad.rows())
                 .and(minv.rows())
-                .par_map_collect(|mut r, mut s, ad, m| {
+                .par_map_collect(|mut r, ad, m| {
                     let (mut rr, mut rs) = (0.0, 0.0);
-                    for (((r, s), &ad), &m) in r.iter_mut().zip(s.iter_mut()).zip(ad).zip(m) {
+                    for ((r, &ad), &m) in r.iter_mut().zip(ad).zip(m) {
                         *r -= alpha * ad;
-                        *s = *r * m;
-                        let (r, s) = (f64::from(*r), f64::from(*s));
+                        let s = *r * m;
+                        let (r, s) = (f64::from(*r), f64::from(s));
                         rr += r * r;
                         rs += r * s;
                     }
@@ -275,17 +263,19 @@ fn newton_step(
         }
         let beta = (rs_new / rs) as f32;
         rs = rs_new;
-        // y ← y + α·d, then d ← s + β·d.
+        // y ← y + α·d, then d ← M⁻¹r + β·d.
         Zip::from(&mut y)
             .and(&mut d)
-            .and(&s)
-            .par_for_each(|y, d, &s| {
+            .and(&r)
+            .and(&minv)
+            .par_for_each(|y, d, &r, &m| {
                 *y += alpha * *d;
-                *d = s + beta * *d;
+                *d = r * m + beta * *d;
             });
     }
+    drop((normal, r, d, ad, minv));
     obj.dct_cg.inverse_in_place(&mut y);
-    (y.mapv(f64::from), it)
+    (y, it)
 }
 
 pub fn minimise(
@@ -306,15 +296,17 @@ pub fn minimise(
     ) = super::start(obj, z, rho, observe);
     let mut previous = None;
     for iteration in 1..=params.max_iterations {
-        let g = obj.gradient(z.view(), &zh, &photo);
+        // The iterate's ẑ (which the gradient takes over) and then its photometric state are
+        // not needed again (the line search makes the next): each is freed as soon as it has
+        // served, before the Newton system, the conjugate gradients and the trial allocate
+        // theirs.
+        let g = obj.gradient(z.view(), zh, &photo);
         // H + M, in the curvature's storage.
         let mut hm = obj.curvature(z.view(), rho, &photo, params.curvature_residual);
         obj.add_gauss_newton_hessian(&photo, &mut hm);
-        // The iterate's photometric state and ẑ are not needed again (the line search makes
-        // the next): free them before the conjugate gradients and the trial allocate theirs.
-        drop((photo, zh));
+        drop(photo);
         let (step, inner) = newton_step(obj, hm, &fixed, &g, params);
-        let slope = ops::dot(g.view(), step.view());
+        let slope = dot_widened(&g, &step);
         drop(g);
         if slope >= 0.0 {
             break;
@@ -322,8 +314,9 @@ pub fn minimise(
         let mut t = 1.0;
         let mut accepted = None;
         for _ in 0..12 {
-            let mut trial = z.clone();
-            trial.scaled_add(t, &step);
+            let trial = Zip::from(&*z)
+                .and(&step)
+                .par_map_collect(|&z, &s| z + t * f64::from(s));
             let Iterate {
                 photo: tp,
                 zh: th,
@@ -339,7 +332,9 @@ pub fn minimise(
             break;
         };
         let gain = (energy.total - ne.total) / energy.total.max(f64::MIN_POSITIVE);
-        let moved = t * ops::max_abs(step.view());
+        let moved = t * step
+            .iter()
+            .fold(0.0, |m: f64, &x| m.max(f64::from(x).abs()));
         (*z, photo, zh, energy) = (nz, np, nh, ne);
         observe(&energy);
         log.push(IterationRecord {
@@ -355,6 +350,17 @@ pub fn minimise(
         previous = Some(moved);
     }
     log
+}
+
+/// Σ gᵢ·sᵢ with each sᵢ widened to f64, as `ops::dot` sums (row by row, then in row order).
+fn dot_widened(g: &Array2<f64>, s: &Array2<f32>) -> f64 {
+    let parts = Zip::from(g.rows()).and(s.rows()).par_map_collect(|g, s| {
+        [g.iter()
+            .zip(s)
+            .map(|(&g, &s)| g * f64::from(s))
+            .sum::<f64>()]
+    });
+    ops::sum_row_parts(parts.view())[0]
 }
 
 /// The largest height change still to come, estimated from the largest changes of the last two

@@ -20,7 +20,7 @@ pub use observations::{Selection, Weights};
 use crate::photometry::{ReflectanceModel, Vec3};
 use crate::spectral::{self, Dct2d};
 use ndarray::{Array2, ArrayView2, CowArray, Ix2, Zip};
-use objective::Objective;
+use objective::{Objective, Photo};
 use serde::{Deserialize, Serialize};
 use std::time::Instant;
 
@@ -912,14 +912,16 @@ fn fine_stages(
     sigmas: &[f64],
     mut stages: Vec<StageReport>,
 ) -> Result<Fusion, FusionError> {
-    let multi = obj.weights.multiplicity();
+    // The multi-coverage c(x), kept only where observations overlap (a single observation's
+    // is 0 everywhere: no array is held through the stages for it).
+    let multi = Some(obj.weights.multiplicity()).filter(|c| c.iter().any(|&c| c > 0.0));
     // Where observations overlap, a last stage at `multi_albedo_sigma` follows the configured
     // ones (blended into the last of them).
     let multi_stage = params
         .albedo_sigmas
         .last()
         .copied()
-        .filter(|_| multi.iter().any(|&c| c > 0.0));
+        .filter(|_| multi.is_some());
     // A stage before the last only hands the next its surface: it stops on
     // `stage_step_tolerance`.
     let early = FusionParams {
@@ -948,7 +950,7 @@ fn fine_stages(
             seconds: t0.elapsed().as_secs_f64(),
         });
     }
-    if let Some(last) = multi_stage {
+    if let (Some(last), Some(multi)) = (multi_stage, &multi) {
         let t0 = Instant::now();
         obj.set_membrane_weights(
             z.view(),
@@ -963,7 +965,7 @@ fn fine_stages(
             z.view(),
             &[params.multi_albedo_sigma, last],
         )?;
-        let rho = blend(&maps[0], &maps[1], &multi);
+        let rho = blend(&maps[0], &maps[1], multi);
         let iterations = minimise(&obj, &mut z, rho.view(), params, &mut |_| {});
         stages.push(StageReport {
             sigma_rho: params.multi_albedo_sigma,
@@ -973,17 +975,24 @@ fn fine_stages(
     }
     let w = &obj.weights;
     // Beyond the support band the result is the input DEM; within it the correction fades.
+    let support = obj.support();
     Zip::from(&mut z)
-        .and(&obj.support)
+        .and(&support)
         .and(pr.dem)
         .par_for_each(|z, &s, &d| *z = d + s * (*z - d));
     let inverted = observations::invert_albedo(pr, w, z.view());
     let mut albedo = final_albedo(&obj.dct, &inverted, params.final_albedo_sigma, params)?;
-    if multi.iter().any(|&c| c > 0.0) {
+    if let Some(multi) = &multi {
         let fine = final_albedo(&obj.dct, &inverted, params.multi_final_albedo_sigma, params)?;
-        albedo = blend(&fine, &albedo, &multi);
+        albedo = blend(&fine, &albedo, multi);
     }
-    let photo = obj.photo(z.view(), albedo.view());
+    drop(inverted);
+    // The residuals and coverage of each observation on the final surface (their slopes'
+    // derivatives are not needed: freed at once).
+    let Photo {
+        obs, used: covered, ..
+    } = obj.photo(z.view(), albedo.view());
+    let obs: Vec<_> = obs.into_iter().map(|ph| (ph.res, ph.used)).collect();
     // Off every image's footprint the albedo would only be the smoothing's fill: no data.
     Zip::from(&mut albedo)
         .and(&pr.footprint())
@@ -996,12 +1005,12 @@ fn fine_stages(
     let mut sq = Array2::<f64>::zeros(z.dim());
     let mut sw = Array2::<f64>::zeros(z.dim());
     let mut count = Array2::<u8>::zeros(z.dim());
-    for (ph, wk) in photo.obs.iter().zip(&w.weight) {
+    for ((res, used), wk) in obs.iter().zip(&w.weight) {
         Zip::from(&mut sq)
             .and(&mut sw)
             .and(&mut count)
-            .and(&ph.res)
-            .and(&ph.used)
+            .and(res)
+            .and(used)
             .and(wk)
             .for_each(|sq, sw, n, &r, &u, &w| {
                 if u {
@@ -1011,18 +1020,21 @@ fn fine_stages(
                 }
             });
     }
-    let residual = Zip::from(&sq)
+    // In place of the sums of squares.
+    let mut residual = sq;
+    Zip::from(&mut residual)
         .and(&sw)
-        .and(&photo.used)
-        .map_collect(|&q, &w, &u| {
-            if u && w > 0.0 {
-                (q / w).sqrt() * obj.scale
+        .and(&covered)
+        .for_each(|q, &w, &u| {
+            *q = if u && w > 0.0 {
+                (*q / w).sqrt() * obj.scale
             } else {
                 f64::NAN
             }
         });
-    let photometric = photo.used;
-    let used_by = photo.obs.into_iter().map(|ph| ph.used).collect();
+    drop(sw);
+    let photometric = covered;
+    let used_by = obs.into_iter().map(|(_, used)| used).collect();
     Ok(Fusion {
         height: z,
         albedo,
@@ -1032,7 +1044,7 @@ fn fine_stages(
         used_by,
         gains: w.gains.clone(),
         noise_weights: w.noise.clone(),
-        support: obj.support,
+        support,
         stages,
     })
 }

@@ -40,7 +40,8 @@ use super::support;
 use super::Problem;
 use crate::photometry::ReflectanceModel;
 use crate::spectral::{self, to, Dct2d, Real};
-use ndarray::{Array2, ArrayView2, Zip};
+use ndarray::{Array2, ArrayView2, Axis, Zip};
+use rayon::prelude::*;
 use serde::{Deserialize, Serialize};
 
 /// The terms of the energy at one iterate.
@@ -73,7 +74,7 @@ pub struct ObsPhoto {
 /// Photometric quantities of all observations at the current surface, and E_I (w_k the
 /// per-pixel weights of [`Weights`]). The weighted sums over the observations that the
 /// gradient and the Newton systems need are formed where they are used
-/// ([`Objective::photo_forces`], [`Objective::add_gauss_newton_hessian`]), not stored: a line
+/// ([`Objective::photo_gradient`], [`Objective::add_gauss_newton_hessian`]), not stored: a line
 /// search's trial would store them for nothing.
 pub struct Photo {
     pub obs: Vec<ObsPhoto>,
@@ -99,7 +100,7 @@ pub struct Objective<'a, 'p> {
     /// steps.
     pub dct_cg: Dct2d<f32>,
     /// λ_kl/ε².
-    pub lam: Array2<f64>,
+    pub lam: spectral::LaplacianSymbol,
     /// 1/ℓ² (m⁻²; 0: none): E_DEM measures the heights of the blurred difference u as well as
     /// its gradients, Σ|∇u|² + Σu²/ℓ², so that at wavelengths beyond 2πℓ the DEM's heights,
     /// not only its slopes, hold the surface ([`Objective::with_dem_height_length`]).
@@ -117,9 +118,9 @@ pub struct Objective<'a, 'p> {
     pub scale: f64,
     /// Each observation's usable pixels, weights w_k(x) and gain g_k.
     pub weights: Weights,
-    /// s: photometric support, 1 on and near the image's footprint (finite I, shadow
-    /// included), 0 beyond the band.
-    pub support: Array2<f64>,
+    /// The support band (r₀, r₁) of [`support::band`]: s = 1 within r₀ of the image's
+    /// footprint, 0 beyond r₁ ([`Objective::support`]).
+    pub band: (f64, f64),
     /// κ(x)/ε², the tie's per-pixel weight; `None` when the image covers every pixel.
     pub tie: Option<Array2<f64>>,
     /// r(x) = (1 − f)·c(x): where several observations carry a pixel (multi-coverage c of
@@ -144,18 +145,13 @@ impl<'a, 'p> Objective<'a, 'p> {
         let (ny, nx) = problem.dem.dim();
         let dct = Dct2d::new(ny, nx);
         let e2 = problem.spacing * problem.spacing;
-        let lam = spectral::separable(
-            &spectral::laplacian_eigenvalues(ny),
-            &spectral::laplacian_eigenvalues(nx),
-            |a, b| (a + b) / e2,
-        );
+        let lam = spectral::LaplacianSymbol::new(ny, nx, problem.spacing);
         let gd = spectral::gaussian_table(ny, nx, sigma_dem);
         let gb = spectral::gaussian_table(ny, nx, psf);
         let gs = &gd * &gb;
         let dem_hat = dct.forward(&problem.dem.to_owned());
         let (r0, r1) = support::band(sigma_dem);
         let covered = problem.footprint();
-        let support = support::support(&covered, r0, r1);
         let (dem_target, tie) = if covered.iter().all(|&c| c) {
             (&gd * &dem_hat, None)
         } else {
@@ -177,7 +173,7 @@ impl<'a, 'p> Objective<'a, 'p> {
             // otherwise drifts by kilometres along the strip, while the edge of a wide swath
             // (c ≈ ½) keeps its correction.
             let kappa0 = (delta + eta) / (r0 * r0);
-            let tie = Zip::from(&support)
+            let tie = Zip::from(&support::support(&covered, r0, r1))
                 .and(&cover)
                 .map_collect(|&s, &c| kappa0 * (1.0 - s).max(1.0 - 2.0 * c) / e2);
             (&gd * &dct.forward(&target), Some(tie))
@@ -194,12 +190,20 @@ impl<'a, 'p> Objective<'a, 'p> {
             eta,
             scale,
             weights,
-            support,
+            band: (r0, r1),
             tie,
             dem_relief: None,
             membrane_relief: None,
             dem_height: 0.0,
         }
+    }
+
+    /// s: the photometric support, 1 on and near the images' footprint (finite I, shadow
+    /// included), 0 beyond the band ([`support::support`]). Formed when asked for (the
+    /// tie is formed from it once, the end of the fusion tapers the correction with it): it
+    /// is not held through the stages.
+    pub fn support(&self) -> Array2<f64> {
+        support::support(&self.problem.footprint(), self.band.0, self.band.1)
     }
 
     /// Let E_DEM hold heights as well as gradients beyond the length `length_m` (metres; 0 or
@@ -392,7 +396,7 @@ impl<'a, 'p> Objective<'a, 'p> {
     pub fn photo(&self, z: ArrayView2<f64>, rho: ArrayView2<f64>) -> Photo {
         let pr = self.problem;
         let model: &dyn ReflectanceModel = pr.model;
-        let (p, q) = ops::gradient(z, pr.spacing);
+        let z = z.as_standard_layout();
         let dim = z.dim();
         let s = self.scale;
         let obs: Vec<ObsPhoto> = pr
@@ -406,26 +410,31 @@ impl<'a, 'p> Objective<'a, 'p> {
                 let mut a = Array2::zeros(dim);
                 let mut b = Array2::zeros(dim);
                 let mut used = Array2::from_elem(dim, false);
-                Zip::indexed(&mut res)
-                    .and(&mut a)
-                    .and(&mut b)
-                    .and(&mut used)
-                    .par_for_each(|(i, j), res, a, b, used| {
-                        if !usable[(i, j)] {
-                            return;
-                        }
-                        let sh = model.shade_observed(
-                            p[(i, j)],
-                            q[(i, j)],
-                            rho[(i, j)],
-                            o.sun.at(i, j),
-                            o.view.at(i, j),
-                        );
-                        if sh.lit {
-                            *res = (o.image[(i, j)] / g - sh.r) / s;
-                            *a = sh.dr_dp / s;
-                            *b = sh.dr_dq / s;
-                            *used = true;
+                // Row by row, the slopes of each row formed there (no slope arrays).
+                Zip::indexed(res.rows_mut())
+                    .and(a.rows_mut())
+                    .and(b.rows_mut())
+                    .and(used.rows_mut())
+                    .par_for_each(|i, mut res, mut a, mut b, mut used| {
+                        let (mut p, mut q) = (vec![0.0; dim.1], vec![0.0; dim.1]);
+                        ops::gradient_row(z.view(), pr.spacing, i, &mut p, &mut q);
+                        for j in 0..dim.1 {
+                            if !usable[(i, j)] {
+                                continue;
+                            }
+                            let sh = model.shade_observed(
+                                p[j],
+                                q[j],
+                                rho[(i, j)],
+                                o.sun.at(i, j),
+                                o.view.at(i, j),
+                            );
+                            if sh.lit {
+                                res[j] = (o.image[(i, j)] / g - sh.r) / s;
+                                a[j] = sh.dr_dp / s;
+                                b[j] = sh.dr_dq / s;
+                                used[j] = true;
+                            }
                         }
                     });
                 ObsPhoto { res, a, b, used }
@@ -457,24 +466,38 @@ impl<'a, 'p> Objective<'a, 'p> {
         }
     }
 
-    /// (fx, fy) = Σ_k w_k r_k (a_k, b_k) of `photo`: ∂E_I/∂z = −2 Dᵀ(fx, fy).
-    pub fn photo_forces(&self, photo: &Photo) -> (Array2<f64>, Array2<f64>) {
+    /// `out` ← ∂E_I/∂z + `out`, ∂E_I/∂z = −2 Dᵀ(fx, fy) of `photo`, (fx, fy) = Σ_k w_k r_k
+    /// (a_k, b_k) (summed over the observations in their order). fy is formed as an array
+    /// (D_yᵀ reaches two rows either side), fx and ∂E_I/∂z row by row where they are used:
+    /// one array of the grid's size, not three.
+    pub fn add_photo_gradient(&self, photo: &Photo, out: &mut Array2<f64>) {
         let dim = photo.used.dim();
-        let mut fx = Array2::zeros(dim);
+        let weights = &self.weights.weight;
         let mut fy = Array2::zeros(dim);
-        for (ph, w) in photo.obs.iter().zip(&self.weights.weight) {
-            Zip::from(&mut fx)
-                .and(&mut fy)
+        for (ph, w) in photo.obs.iter().zip(weights) {
+            Zip::from(&mut fy)
                 .and(&ph.res)
-                .and(&ph.a)
                 .and(&ph.b)
                 .and(w)
-                .par_for_each(|fx, fy, &r, &a, &b, &w| {
-                    *fx += w * r * a;
-                    *fy += w * r * b;
-                });
+                .par_for_each(|fy, &r, &b, &w| *fy += w * r * b);
         }
-        (fx, fy)
+        out.axis_iter_mut(Axis(0))
+            .into_par_iter()
+            .enumerate()
+            .for_each(|(i, mut orow)| {
+                let mut fx = vec![0.0; dim.1];
+                for (ph, w) in photo.obs.iter().zip(weights) {
+                    let (r, a, w) = (ph.res.row(i), ph.a.row(i), w.row(i));
+                    for (j, fx) in fx.iter_mut().enumerate() {
+                        *fx += w[j] * r[j] * a[j];
+                    }
+                }
+                let mut data = vec![0.0; dim.1];
+                ops::adjoint_row(&fx, fy.view(), self.problem.spacing, i, &mut data);
+                for (o, d) in orow.iter_mut().zip(data) {
+                    *o += d * -2.0;
+                }
+            });
     }
 
     /// H = Σ_k 2 w_k (a_k², a_k b_k, b_k²), the Gauss–Newton Hessian of E_I in (p, q) per
@@ -557,15 +580,14 @@ impl<'a, 'p> Objective<'a, 'p> {
     /// The quadratic terms (E_DEM, E_reg) at z, from z and its DCT coefficients ẑ.
     pub fn quadratic(&self, z: ArrayView2<f64>, zh: &Array2<f64>) -> (f64, f64) {
         // Both sums in one pass, per row and then in row order (as `ops::sum`).
-        let parts = Zip::from(self.lam.rows())
-            .and(self.gs.rows())
+        let parts = Zip::indexed(self.gs.rows())
             .and(zh.rows())
             .and(self.dem_target.rows())
             .and(self.dem_hat.rows())
-            .par_map_collect(|l, g, z, t, h| {
+            .par_map_collect(|i, g, z, t, h| {
                 let (mut dem, mut reg) = (0.0, 0.0);
-                for j in 0..l.len() {
-                    let (l, z) = (l[j], z[j]);
+                for j in 0..g.len() {
+                    let (l, z) = (self.lam.at(i, j), z[j]);
                     let d = g[j] * z - t[j];
                     dem += (l + self.dem_height) * d * d;
                     reg += l * (z - h[j]) * (z - h[j]);
@@ -613,32 +635,31 @@ impl<'a, 'p> Objective<'a, 'p> {
         }
     }
 
-    /// ∂E/∂z (spatial) at `z`, given ẑ and the photometric state.
-    pub fn gradient(&self, z: ArrayView2<f64>, zh: &Array2<f64>, photo: &Photo) -> Array2<f64> {
-        let data = {
-            let (fx, fy) = self.photo_forces(photo);
-            ops::gradient_adjoint(fx.view(), fy.view(), self.problem.spacing) * -2.0
-        };
-        let mut quad_hat = Zip::from(&self.lam)
+    /// ∂E/∂z (spatial) at `z`, given ẑ and the photometric state. ẑ is taken by value: the
+    /// quadratic terms' part is formed in its place (no array of the grid's size for it).
+    pub fn gradient(&self, z: ArrayView2<f64>, zh: Array2<f64>, photo: &Photo) -> Array2<f64> {
+        let relief_hat = self.dem_relief.as_ref().map(|r| {
+            let (_, gu) = self.relief_term(r, &self.dem_residual(&zh), self.dem_height, true);
+            self.dct.forward(&gu.expect("asked for"))
+        });
+        let mut g = zh;
+        Zip::indexed(&mut g)
             .and(&self.gs)
-            .and(zh)
             .and(&self.dem_target)
             .and(&self.dem_hat)
-            .par_map_collect(|&l, &g, &z, &t, &d| {
-                2.0 * (l + self.dem_height) * self.delta * g * (g * z - t)
-                    + 2.0 * l * self.eta * (z - d)
+            .par_for_each(|(i, j), q, &g, &t, &d| {
+                let (l, z) = (self.lam.at(i, j), *q);
+                *q = 2.0 * (l + self.dem_height) * self.delta * g * (g * z - t)
+                    + 2.0 * l * self.eta * (z - d);
             });
-        if let Some(r) = &self.dem_relief {
-            let (_, gu) = self.relief_term(r, &self.dem_residual(zh), self.dem_height, true);
-            let gh = self.dct.forward(&gu.expect("asked for"));
-            Zip::from(&mut quad_hat)
+        if let Some(gh) = relief_hat {
+            Zip::from(&mut g)
                 .and(&gh)
                 .and(&self.gs)
                 .par_for_each(|o, &x, &g| *o -= self.delta * g * x);
         }
-        let spatial = self.dct.inverse(&quad_hat);
-        drop(quad_hat);
-        let mut g = data + spatial;
+        self.dct.inverse_in_place(&mut g);
+        self.add_photo_gradient(photo, &mut g);
         if let Some(r) = &self.membrane_relief {
             let (_, gu) = self.relief_term(r, &self.correction(z), 0.0, true);
             g.scaled_add(-self.eta, &gu.expect("asked for"));
@@ -663,9 +684,9 @@ impl<'a, 'p> Objective<'a, 'p> {
     /// [`Objective::with_dem_height_length`]).
     pub fn quadratic_hessian_with(&self, delta: f64, eta: f64) -> Array2<f64> {
         let h = self.dem_height;
-        Zip::from(&self.lam)
-            .and(&self.gs)
-            .map_collect(|&l, &g| 2.0 * (l * (delta * g * g + eta) + h * delta * g * g))
+        Zip::indexed(&self.gs).par_map_collect(|(i, j), &g| {
+            2.0 * (self.lam.at(i, j) * (delta * g * g + eta) + h * delta * g * g)
+        })
     }
 }
 
@@ -826,7 +847,7 @@ mod tests {
         let e = |z: &Array2<f64>| obj.energy(z.view(), &obj.photo(z.view(), rho.view())).total;
         let g = obj.gradient(
             z.view(),
-            &obj.dct.forward(z),
+            obj.dct.forward(z),
             &obj.photo(z.view(), rho.view()),
         );
         for &(i, j) in points {

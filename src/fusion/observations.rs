@@ -384,7 +384,7 @@ pub fn invert_albedo(
     w: &Weights,
     z: ArrayView2<f64>,
 ) -> (Array2<f64>, Array2<bool>, Array2<f64>) {
-    let (p, q) = super::ops::gradient(z, pr.spacing);
+    let z = z.as_standard_layout();
     let dim = z.dim();
     let model: &dyn ReflectanceModel = pr.model;
     let mut rho = Array2::zeros(dim);
@@ -398,9 +398,12 @@ pub fn invert_albedo(
         .for_each(|(i, ((mut rrow, mut orow), mut srow))| {
             let mut data: Vec<(f64, f64, Cosines)> = Vec::new();
             let mut curves: Vec<(f64, f64, AlbedoCurve)> = Vec::new();
+            // The row's slopes (no slope arrays of the grid's size).
+            let (mut p, mut q) = (vec![0.0; dim.1], vec![0.0; dim.1]);
+            super::ops::gradient_row(z.view(), pr.spacing, i, &mut p, &mut q);
             for j in 0..dim.1 {
                 data.clear();
-                let (pp, qq) = (p[(i, j)], q[(i, j)]);
+                let (pp, qq) = (p[j], q[j]);
                 let (mut sw, mut swr, mut s2) = (0.0, 0.0, 0.0);
                 for (k, o) in pr.observations.iter().enumerate() {
                     let wk = w.weight[k][(i, j)];

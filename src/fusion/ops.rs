@@ -134,34 +134,45 @@ pub fn gradient(z: ArrayView2<f64>, eps: f64) -> (Array2<f64>, Array2<f64>) {
 
 /// [`gradient`] into `p` and `q` (standard layout, the shape of `z`).
 pub fn gradient_into<T: Real>(z: ArrayView2<T>, eps: f64, p: &mut Array2<T>, q: &mut Array2<T>) {
-    let ny = z.nrows();
     let z = z.as_standard_layout();
-    let inv = to::<T>(1.0 / eps);
     p.axis_iter_mut(Axis(0))
         .into_par_iter()
         .zip(q.axis_iter_mut(Axis(0)))
         .enumerate()
         .for_each(|(i, (mut prow, mut qrow))| {
-            let pr = prow.as_slice_mut().expect("standard layout");
-            diff_line(z.row(i).as_slice().expect("standard layout"), pr);
-            pr.iter_mut().for_each(|x| *x = *x * inv);
-            // y points north = towards smaller row index: q = −(D along rows).
-            // (coef is 0 everywhere on a single row.)
-            let qr = qrow.as_slice_mut().expect("standard layout");
-            qr.iter_mut().for_each(|x| *x = T::zero());
-            let lo = i.saturating_sub(2);
-            let hi = (i + 2).min(ny - 1);
-            for k in lo..=hi {
-                let c = coef(ny, i, k);
-                if c != 0.0 {
-                    let c = to::<T>(c);
-                    let r = z.row(k);
-                    for (o, &x) in qr.iter_mut().zip(r.as_slice().expect("standard layout")) {
-                        *o = *o - c * x * inv;
-                    }
-                }
-            }
+            gradient_row(
+                z.view(),
+                eps,
+                i,
+                prow.as_slice_mut().expect("standard layout"),
+                qrow.as_slice_mut().expect("standard layout"),
+            );
         });
+}
+
+/// [`gradient`] along row `i` of `z` (standard layout) into `p` and `q` (one row each): the
+/// values `gradient_into` gives there, for callers that go row by row and need no slope
+/// arrays of the grid's size.
+pub fn gradient_row<T: Real>(z: ArrayView2<T>, eps: f64, i: usize, p: &mut [T], q: &mut [T]) {
+    let ny = z.nrows();
+    let inv = to::<T>(1.0 / eps);
+    diff_line(z.row(i).as_slice().expect("standard layout"), p);
+    p.iter_mut().for_each(|x| *x = *x * inv);
+    // y points north = towards smaller row index: q = −(D along rows).
+    // (coef is 0 everywhere on a single row.)
+    q.iter_mut().for_each(|x| *x = T::zero());
+    let lo = i.saturating_sub(2);
+    let hi = (i + 2).min(ny - 1);
+    for k in lo..=hi {
+        let c = coef(ny, i, k);
+        if c != 0.0 {
+            let c = to::<T>(c);
+            let r = z.row(k);
+            for (o, &x) in q.iter_mut().zip(r.as_slice().expect("standard layout")) {
+                *o = *o - c * x * inv;
+            }
+        }
+    }
 }
 
 /// [`gradient`] at one pixel (i, j): the same stencils in the same arithmetic, so the same
@@ -195,30 +206,116 @@ pub fn gradient_adjoint_into<T: Real>(
     eps: f64,
     out: &mut Array2<T>,
 ) {
-    let ny = u.nrows();
     let u = u.as_standard_layout();
     let v = v.as_standard_layout();
-    let inv = to::<T>(1.0 / eps);
     out.axis_iter_mut(Axis(0))
         .into_par_iter()
         .enumerate()
         .for_each(|(k, mut orow)| {
             let o = orow.as_slice_mut().expect("standard layout");
-            adjoint_line(u.row(k).as_slice().expect("standard layout"), o);
-            // Rows j ∈ [k−2, k+2] of v with coefficient coef(ny, j, k); q = −D_rows, so subtract.
-            let lo = k.saturating_sub(2);
-            let hi = (k + 2).min(ny.saturating_sub(1));
-            for j in lo..=hi {
-                let c = coef(ny, j, k);
-                if c != 0.0 {
-                    let c = to::<T>(c);
-                    let vr = v.row(j);
-                    for (x, &y) in o.iter_mut().zip(vr.as_slice().expect("standard layout")) {
-                        *x = *x - c * y;
-                    }
+            adjoint_row(
+                u.row(k).as_slice().expect("standard layout"),
+                v.view(),
+                eps,
+                k,
+                o,
+            );
+        });
+}
+
+/// Row `k` of [`gradient_adjoint`] into `o`, given that row of `u` (`u_row`) and the whole of
+/// `v` (standard layout): for callers that form `u` row by row and hold no array of it.
+pub fn adjoint_row<T: Real>(u_row: &[T], v: ArrayView2<T>, eps: f64, k: usize, o: &mut [T]) {
+    adjoint_row_with(
+        u_row,
+        |j| v.row(j).to_slice().expect("standard layout"),
+        v.nrows(),
+        eps,
+        k,
+        o,
+    );
+}
+
+/// [`adjoint_row`] with the rows of `v` (of `ny` rows) from `v_row`: only rows k − 2 ..= k + 2
+/// are asked for.
+fn adjoint_row_with<'v, T: Real>(
+    u_row: &[T],
+    v_row: impl Fn(usize) -> &'v [T],
+    ny: usize,
+    eps: f64,
+    k: usize,
+    o: &mut [T],
+) {
+    let inv = to::<T>(1.0 / eps);
+    adjoint_line(u_row, o);
+    // Rows j ∈ [k−2, k+2] of v with coefficient coef(ny, j, k); q = −D_rows, so subtract.
+    let lo = k.saturating_sub(2);
+    let hi = (k + 2).min(ny.saturating_sub(1));
+    for j in lo..=hi {
+        let c = coef(ny, j, k);
+        if c != 0.0 {
+            let c = to::<T>(c);
+            for (x, &y) in o.iter_mut().zip(v_row(j)) {
+                *x = *x - c * y;
+            }
+        }
+    }
+    o.iter_mut().for_each(|x| *x = *x * inv);
+}
+
+/// Rows per block of [`weighted_normal_into`].
+const NORMAL_BLOCK_ROWS: usize = 32;
+
+/// Dᵀ(H·D v) into `out` (standard layout, the shape of `v`), H a symmetric 2 × 2 matrix per
+/// pixel (`h` = [xx, xy, yy]) acting on the gradient (p, q) = D v of [`gradient`]: the
+/// photometric part of the Newton operator. The same values, to the bit, as
+/// [`gradient_into`], the product with H per pixel and [`gradient_adjoint_into`] in turn, but
+/// block by block of rows, each forming the weighted gradients of its rows (and of the two
+/// rows either side that D_yᵀ reaches) in scratch of its own: no arrays of the grid's size
+/// for them, and no round trip through memory.
+pub fn weighted_normal_into<T: Real>(
+    v: ArrayView2<T>,
+    h: &Array2<[T; 3]>,
+    eps: f64,
+    out: &mut Array2<T>,
+) {
+    let (ny, nx) = v.dim();
+    let v = v.as_standard_layout();
+    out.axis_chunks_iter_mut(Axis(0), NORMAL_BLOCK_ROWS)
+        .into_par_iter()
+        .enumerate()
+        .for_each(|(b, mut block)| {
+            let a = b * NORMAL_BLOCK_ROWS;
+            let rows = block.nrows();
+            // Weighted gradients (u_x, u_y) = H·(p, q) of rows lo..hi: the block's and two
+            // either side.
+            let (lo, hi) = (a.saturating_sub(2), (a + rows + 2).min(ny));
+            let mut ux = vec![T::zero(); (hi - lo) * nx];
+            let mut uy = vec![T::zero(); (hi - lo) * nx];
+            for j in lo..hi {
+                let r = (j - lo) * nx..(j - lo + 1) * nx;
+                let (px, qy) = (&mut ux[r.clone()], &mut uy[r]);
+                gradient_row(v.view(), eps, j, px, qy);
+                let hr = h.row(j);
+                for ((x, y), h) in px.iter_mut().zip(qy.iter_mut()).zip(hr) {
+                    let (p, q) = (*x, *y);
+                    *x = h[0] * p + h[1] * q;
+                    *y = h[1] * p + h[2] * q;
                 }
             }
-            o.iter_mut().for_each(|x| *x = *x * inv);
+            for (r, mut orow) in block.rows_mut().into_iter().enumerate() {
+                let k = a + r;
+                let o = orow.as_slice_mut().expect("standard layout");
+                let off = (k - lo) * nx;
+                adjoint_row_with(
+                    &ux[off..off + nx],
+                    |j| &uy[(j - lo) * nx..(j - lo + 1) * nx],
+                    ny,
+                    eps,
+                    k,
+                    o,
+                );
+            }
         });
 }
 
@@ -278,6 +375,39 @@ mod tests {
                     (p[(i, j)].to_bits(), q[(i, j)].to_bits()),
                     "{ny}×{nx} at ({i}, {j})"
                 );
+            }
+        }
+    }
+
+    /// The block-by-block operator against its three passes (gradient, H per pixel, adjoint),
+    /// in f32 as the conjugate gradients use it: the same bits, on shapes with one block, with
+    /// several (a partial last one) and with fewer rows than the stencils reach.
+    #[test]
+    fn the_weighted_normal_is_its_three_passes_to_the_bit() {
+        for (ny, nx) in [(1, 1), (2, 3), (3, 5), (5, 4), (33, 7), (70, 9), (97, 12)] {
+            let v = Array2::from_shape_fn((ny, nx), |(i, j)| {
+                (((i * 7 + j * 13) as f64).sin() * 100.0 + (i * j) as f64 * 0.37) as f32
+            });
+            let h = Array2::from_shape_fn((ny, nx), |(i, j)| {
+                let t = (i * 3 + j * 5) as f32;
+                [1.0 + t.sin().abs(), 0.3 * t.cos(), 2.0 + (0.7 * t).sin()]
+            });
+            let (mut vx, mut vy) = (Array2::zeros((ny, nx)), Array2::zeros((ny, nx)));
+            gradient_into(v.view(), 140.0, &mut vx, &mut vy);
+            ndarray::Zip::from(&mut vx)
+                .and(&mut vy)
+                .and(&h)
+                .for_each(|x, y, h| {
+                    let (a, b) = (*x, *y);
+                    *x = h[0] * a + h[1] * b;
+                    *y = h[1] * a + h[2] * b;
+                });
+            let mut want = Array2::zeros((ny, nx));
+            gradient_adjoint_into(vx.view(), vy.view(), 140.0, &mut want);
+            let mut got = Array2::zeros((ny, nx));
+            weighted_normal_into(v.view(), &h, 140.0, &mut got);
+            for ((ix, g), w) in got.indexed_iter().zip(&want) {
+                assert_eq!(g.to_bits(), w.to_bits(), "{ny}×{nx} at {ix:?}");
             }
         }
     }

@@ -32,7 +32,7 @@ pub fn minimise(
     ) = super::start(obj, z, rho, observe);
     let mut iteration = 0;
     while iteration < params.max_iterations {
-        let g = obj.gradient(z.view(), &zh, &photo);
+        let g = obj.gradient(z.view(), zh.clone(), &photo);
         let tau = eps * eps / (2.0 * KAPPA * gamma);
         let mut trial = z.clone();
         trial.scaled_add(-tau, &g);

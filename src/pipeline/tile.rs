@@ -161,16 +161,6 @@ pub(super) fn run_tile(
         Some(i) => i,
         None => ingest_window(o, inputs, &plan.swaths, &grid)?,
     };
-    let mut image = Array2::from_elem(dim, f64::NAN);
-    for (_, img) in &shots {
-        Zip::from(&mut image)
-            .and(&img.reflectance)
-            .for_each(|i, &r| {
-                if i.is_nan() {
-                    *i = r;
-                }
-            });
-    }
     if let Some(((r, c), _)) = dem.indexed_iter().find(|(_, v)| !v.is_finite()) {
         let (x, y) = grid.xy(r as f64, c as f64);
         let (lon, lat) = projector(&grid.crs)?
@@ -206,11 +196,14 @@ pub(super) fn run_tile(
         coarse_factor: 1,
         ..plan.solver(&o.solver)
     };
-    let start = plan
-        .reference
-        .as_ref()
-        .zip(reference)
-        .map(|(info, r)| start_on(r, info, &e, &dem));
+    // The reference on the window (formed twice, for the fusion to take over and for the
+    // anchor after it, rather than held through the fusion).
+    let start = || {
+        plan.reference
+            .as_ref()
+            .zip(reference)
+            .map(|(info, r)| start_on(r, info, &e, &dem))
+    };
     let core = (
         tile.core.r0 - e.r0,
         tile.core.r0 - e.r0 + tile.core.rows,
@@ -221,15 +214,16 @@ pub(super) fn run_tile(
     let fused = if problem.observations.is_empty() {
         Err(fusion::FusionError::NoObservations)
     } else {
-        match &start {
-            Some(z0) => fusion::fuse_from(&problem, &params, z0.clone()),
+        match start() {
+            Some(z0) => fusion::fuse_from(&problem, &params, z0),
             None => fusion::fuse(&problem, &params),
         }
     };
-    let (status, layers, stages, photometric, sanity) = match fused {
+    let outcome = match fused {
         Ok(mut f) => {
             // The large scales come from the reference where there is one (the tile's own
             // window cannot see them), else from the input DEM.
+            let start = start();
             let level = start.as_ref().unwrap_or(&dem);
             f.height = fusion::anchor(
                 &f.height,
@@ -238,6 +232,28 @@ pub(super) fn run_tile(
                 plan.halo as f64 / 4.0,
             );
             let sanity = TileSums::of_tile(&problem, &f, &f.height, &ids, n_obs, core);
+            Ok((f, sanity))
+        }
+        Err(fusion::FusionError::NoObservations) => Err(None),
+        Err(err) => Err(Some(err)),
+    };
+    // The observations' per-pixel radiances and Sun and view vectors have served (the `image`
+    // layer, the first observation that covers a pixel, is formed from them now): they go
+    // before the layers are assembled.
+    drop(problem);
+    let mut image = Array2::from_elem(dim, f64::NAN);
+    for (_, img) in &shots {
+        Zip::from(&mut image)
+            .and(&img.reflectance)
+            .for_each(|i, &r| {
+                if i.is_nan() {
+                    *i = r;
+                }
+            });
+    }
+    drop(shots);
+    let (status, layers, stages, photometric, sanity) = match outcome {
+        Ok((f, sanity)) => {
             let n = f.photometric.iter().filter(|&&b| b).count();
             let mask = mask_codes(&f.photometric, &image);
             (
@@ -247,8 +263,8 @@ pub(super) fn run_tile(
                     f.albedo,
                     f.residual,
                     mask,
-                    dem.clone(),
-                    image.clone(),
+                    dem,
+                    image,
                     f.observations.mapv(f64::from),
                 ],
                 f.stages,
@@ -256,7 +272,7 @@ pub(super) fn run_tile(
                 sanity,
             )
         }
-        Err(fusion::FusionError::NoObservations) => {
+        Err(None) => {
             let nan = Array2::from_elem(dim, f64::NAN);
             (
                 "no_image",
@@ -265,8 +281,8 @@ pub(super) fn run_tile(
                     nan.clone(),
                     nan,
                     Array2::from_elem(dim, MASK_NO_IMAGE),
-                    dem.clone(),
-                    image.clone(),
+                    dem,
+                    image,
                     Array2::zeros(dim),
                 ],
                 Vec::new(),
@@ -274,16 +290,26 @@ pub(super) fn run_tile(
                 TileSums::no_image(tile.core.rows * tile.core.cols, n_obs),
             )
         }
-        Err(err) => return Err(Error::Usage(format!("tile {}: {err}", tile.id))),
+        Err(Some(err)) => return Err(Error::Usage(format!("tile {}: {err}", tile.id))),
     };
-    let mut data = Vec::with_capacity(layers.len() * e.len() * 4);
+    // The layers as little-endian f32, layer after layer: hashed in one pass, then streamed
+    // into the file after its header (no copy of them is assembled in memory).
+    let le_bytes = |l: &Array2<f64>, buf: &mut Vec<u8>| {
+        buf.clear();
+        buf.extend(l.iter().flat_map(|&v| (v as f32).to_le_bytes()));
+    };
+    let mut hasher = Sha256::new();
+    let mut buf = Vec::with_capacity(e.len() * 4);
     for l in &layers {
-        for &v in l.iter() {
-            data.extend_from_slice(&(v as f32).to_le_bytes());
-        }
+        le_bytes(l, &mut buf);
+        hasher.update(&buf);
     }
     let record = TileRecord {
-        layers_sha256: sha256_hex(&data),
+        layers_sha256: hasher
+            .finalize()
+            .iter()
+            .map(|b| format!("{b:02x}"))
+            .collect(),
         id: tile.id,
         key: plan.key.clone(),
         core: tile.core,
@@ -299,12 +325,16 @@ pub(super) fn run_tile(
         stages,
     };
     let json = serde_json::to_vec(&record).expect("records serialise");
-    let mut bytes = Vec::with_capacity(16 + json.len() + data.len());
-    bytes.extend_from_slice(TILE_MAGIC);
-    bytes.extend_from_slice(&(json.len() as u64).to_le_bytes());
-    bytes.extend_from_slice(&json);
-    bytes.extend_from_slice(&data);
     let path = tile_path(&o.output.directory, tile.id);
-    write_atomic(&path, &bytes)?;
+    crate::raster::write_atomic_with(&path, |w| {
+        w.write_all(TILE_MAGIC)?;
+        w.write_all(&(json.len() as u64).to_le_bytes())?;
+        w.write_all(&json)?;
+        for l in &layers {
+            le_bytes(l, &mut buf);
+            w.write_all(&buf)?;
+        }
+        Ok(())
+    })?;
     Ok(record)
 }

@@ -681,6 +681,27 @@ fn lola_like(truth: &Array2<f64>, spec: &SceneSpec, dct: &Dct2d, rng: &mut Rng) 
 
 impl Scene {
     /// The fusion problem this scene poses.
+    /// The scene without what only a check against the truth needs (the truth surface and
+    /// albedo, the shadow masks): what a fusion of it reads, and nothing more, stays in
+    /// memory (`sfsfuse bench` measures the fusion's memory, not the scene's).
+    pub fn without_truth(self) -> Self {
+        let empty = || Array2::zeros((0, 0));
+        Self {
+            truth_height: empty(),
+            truth_albedo: empty(),
+            shadow: Array2::from_elem((0, 0), false),
+            more: self
+                .more
+                .into_iter()
+                .map(|m| Shot {
+                    shadow: Array2::from_elem((0, 0), false),
+                    ..m
+                })
+                .collect(),
+            ..self
+        }
+    }
+
     pub fn problem(&self) -> crate::fusion::Problem<'_> {
         let mut pr = crate::fusion::Problem::single(
             self.image.view(),
