@@ -267,9 +267,13 @@ impl BenchReport {
 }
 
 /// `sfsfuse bench --pipeline`: `sfsfuse run` on the synthetic scene written as mission-format
-/// products, once as one tile and once tiled, in one process (so the ratio compares like with
-/// like): wall time of the whole run (plan, ingest, fusion, mosaic, COG writing, checksums),
-/// seconds per megapixel, and peak resident memory of each.
+/// products, as one tile and tiled, in one process (so the ratio compares like with like),
+/// `repeats` times each, alternately: wall time of the whole run (plan, ingest, fusion, mosaic,
+/// COG writing, checksums), seconds per megapixel, and peak resident memory of each. The
+/// times compared are each configuration's fastest run: on a shared 2-core machine single
+/// runs vary by ±20 %, and the fastest is the one the machine disturbed least (every run is
+/// in `*_samples_seconds`); the peaks are the first runs' (every run's in
+/// `*_samples_peak_memory_mib`).
 #[derive(Debug, Clone, Serialize)]
 pub struct PipelineBench {
     pub size: usize,
@@ -277,9 +281,18 @@ pub struct PipelineBench {
     pub halo: usize,
     pub tiles: usize,
     pub threads: usize,
+    /// Runs of each configuration.
+    pub repeats: usize,
+    /// The fastest run of each.
     pub single_seconds: f64,
     pub tiled_seconds: f64,
-    /// tiled / single wall time.
+    /// Every run's wall time, in order.
+    pub single_samples_seconds: Vec<f64>,
+    pub tiled_samples_seconds: Vec<f64>,
+    /// Every run's peak resident memory, in order.
+    pub single_samples_peak_memory_mib: Vec<Option<f64>>,
+    pub tiled_samples_peak_memory_mib: Vec<Option<f64>>,
+    /// tiled / single wall time (fastest runs).
     pub tiled_over_single: f64,
     pub single_seconds_per_megapixel: f64,
     pub tiled_seconds_per_megapixel: f64,
@@ -287,7 +300,8 @@ pub struct PipelineBench {
     pub tiled_peak_memory_mib: Option<f64>,
 }
 
-pub fn run_pipeline(size: usize, tile_size: usize) -> Result<PipelineBench> {
+pub fn run_pipeline(size: usize, tile_size: usize, repeats: usize) -> Result<PipelineBench> {
+    let repeats = repeats.max(1);
     use crate::progress::{Mode, Progress};
     use crate::workflow::Workflow;
     let spec = SceneSpec {
@@ -336,9 +350,28 @@ pub fn run_pipeline(size: usize, tile_size: usize) -> Result<PipelineBench> {
             halo,
         ))
     };
-    let (single, single_mem, _, halo) = timed(size.max(tile_size), "single")?;
-    let (tiled, tiled_mem, tiles, _) = timed(tile_size, "tiled")?;
+    let (mut singles, mut tileds) = (Vec::new(), Vec::new());
+    let (mut single_mems, mut tiled_mems) = (Vec::new(), Vec::new());
+    let (mut halo, mut tiles) = (0, 0);
+    for r in 0..repeats {
+        // A fresh output directory each time: a run would reuse the tiles of the one before.
+        let (secs, mem, _, h) = timed(size.max(tile_size), &format!("single{r}"))?;
+        let _ = std::fs::remove_dir_all(dir.join(format!("single{r}")));
+        halo = h;
+        singles.push(secs);
+        single_mems.push(mem);
+        let (secs, mem, n, _) = timed(tile_size, &format!("tiled{r}"))?;
+        let _ = std::fs::remove_dir_all(dir.join(format!("tiled{r}")));
+        tiles = n;
+        tileds.push(secs);
+        tiled_mems.push(mem);
+    }
+    // The first runs' peaks: later runs start from the allocator's state after the earlier
+    // ones (each run's peak is in the samples).
+    let (single_mem, tiled_mem) = (single_mems[0], tiled_mems[0]);
     let _ = std::fs::remove_dir_all(&dir);
+    let fastest = |v: &[f64]| v.iter().copied().fold(f64::INFINITY, f64::min);
+    let (single, tiled) = (fastest(&singles), fastest(&tileds));
     let mp = (size * size) as f64 / 1e6;
     Ok(PipelineBench {
         size,
@@ -346,8 +379,13 @@ pub fn run_pipeline(size: usize, tile_size: usize) -> Result<PipelineBench> {
         halo,
         tiles,
         threads: rayon::current_num_threads(),
+        repeats,
         single_seconds: single,
         tiled_seconds: tiled,
+        single_samples_seconds: singles,
+        tiled_samples_seconds: tileds,
+        single_samples_peak_memory_mib: single_mems,
+        tiled_samples_peak_memory_mib: tiled_mems,
         tiled_over_single: tiled / single,
         single_seconds_per_megapixel: single / mp,
         tiled_seconds_per_megapixel: tiled / mp,
@@ -360,7 +398,7 @@ impl PipelineBench {
     pub fn table(&self) -> String {
         let mem = |m: Option<f64>| m.map_or("n/a".to_string(), |m| format!("{m:.0} MiB"));
         format!(
-            "sfsfuse run on {0}×{0} px synthetic products, {1} threads, halo {2} px\n  one tile:            {3:.2} s ({4:.2} s/MP), peak {5}\n  {6} tiles of {7} px:  {8:.2} s ({9:.2} s/MP), peak {10}\n  tiled / single:      {11:.2}×\n",
+            "sfsfuse run on {0}×{0} px synthetic products, {1} threads, halo {2} px, fastest of {12} runs each\n  one tile:            {3:.2} s ({4:.2} s/MP), peak {5}\n  {6} tiles of {7} px:  {8:.2} s ({9:.2} s/MP), peak {10}\n  tiled / single:      {11:.2}×\n",
             self.size,
             self.threads,
             self.halo,
@@ -372,7 +410,8 @@ impl PipelineBench {
             self.tiled_seconds,
             self.tiled_seconds_per_megapixel,
             mem(self.tiled_peak_memory_mib),
-            self.tiled_over_single
+            self.tiled_over_single,
+            self.repeats
         )
     }
 }

@@ -203,6 +203,10 @@ enum Command {
         /// Tile size for `--pipeline`.
         #[arg(long, default_value_t = 512)]
         tile: usize,
+        /// For `--pipeline`: run each (one tile, tiled) this many times, alternately, and
+        /// compare their fastest runs (the ones the machine disturbed least).
+        #[arg(long, default_value_t = 3, value_parser = clap::value_parser!(u32).range(1..=20))]
+        repeat: u32,
         /// Benchmark the fusion's cost against the number of observations instead: one scene
         /// seen by 1 … N observations (at most 6).
         #[arg(long, conflicts_with = "pipeline", value_parser = clap::value_parser!(u8).range(1..=6))]
@@ -458,9 +462,10 @@ fn run(cli: Cli) -> Result<(), sfsfuse::Error> {
             json,
             pipeline: true,
             tile,
+            repeat,
             ..
         } => {
-            let report = sfsfuse::bench::run_pipeline(size, tile)?;
+            let report = sfsfuse::bench::run_pipeline(size, tile, repeat as usize)?;
             emit(json, &report, report.table())?;
         }
         Command::Bench {

@@ -274,6 +274,45 @@ fn inspect_shows_the_illumination_and_describes_geotiffs() {
     std::fs::remove_dir_all(&tmp).unwrap();
 }
 
+/// `bench --pipeline` runs each configuration `--repeat` times, keeps every sample and compares
+/// the fastest runs.
+#[test]
+fn the_pipeline_bench_compares_the_fastest_of_its_repeated_runs() {
+    let o = sfsfuse()
+        .args([
+            "bench",
+            "--pipeline",
+            "--size",
+            "128",
+            "--tile",
+            "64",
+            "--repeat",
+            "2",
+            "--json",
+        ])
+        .output()
+        .unwrap();
+    assert!(o.status.success(), "{}", String::from_utf8_lossy(&o.stderr));
+    let r: serde_json::Value = serde_json::from_slice(&o.stdout).unwrap();
+    assert_eq!(r["tiles"], 4, "{r}");
+    for (k, samples) in [
+        ("single_seconds", "single_samples_seconds"),
+        ("tiled_seconds", "tiled_samples_seconds"),
+    ] {
+        let v: Vec<f64> = r[samples]
+            .as_array()
+            .unwrap()
+            .iter()
+            .map(|x| x.as_f64().unwrap())
+            .collect();
+        assert_eq!(v.len(), 2, "{r}");
+        assert!(v.iter().all(|&s| s > 0.0), "{r}");
+        assert_eq!(r[k].as_f64().unwrap(), v[0].min(v[1]), "{r}");
+    }
+    let ratio = r["tiled_seconds"].as_f64().unwrap() / r["single_seconds"].as_f64().unwrap();
+    assert_eq!(r["tiled_over_single"].as_f64().unwrap(), ratio, "{r}");
+}
+
 /// The benchmark caps the `paper` reference by time, and says when its ratio is only a lower
 /// bound.
 #[test]
