@@ -309,7 +309,7 @@ fn reflectance_lines(
     let mut cause = Array2::from_elem((n, obs.rdn.samples), Cause::Ok);
     Zip::indexed(&mut refl)
         .and(&mut cause)
-        .for_each(|ij, r, c| {
+        .par_for_each(|ij, r, c| {
             let l = (1.0 - w) * l_lo[ij] + w * l_up[ij];
             let dd = d_off[ij];
             let v = if l.is_finite() && dd.is_finite() {
@@ -363,8 +363,14 @@ pub fn survey(
         let (refl, _, _, cause) = reflectance_lines(obs, &obsr, solar, nm, start, n)?;
         let mut b = [f64::MAX, f64::MIN, f64::MAX, f64::MIN];
         let mut any = false;
-        for (((&lo, &la), &r), &c) in lon.iter().zip(&lat).zip(refl.iter()).zip(cause.iter()) {
-            let Some((x, y)) = pr.forward(lo, la) else {
+        // The projections in parallel; the sums below in the samples' order, as before.
+        let xy: Vec<Option<(f64, f64)>> = Zip::from(&lon)
+            .and(&lat)
+            .par_map_collect(|&lo, &la| pr.forward(lo, la))
+            .into_iter()
+            .collect();
+        for ((xy, &r), &c) in xy.iter().zip(refl.iter()).zip(cause.iter()) {
+            let Some((x, y)) = *xy else {
                 continue;
             };
             any = true;
