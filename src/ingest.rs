@@ -271,16 +271,18 @@ pub fn check_pixel(
 /// used and each pixel's [`Cause`].
 type Lines = (Array2<f64>, (usize, usize), f64, Array2<Cause>);
 
-/// Reflectance at `nm` of lines `first..first + n`: r = L·d²/E, L blended linearly between the
-/// two bands around `nm`, d = SOLAR_DISTANCE + OBS band 6; NaN where [`check_pixel`] refuses
-/// the pixel, whose cause is returned per pixel too.
+/// Reflectance at `nm` of lines `first..first + n`, samples `samples` (the arrays' column 0 is
+/// sample `samples.start`): r = L·d²/E, L blended linearly between the two bands around `nm`,
+/// d = SOLAR_DISTANCE + OBS band 6; NaN where [`check_pixel`] refuses the pixel, whose cause
+/// is returned per pixel too. Each pixel's values depend on that pixel alone, so a range of
+/// samples gives the same values there as whole lines.
 fn reflectance_lines(
     obs: &Observation,
     obsr: &pds::raw::Raster,
     solar: &SolarSpectrum,
     nm: f64,
-    first: usize,
-    n: usize,
+    (first, n): (usize, usize),
+    samples: std::ops::Range<usize>,
 ) -> Result<Lines> {
     let bracket = obs.bracket(nm)?;
     let (lo, up, w) = if bracket.weight_upper >= 1.0 {
@@ -288,11 +290,15 @@ fn reflectance_lines(
     } else {
         (bracket.lower, bracket.upper, bracket.weight_upper)
     };
-    let l_lo = read2(&obs.rdn, lo, first, n)?;
+    let cols = s![.., samples.clone()];
+    let read = |r: &pds::raw::Raster, band: usize| -> Result<Array2<f64>> {
+        Ok(read2(r, band, first, n)?.slice(cols).to_owned())
+    };
+    let l_lo = read(&obs.rdn, lo)?;
     let l_up = if up == lo {
         l_lo.clone()
     } else {
-        read2(&obs.rdn, up, first, n)?
+        read(&obs.rdn, up)?
     };
     let e = solar.at(nm).ok_or_else(|| {
         Error::Usage(format!(
@@ -300,13 +306,11 @@ fn reflectance_lines(
             solar.path.display()
         ))
     })?;
-    let d_off = read2(obsr, 5, first, n)?;
+    let d_off = read(obsr, 5)?;
     let d0 = obs.solar_distance_au;
-    let geo: Vec<Array2<f64>> = (0..5)
-        .map(|b| read2(obsr, b, first, n))
-        .collect::<Result<_>>()?;
-    let mut refl = Array2::from_elem((n, obs.rdn.samples), f64::NAN);
-    let mut cause = Array2::from_elem((n, obs.rdn.samples), Cause::Ok);
+    let geo: Vec<Array2<f64>> = (0..5).map(|b| read(obsr, b)).collect::<Result<_>>()?;
+    let mut refl = Array2::from_elem((n, samples.len()), f64::NAN);
+    let mut cause = Array2::from_elem((n, samples.len()), Cause::Ok);
     Zip::indexed(&mut refl)
         .and(&mut cause)
         .par_for_each(|ij, r, c| {
@@ -360,7 +364,8 @@ pub fn survey(
         let n = INDEX_BLOCK.min(loc.lines - start);
         let lon = loc.read_band(0, start, n)?;
         let lat = loc.read_band(1, start, n)?;
-        let (refl, _, _, cause) = reflectance_lines(obs, &obsr, solar, nm, start, n)?;
+        let (refl, _, _, cause) =
+            reflectance_lines(obs, &obsr, solar, nm, (start, n), 0..loc.samples)?;
         let mut b = [f64::MAX, f64::MIN, f64::MAX, f64::MIN];
         let mut any = false;
         // The projections in parallel; the sums below in the samples' order, as before.
@@ -438,8 +443,7 @@ pub fn m3_on_grid(
     let cols = s![.., s0..s1];
     let (line, sample) = grid::swath_positions_from(grid, gr.slice(cols), gc.slice(cols), s0);
     drop((gr, gc));
-    let (refl, (lo, up), e, _) = reflectance_lines(obs, &obsr, solar, nm, first, n)?;
-    let refl = refl.slice(cols).to_owned();
+    let (refl, (lo, up), e, _) = reflectance_lines(obs, &obsr, solar, nm, (first, n), s0..s1)?;
     let enu = |az: &Array2<f64>, zen: &Array2<f64>| -> [Array2<f64>; 3] {
         let v = Zip::from(az.slice(cols))
             .and(zen.slice(cols))
