@@ -369,11 +369,9 @@ pub fn survey(
         let mut b = [f64::MAX, f64::MIN, f64::MAX, f64::MIN];
         let mut any = false;
         // The projections in parallel; the sums below in the samples' order, as before.
-        let xy: Vec<Option<(f64, f64)>> = Zip::from(&lon)
+        let xy = Zip::from(&lon)
             .and(&lat)
-            .par_map_collect(|&lo, &la| pr.forward(lo, la))
-            .into_iter()
-            .collect();
+            .par_map_collect(|&lo, &la| pr.forward(lo, la));
         for ((xy, &r), &c) in xy.iter().zip(refl.iter()).zip(cause.iter()) {
             let Some((x, y)) = *xy else {
                 continue;

@@ -306,7 +306,7 @@ pub fn minimise(
         obj.add_gauss_newton_hessian(&photo, &mut hm);
         drop(photo);
         let (step, inner) = newton_step(obj, hm, &fixed, &g, params);
-        let slope = dot_widened(&g, &step);
+        let slope = ops::dot(g.view(), step.view());
         drop(g);
         if slope >= 0.0 {
             break;
@@ -332,9 +332,7 @@ pub fn minimise(
             break;
         };
         let gain = (energy.total - ne.total) / energy.total.max(f64::MIN_POSITIVE);
-        let moved = t * step
-            .iter()
-            .fold(0.0, |m: f64, &x| m.max(f64::from(x).abs()));
+        let moved = t * ops::max_abs(step.view());
         (*z, photo, zh, energy) = (nz, np, nh, ne);
         observe(&energy);
         log.push(IterationRecord {
@@ -350,17 +348,6 @@ pub fn minimise(
         previous = Some(moved);
     }
     log
-}
-
-/// Σ gᵢ·sᵢ with each sᵢ widened to f64, as `ops::dot` sums (row by row, then in row order).
-fn dot_widened(g: &Array2<f64>, s: &Array2<f32>) -> f64 {
-    let parts = Zip::from(g.rows()).and(s.rows()).par_map_collect(|g, s| {
-        [g.iter()
-            .zip(s)
-            .map(|(&g, &s)| g * f64::from(s))
-            .sum::<f64>()]
-    });
-    ops::sum_row_parts(parts.view())[0]
 }
 
 /// The largest height change still to come, estimated from the largest changes of the last two

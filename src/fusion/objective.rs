@@ -74,7 +74,7 @@ pub struct ObsPhoto {
 /// Photometric quantities of all observations at the current surface, and E_I (w_k the
 /// per-pixel weights of [`Weights`]). The weighted sums over the observations that the
 /// gradient and the Newton systems need are formed where they are used
-/// ([`Objective::photo_gradient`], [`Objective::add_gauss_newton_hessian`]), not stored: a line
+/// ([`Objective::add_photo_gradient`], [`Objective::add_gauss_newton_hessian`]), not stored: a line
 /// search's trial would store them for nothing.
 pub struct Photo {
     pub obs: Vec<ObsPhoto>,

@@ -319,9 +319,9 @@ pub fn weighted_normal_into<T: Real>(
         });
 }
 
-/// max |aᵢ| (0 for an empty array).
-pub fn max_abs(a: ArrayView2<f64>) -> f64 {
-    a.iter().fold(0.0, |m, x| m.max(x.abs()))
+/// max |aᵢ| in f64 (0 for an empty array); f32 values are widened exactly.
+pub fn max_abs<T: Copy + Into<f64>>(a: ArrayView2<T>) -> f64 {
+    a.iter().fold(0.0, |m, &x| m.max(x.into().abs()))
 }
 
 /// Σ of all elements, summed row by row in parallel and then in row order: the result does not
@@ -335,12 +335,21 @@ pub fn sum(a: ArrayView2<f64>) -> f64 {
         .sum()
 }
 
-/// Σ aᵢ·bᵢ with the same determinism as [`sum`].
-pub fn dot(a: ArrayView2<f64>, b: ArrayView2<f64>) -> f64 {
+/// Σ aᵢ·bᵢ in f64 with the same determinism as [`sum`] (f32 values are widened exactly).
+pub fn dot<A, B>(a: ArrayView2<A>, b: ArrayView2<B>) -> f64
+where
+    A: Copy + Into<f64> + Sync,
+    B: Copy + Into<f64> + Sync,
+{
     a.axis_iter(Axis(0))
         .into_par_iter()
         .zip(b.axis_iter(Axis(0)))
-        .map(|(x, y)| x.iter().zip(y).map(|(x, y)| x * y).sum::<f64>())
+        .map(|(x, y)| {
+            x.iter()
+                .zip(y)
+                .map(|(&x, &y)| x.into() * y.into())
+                .sum::<f64>()
+        })
         .collect::<Vec<_>>()
         .iter()
         .sum()
