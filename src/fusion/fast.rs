@@ -37,8 +37,9 @@ struct Fixed {
     hq32: Array2<f32>,
     /// 2K, the tie's Hessian per pixel, in f32.
     tie2: Option<Array2<f32>>,
-    /// E_DEM's relief field r ([`Objective::dem_relief`]) and the filter ĝ_s, in f32.
-    dem_relief: Option<(Array2<f32>, Array2<f32>)>,
+    /// E_DEM's relief field r ([`Objective::dem_relief`]), in f32 (with the filter ĝ_s,
+    /// which the objective holds in f32).
+    dem_relief: Option<Array2<f32>>,
     /// The membrane's relief field r_η ([`Objective::membrane_relief`]), in f32.
     membrane_relief: Option<Array2<f32>>,
 }
@@ -49,10 +50,7 @@ impl Fixed {
         Self {
             hq32: f32_of(&obj.quadratic_hessian()),
             tie2: obj.tie.as_ref().map(|k| k.mapv(|k| (2.0 * k) as f32)),
-            dem_relief: obj
-                .dem_relief
-                .as_ref()
-                .map(|r| (f32_of(r), f32_of(&obj.gs))),
+            dem_relief: obj.dem_relief.as_ref().map(f32_of),
             membrane_relief: obj.membrane_relief.as_ref().map(f32_of),
         }
     }
@@ -95,7 +93,8 @@ impl Normal<'_, '_, '_> {
                 .par_for_each(|o, &g| *o -= eta * g);
         }
         obj.dct_cg.forward_in_place(out);
-        if let Some((r, gs)) = &self.fixed.dem_relief {
+        if let Some(r) = &self.fixed.dem_relief {
+            let gs = &obj.gs;
             // E_DEM's relief part where several observations overlap, in DCT coefficients:
             // −δ·ĝ_s·DCT(2Dᵀ(r∘Du)/ε² + 2h·r∘u), u = IDCT(ĝ_s·d̂).
             Zip::from(&mut self.u)

@@ -1014,6 +1014,7 @@ fn fine_stages(
             .and(wk)
             .for_each(|sq, sw, n, &r, &u, &w| {
                 if u {
+                    let r = f64::from(r);
                     *sq += w * r * r;
                     *sw += w;
                     *n = n.saturating_add(1);
