@@ -456,7 +456,7 @@ pub fn masked_gaussian(
     mask: &Array2<bool>,
     sigma: f64,
 ) -> Option<Array2<f64>> {
-    weighted_gaussian(dct, a, &mask.mapv(|b| if b { 1.0 } else { 0.0 }), sigma)
+    normalised_gaussian(dct, a, mask.mapv(|b| if b { 1.0 } else { 0.0 }), sigma)
 }
 
 /// Normalised weighted Gaussian G(w·a)/G(w) (w ≥ 0; w = 0 excludes a pixel). Where the
@@ -468,26 +468,37 @@ pub fn weighted_gaussian(
     w: &Array2<f64>,
     sigma: f64,
 ) -> Option<Array2<f64>> {
+    normalised_gaussian(dct, a, w.to_owned(), sigma)
+}
+
+/// [`weighted_gaussian`] with the weights given as an array it may overwrite: G(w) is formed
+/// in their place (two arrays of the grid's size in flight, not three).
+fn normalised_gaussian(
+    dct: &Dct2d,
+    a: &Array2<f64>,
+    mut w: Array2<f64>,
+    sigma: f64,
+) -> Option<Array2<f64>> {
     let total = w.sum();
     if total <= 0.0 {
         return None;
     }
-    let wa = Zip::from(a).and(w).map_collect(|&x, &w| x * w);
+    let wa = Zip::from(a).and(&w).map_collect(|&x, &w| x * w);
     let mean = wa.sum() / total;
     if sigma <= 0.0 {
         return Some(
             Zip::from(a)
-                .and(w)
+                .and(&w)
                 .map_collect(|&x, &w| if w > 0.0 { x } else { mean }),
         );
     }
     // G(w·a) in place of w·a, then the quotient in place of G(w·a).
     let mut num = wa;
     gaussian_filter_in_place(dct, &mut num, sigma);
-    let den = gaussian_filter(dct, w, sigma);
+    gaussian_filter_in_place(dct, &mut w, sigma);
     let floor = 1e-6 * total / w.len() as f64;
     Zip::from(&mut num)
-        .and(&den)
+        .and(&w)
         .for_each(|n, &d| *n = if d > floor { *n / d } else { mean });
     Some(num)
 }

@@ -33,8 +33,6 @@ fn data_normal_into(
 
 /// The parts of the Newton systems that stay the same over a stage's steps.
 struct Fixed {
-    /// H_Q in f32, for the operator (the preconditioner forms it in f64 when it needs it).
-    hq32: Array2<f32>,
     /// 2K, the tie's Hessian per pixel, in f32.
     tie2: Option<Array2<f32>>,
     /// E_DEM's relief field r ([`Objective::dem_relief`]), in f32 (with the filter ĝ_s,
@@ -48,7 +46,6 @@ impl Fixed {
     fn new(obj: &Objective) -> Self {
         let f32_of = |a: &Array2<f64>| a.mapv(|x| x as f32);
         Self {
-            hq32: f32_of(&obj.quadratic_hessian()),
             tie2: obj.tie.as_ref().map(|k| k.mapv(|k| (2.0 * k) as f32)),
             dem_relief: obj.dem_relief.as_ref().map(f32_of),
             membrane_relief: obj.membrane_relief.as_ref().map(f32_of),
@@ -114,12 +111,14 @@ impl Normal<'_, '_, '_> {
             // d̂₀ = 0 here (the preconditioner zeroes it), so d̂·A·d̂ does not see this entry.
             out[(0, 0)] = 0.0;
         }
-        let parts = Zip::from(out.rows_mut())
-            .and(self.fixed.hq32.rows())
+        // H_Q·d̂, H_Q formed per coefficient in f64 and rounded to f32 (no table of it).
+        let (delta, eta) = (obj.delta, obj.eta);
+        let parts = Zip::indexed(out.rows_mut())
             .and(d.rows())
-            .par_map_collect(|mut o, h, d| {
+            .par_map_collect(|i, mut o, d| {
                 let mut dad = 0.0;
-                for ((o, &h), &d) in o.iter_mut().zip(h).zip(d) {
+                for (j, (o, &d)) in o.iter_mut().zip(d).enumerate() {
+                    let h = obj.quadratic_hessian_at(i, j, delta, eta) as f32;
                     *o += h * d;
                     dad += f64::from(d) * f64::from(*o);
                 }
@@ -161,7 +160,7 @@ fn newton_step(
     obj: &Objective,
     hm: Array2<[f32; 3]>,
     fixed: &Fixed,
-    g: &Array2<f64>,
+    g: &Array2<f32>,
     params: &FusionParams,
 ) -> (Array2<f32>, usize) {
     let (ny, nx) = g.dim();
@@ -173,27 +172,25 @@ fn newton_step(
     let cx = spectral::difference_symbol(nx, ops::stencil_response);
     let cy = spectral::difference_symbol(ny, ops::stencil_response);
     let tie = obj.tie.as_ref().map(|k| 2.0 * ops::sum(k.view()) / n);
-    // H_Q in f64 (the relief fields lower δ where several observations overlap and η on
-    // steep corrections: precondition with their means), only while M⁻¹ is formed.
-    let hq = if obj.dem_relief.is_some() || obj.membrane_relief.is_some() {
-        obj.quadratic_hessian_with(
+    // H_Q's δ and η (the relief fields lower δ where several observations overlap and η on
+    // steep corrections: precondition with their means).
+    let (pd, pe) = if obj.dem_relief.is_some() || obj.membrane_relief.is_some() {
+        (
             obj.delta * (1.0 - obj.mean_relief()),
             obj.eta * (1.0 - obj.mean_membrane_relief()),
         )
     } else {
-        obj.quadratic_hessian()
+        (obj.delta, obj.eta)
     };
     let tie_mean = tie.unwrap_or(0.0);
     // M⁻¹ = 1/((a_x·s_x + a_y·s_y)/ε² + H_Q + 2K̄), formed in f64 per coefficient and stored
     // in f32 (no f64 table is held through the iterations).
     let mut minv = Array2::<f32>::zeros((ny, nx));
-    Zip::indexed(&mut minv)
-        .and(&hq)
-        .par_for_each(|(i, j), m, &hq| {
-            let v = (ax * cx[j] + ay * cy[i]) / e2 + hq + tie_mean;
-            *m = if v > 0.0 { (1.0 / v) as f32 } else { 0.0 };
-        });
-    drop(hq);
+    Zip::indexed(&mut minv).par_for_each(|(i, j), m| {
+        let hq = obj.quadratic_hessian_at(i, j, pd, pe);
+        let v = (ax * cx[j] + ay * cy[i]) / e2 + hq + tie_mean;
+        *m = if v > 0.0 { (1.0 / v) as f32 } else { 0.0 };
+    });
     // The mean height is seen by the tie and by E_DEM's height part; with neither it stays
     // the DEM's.
     let fixed_mean = tie.is_none() && obj.dem_height == 0.0;
@@ -219,7 +216,7 @@ fn newton_step(
             },
         ),
     };
-    let mut r = g.mapv(|x| -x as f32);
+    let mut r = g.mapv(|x| -x);
     obj.dct_cg.forward_in_place(&mut r);
     if fixed_mean {
         r[(0, 0)] = 0.0;
@@ -304,6 +301,12 @@ pub fn minimise(
         let mut hm = obj.curvature(z.view(), rho, &photo, params.curvature_residual);
         obj.add_gauss_newton_hessian(&photo, &mut hm);
         drop(photo);
+        // The gradient only enters the Newton system, solved in f32, and the line search's
+        // slope: rounded to f32 here (and the f64 one freed), it takes half the memory through
+        // the iterations.
+        let g32 = g.mapv(|x| x as f32);
+        drop(g);
+        let g = g32;
         let (step, inner) = newton_step(obj, hm, &fixed, &g, params);
         let slope = ops::dot(g.view(), step.view());
         drop(g);

@@ -746,7 +746,7 @@ fn final_albedo(
     sigma: f64,
     params: &FusionParams,
 ) -> Result<Array2<f64>, FusionError> {
-    let fine = spectral::weighted_gaussian(dct, raw, strength, sigma)
+    let mut fine = spectral::weighted_gaussian(dct, raw, strength, sigma)
         .ok_or(FusionError::NoObservations)?;
     let wide_sigma = params
         .albedo_sigmas
@@ -756,10 +756,15 @@ fn final_albedo(
         .max(sigma);
     let wide =
         spectral::masked_gaussian(dct, raw, ok, wide_sigma).ok_or(FusionError::NoObservations)?;
-    Ok(Zip::from(&fine)
+    Zip::from(&mut fine)
         .and(&wide)
         .and(ok)
-        .map_collect(|&f, &w, &k| if k { f } else { w }))
+        .for_each(|f, &w, &k| {
+            if !k {
+                *f = w;
+            }
+        });
+    Ok(fine)
 }
 
 /// c·a + (1 − c)·b.

@@ -683,20 +683,15 @@ impl<'a, 'p> Objective<'a, 'p> {
         g
     }
 
-    /// Diagonal of the quadratic terms' Hessian in the DCT basis without the relief field:
-    /// 2(λ/ε²)(δĝ_s² + η).
-    pub fn quadratic_hessian(&self) -> Array2<f64> {
-        self.quadratic_hessian_with(self.delta, self.eta)
-    }
-
-    /// 2(λ/ε²)(δ'ĝ_s² + η') + 2δ'ĝ_s²/ℓ² for a given δ' and η' (ℓ of
-    /// [`Objective::with_dem_height_length`]).
-    pub fn quadratic_hessian_with(&self, delta: f64, eta: f64) -> Array2<f64> {
-        let h = self.dem_height;
-        Zip::indexed(&self.gs).par_map_collect(|(i, j), &g| {
-            let g = f64::from(g);
-            2.0 * (self.lam.at(i, j) * (delta * g * g + eta) + h * delta * g * g)
-        })
+    /// The diagonal of the quadratic terms' Hessian in the DCT basis at coefficient (i, j), for
+    /// a given δ' and η': 2(λ/ε²)(δ'ĝ_s² + η') + 2δ'ĝ_s²/ℓ² (ℓ of
+    /// [`Objective::with_dem_height_length`]; without the relief fields). Formed where it is
+    /// used (the Newton operator and its preconditioner), not held as a table: ĝ_s and the
+    /// 1-D tables of λ make it, in f64, the same value wherever it is needed.
+    #[inline]
+    pub fn quadratic_hessian_at(&self, i: usize, j: usize, delta: f64, eta: f64) -> f64 {
+        let (g, h) = (f64::from(self.gs[(i, j)]), self.dem_height);
+        2.0 * (self.lam.at(i, j) * (delta * g * g + eta) + h * delta * g * g)
     }
 }
 
