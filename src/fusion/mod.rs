@@ -980,9 +980,10 @@ fn fine_stages(
     }
     let w = &obj.weights;
     // Beyond the support band the result is the input DEM; within it the correction fades.
-    let support = obj.support();
+    // (s is formed again for the layers at the end: the final albedo's arrays need the
+    // memory in between.)
     Zip::from(&mut z)
-        .and(&support)
+        .and(&obj.support())
         .and(pr.dem)
         .par_for_each(|z, &s, &d| *z = d + s * (*z - d));
     let inverted = observations::invert_albedo(pr, w, z.view());
@@ -1019,7 +1020,7 @@ fn fine_stages(
             .and(wk)
             .for_each(|sq, sw, n, &r, &u, &w| {
                 if u {
-                    let r = f64::from(r);
+                    let (r, w) = (f64::from(r), f64::from(w));
                     *sq += w * r * r;
                     *sw += w;
                     *n = n.saturating_add(1);
@@ -1050,7 +1051,7 @@ fn fine_stages(
         used_by,
         gains: w.gains.clone(),
         noise_weights: w.noise.clone(),
-        support,
+        support: obj.support(),
         stages,
     })
 }

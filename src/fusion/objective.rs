@@ -449,7 +449,7 @@ impl<'a, 'p> Objective<'a, 'p> {
                         );
                         if sh.lit {
                             let r = (o.image[(i, j)] / g - sh.r) / s;
-                            part += w[(i, j)] * r * r;
+                            part += f64::from(w[(i, j)]) * r * r;
                             res[j] = r as f32;
                             a[j] = (sh.dr_dp / s) as f32;
                             b[j] = (sh.dr_dq / s) as f32;
@@ -484,7 +484,7 @@ impl<'a, 'p> Objective<'a, 'p> {
                 .and(&ph.res)
                 .and(&ph.b)
                 .and(w)
-                .par_for_each(|fy, &r, &b, &w| *fy += w * f64::from(r) * f64::from(b));
+                .par_for_each(|fy, &r, &b, &w| *fy += f64::from(w) * f64::from(r) * f64::from(b));
         }
         out.axis_iter_mut(Axis(0))
             .into_par_iter()
@@ -494,7 +494,7 @@ impl<'a, 'p> Objective<'a, 'p> {
                 for (ph, w) in photo.obs.iter().zip(weights) {
                     let (r, a, w) = (ph.res.row(i), ph.a.row(i), w.row(i));
                     for (j, fx) in fx.iter_mut().enumerate() {
-                        *fx += w[j] * f64::from(r[j]) * f64::from(a[j]);
+                        *fx += f64::from(w[j]) * f64::from(r[j]) * f64::from(a[j]);
                     }
                 }
                 let mut data = vec![0.0; dim.1];
@@ -514,7 +514,7 @@ impl<'a, 'p> Objective<'a, 'p> {
         Zip::indexed(m).par_for_each(|ix, m| {
             let mut h = [0.0f64; 3];
             for (ph, w) in obs.iter().zip(weights) {
-                let (a, b, w) = (f64::from(ph.a[ix]), f64::from(ph.b[ix]), w[ix]);
+                let (a, b, w) = (f64::from(ph.a[ix]), f64::from(ph.b[ix]), f64::from(w[ix]));
                 h[0] += 2.0 * w * a * a;
                 h[1] += 2.0 * w * a * b;
                 h[2] += 2.0 * w * b * b;
@@ -574,7 +574,7 @@ impl<'a, 'p> Objective<'a, 'p> {
                 let rxy = 0.5 * (xp.dr_dq - gy + yp.dr_dp - gx) / h;
                 let c = -2.0 * r / s;
                 let t = psd_part([c * rxx, c * rxy, c * ryy]);
-                let w = self.weights.weight[k][(i, j)];
+                let w = f64::from(self.weights.weight[k][(i, j)]);
                 m[0] += w * t[0];
                 m[1] += w * t[1];
                 m[2] += w * t[2];
@@ -1049,9 +1049,9 @@ mod tests {
         obj.set_membrane_weights(start.view(), 0.05, 0.2);
         let r = obj.membrane_relief.as_ref().unwrap();
         // Single coverage: 1 − m, strictly between 0 and 1 on a steep correction; full double
-        // coverage: 1 − 0.2.
+        // coverage: 1 − 0.2 (to the rounding of the weights, held in f32).
         assert!(r[(5, 2)] > 0.1 && r[(5, 2)] < 1.0, "{}", r[(5, 2)]);
-        assert!((r[(5, 14)] - 0.8).abs() < 1e-12, "{}", r[(5, 14)]);
+        assert!((r[(5, 14)] - 0.8).abs() < 1e-6, "{}", r[(5, 14)]);
         assert_gradient_matches(&obj, &z, &[(3, 4), (6, 9), (5, 15), (11, 25), (0, 29)]);
         // k = 0 and a factor of 1: the plain membrane, no field at all.
         obj.set_membrane_weights(start.view(), 0.0, 1.0);

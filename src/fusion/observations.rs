@@ -57,8 +57,9 @@ pub const INCIDENCE_FADE_DEG: f64 = 10.0;
 pub struct Weights {
     /// Pixels observation k contributes: valid, lit in the image, within the selection.
     pub usable: Vec<Array2<bool>>,
-    /// w_k(x), 0 where not usable.
-    pub weight: Vec<Array2<f64>>,
+    /// w_k(x), 0 where not usable. Formed in f64 and stored in f32 (a weight needs no more
+    /// than f32's 7 digits; every use widens it exactly, so all of them see the same w_k).
+    pub weight: Vec<Array2<f32>>,
     /// g_k.
     pub gains: Vec<f64>,
     /// ν_k.
@@ -78,6 +79,7 @@ impl Weights {
                 .and(&mut top)
                 .and(w)
                 .for_each(|s, t, &w| {
+                    let w = f64::from(w);
                     *s += w / nu;
                     *t = t.max(w / nu);
                 });
@@ -205,6 +207,7 @@ pub fn weights(
     if sel.max_per_pixel > 0 && pr.observations.len() > sel.max_per_pixel {
         keep_best(pr, &mut usable, &mut weight, sel.max_per_pixel);
     }
+    let weight: Vec<Array2<f32>> = weight.iter().map(|w| w.mapv(|w| w as f32)).collect();
     for (u, w) in usable.iter_mut().zip(&weight) {
         Zip::from(u).and(w).for_each(|u, &w| *u &= w > 0.0);
     }
@@ -406,7 +409,7 @@ pub fn invert_albedo(
                 let (pp, qq) = (p[j], q[j]);
                 let (mut sw, mut swr, mut s2) = (0.0, 0.0, 0.0);
                 for (k, o) in pr.observations.iter().enumerate() {
-                    let wk = w.weight[k][(i, j)];
+                    let wk = f64::from(w.weight[k][(i, j)]);
                     if wk <= 0.0 {
                         continue;
                     }
