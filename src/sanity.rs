@@ -82,6 +82,10 @@ impl Sums {
     }
 }
 
+/// Rows of a tile's core rendered at a time for its sums (two bands of this many rows are in
+/// memory, not two renderings of the whole core).
+const RENDER_ROWS: usize = 64;
+
 /// A tile's sums: over every core pixel, and per observation over the pixels whose image it
 /// supplied.
 #[derive(Debug, Clone, Default, PartialEq, Serialize, Deserialize)]
@@ -117,8 +121,17 @@ impl TileSums {
         core: (usize, usize, usize, usize),
     ) -> TileSums {
         let (r0, r1, c0, c1) = core;
-        let win = |a: ArrayView2<'_, f64>| a.slice_move(s![r0..r1, c0..c1]).to_owned();
-        let (support, dem, z) = (win(f.support.view()), win(problem.dem), win(fused.view()));
+        fn win(
+            a: ArrayView2<'_, f64>,
+            (r0, r1, c0, c1): (usize, usize, usize, usize),
+        ) -> ArrayView2<'_, f64> {
+            a.slice_move(s![r0..r1, c0..c1])
+        }
+        let (support, dem, z) = (
+            win(f.support.view(), core),
+            win(problem.dem, core),
+            win(fused.view(), core),
+        );
         let mut out = TileSums {
             all: Sums::default(),
             observations: vec![Sums::default(); observations],
@@ -135,30 +148,41 @@ impl TileSums {
             out.all.pixel(class, z[(i, j)] - d);
             out.all.photometric += f.photometric[(r0 + i, c0 + j)] as usize;
         }
+        drop(seen);
         for (k, o) in problem.observations.iter().enumerate() {
             let g = f.gains[k];
-            let rendered_in = fusion::render(problem, k, problem.dem, f.albedo.view(), core);
-            let rendered_out = fusion::render(problem, k, fused.view(), f.albedo.view(), core);
-            let image = win(o.image);
+            let image = win(o.image, core);
             let used = f.used_by[k].slice(s![r0..r1, c0..c1]);
             let mut own = ids
                 .get(k)
                 .filter(|&&id| id < observations)
                 .map(|&id| &mut out.observations[id]);
-            for ((i, j), &v) in image.indexed_iter() {
-                if !v.is_finite() {
-                    continue;
-                }
-                let ph = used[(i, j)].then(|| (v / g, rendered_in[(i, j)], rendered_out[(i, j)]));
-                if let Some(own) = own.as_deref_mut() {
-                    own.pixel(0, z[(i, j)] - dem[(i, j)]);
-                    if let Some(ph) = ph {
-                        own.photometric += 1;
-                        own.photo(ph);
+            // The renderings from the input and the fused DEM, a band of rows at a time (the
+            // sums still taken pixel by pixel in row order).
+            for b0 in (0..r1 - r0).step_by(RENDER_ROWS) {
+                let b1 = (b0 + RENDER_ROWS).min(r1 - r0);
+                let band = (r0 + b0, r0 + b1, c0, c1);
+                let rendered_in = fusion::render(problem, k, problem.dem, f.albedo.view(), band);
+                let rendered_out = fusion::render(problem, k, fused.view(), f.albedo.view(), band);
+                for i in b0..b1 {
+                    for j in 0..c1 - c0 {
+                        let v = image[(i, j)];
+                        if !v.is_finite() {
+                            continue;
+                        }
+                        let ph = used[(i, j)]
+                            .then(|| (v / g, rendered_in[(i - b0, j)], rendered_out[(i - b0, j)]));
+                        if let Some(own) = own.as_deref_mut() {
+                            own.pixel(0, z[(i, j)] - dem[(i, j)]);
+                            if let Some(ph) = ph {
+                                own.photometric += 1;
+                                own.photo(ph);
+                            }
+                        }
+                        if let Some(ph) = ph {
+                            out.all.photo(ph);
+                        }
                     }
-                }
-                if let Some(ph) = ph {
-                    out.all.photo(ph);
                 }
             }
         }

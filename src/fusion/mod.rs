@@ -690,20 +690,21 @@ pub fn render(
     (r0, r1, c0, c1): (usize, usize, usize, usize),
 ) -> Array2<f64> {
     let o = &pr.observations[k];
-    let (p, q) = ops::gradient(z, pr.spacing);
+    let z = z.as_standard_layout();
+    let nx = z.ncols();
     let mut out = Array2::zeros((r1 - r0, c1 - c0));
-    Zip::indexed(&mut out).par_for_each(|(i, j), r| {
-        let (i, j) = (r0 + i, c0 + j);
-        *r = pr
-            .model
-            .shade(
-                p[(i, j)],
-                q[(i, j)],
-                rho[(i, j)],
-                o.sun.at(i, j),
-                o.view.at(i, j),
-            )
-            .r;
+    // Row by row, the slopes of each row formed there ([`ops::gradient_row`], the values of
+    // [`ops::gradient`]): no slope arrays of the grid's size.
+    Zip::indexed(out.rows_mut()).par_for_each(|i, mut row| {
+        let i = r0 + i;
+        let (mut p, mut q) = (vec![0.0; nx], vec![0.0; nx]);
+        ops::gradient_row(z.view(), pr.spacing, i, &mut p, &mut q);
+        for (r, j) in row.iter_mut().zip(c0..c1) {
+            *r = pr
+                .model
+                .shade(p[j], q[j], rho[(i, j)], o.sun.at(i, j), o.view.at(i, j))
+                .r;
+        }
     });
     out
 }

@@ -231,6 +231,7 @@ pub(super) fn run_tile(
                 f.support.view(),
                 plan.halo as f64 / 4.0,
             );
+            drop(start);
             let sanity = TileSums::of_tile(&problem, &f, &f.height, &ids, n_obs, core);
             Ok((f, sanity))
         }
