@@ -14,7 +14,7 @@ use crate::error::{Error, Result};
 use crate::grid::{self, enu_to_grid, Geographic, Grid, Interpolation, Projector};
 use crate::photometry::Vec3;
 use crate::synth::direction;
-use ndarray::{s, Array2, Zip};
+use ndarray::{s, Array2, ArrayView2, Zip};
 use pds::lola::{LolaDem, Projection};
 use pds::m3::Observation;
 use pds::solar::{reflectance, SolarSpectrum};
@@ -406,15 +406,16 @@ pub fn survey(
     })
 }
 
-/// Resample observation `obs` at `nm` onto `grid` (`geo` = `grid.geographic(pr)`), reading
-/// only the lines `index` says can reach the grid (or scanning LOC for them without one).
+/// Resample observation `obs` at `nm` onto `grid` (`bearing` the grid bearing of north at
+/// each pixel, [`Geographic::bearing`] of `grid.geographic(pr)`), reading only the lines
+/// `index` says can reach the grid (or scanning LOC for them without one).
 pub fn m3_on_grid(
     obs: &Observation,
     solar: &SolarSpectrum,
     nm: f64,
     grid: &Grid,
     pr: &Projector,
-    geo: &Geographic,
+    bearing: ArrayView2<f64>,
     index: Option<&SwathIndex>,
 ) -> Result<ImageOnGrid> {
     let label = &obs.label_path;
@@ -442,11 +443,17 @@ pub fn m3_on_grid(
     let (line, sample) = grid::swath_positions_from(grid, gr.slice(cols), gc.slice(cols), s0);
     drop((gr, gc));
     let (refl, (lo, up), e, _) = reflectance_lines(obs, &obsr, solar, nm, (first, n), s0..s1)?;
+    // East, north and up components, each filled in the one pass that computes the vector.
     let enu = |az: &Array2<f64>, zen: &Array2<f64>| -> [Array2<f64>; 3] {
-        let v = Zip::from(az.slice(cols))
+        let dim = (az.nrows(), s1 - s0);
+        let [mut e, mut n, mut u] = [0; 3].map(|_| Array2::zeros(dim));
+        Zip::from(&mut e)
+            .and(&mut n)
+            .and(&mut u)
+            .and(az.slice(cols))
             .and(zen.slice(cols))
-            .map_collect(|&a, &z| direction(z, a));
-        [v.map(|u| u[0]), v.map(|u| u[1]), v.map(|u| u[2])]
+            .par_for_each(|e, n, u, &a, &z| [*e, *n, *u] = direction(z, a));
+        [e, n, u]
     };
     let sun_enu = enu(&read2(&obsr, 0, first, n)?, &read2(&obsr, 1, first, n)?);
     let view_enu = enu(&read2(&obsr, 2, first, n)?, &read2(&obsr, 3, first, n)?);
@@ -467,7 +474,7 @@ pub fn m3_on_grid(
             }
             let m = m - s0;
             *r = grid::interpolate(refl.view(), l, m, Interpolation::Bilinear, false);
-            let b = geo.bearing[(i, j)];
+            let b = bearing[(i, j)];
             *s = unit_at(&sun_enu, l, m).map_or(nan3, |u| enu_to_grid(u, b));
             *v = unit_at(&view_enu, l, m).map_or(nan3, |u| enu_to_grid(u, b));
         });

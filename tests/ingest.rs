@@ -129,7 +129,7 @@ fn m3_global_crop_on_a_local_grid() {
     let pr = crs.projector().unwrap();
     let geo = g.geographic(&pr);
     // 500.92 nm is global band 1, held by the crop (which keeps only the first 3 bands).
-    let img = m3_on_grid(&obs, &solar, 500.92, &g, &pr, &geo, None).unwrap();
+    let img = m3_on_grid(&obs, &solar, 500.92, &g, &pr, geo.bearing.view(), None).unwrap();
     assert_eq!(img.bands, (1, 1));
     assert_eq!(img.lines, (0, n));
     let filled: Vec<_> = img
@@ -218,9 +218,17 @@ fn a_grid_outside_the_product_is_refused_with_its_name() {
     };
     let g = Grid::new(crs, 10, 10, -700.0, 700.0, 140.0).unwrap();
     let pr = crs.projector().unwrap();
-    let e = m3_on_grid(&obs, &solar, 500.92, &g, &pr, &g.geographic(&pr), None)
-        .unwrap_err()
-        .to_string();
+    let e = m3_on_grid(
+        &obs,
+        &solar,
+        500.92,
+        &g,
+        &pr,
+        g.geographic(&pr).bearing.view(),
+        None,
+    )
+    .unwrap_err()
+    .to_string();
     assert!(
         e.contains(&label.file_name().unwrap().to_string_lossy().to_string())
             && e.contains("no pixel"),
@@ -242,9 +250,17 @@ fn a_grid_outside_the_product_is_refused_with_its_name() {
     )
     .unwrap();
     let pr2 = g2.crs.projector().unwrap();
-    let e = m3_on_grid(&obs, &solar, 1209.6, &g2, &pr2, &g2.geographic(&pr2), None)
-        .unwrap_err()
-        .to_string();
+    let e = m3_on_grid(
+        &obs,
+        &solar,
+        1209.6,
+        &g2,
+        &pr2,
+        g2.geographic(&pr2).bearing.view(),
+        None,
+    )
+    .unwrap_err()
+    .to_string();
     assert!(e.contains("RDN_IMAGE BANDS"), "{e}");
 }
 
@@ -422,7 +438,17 @@ fn m3_on_a_window_is_the_window_of_m3_on_the_whole_grid() {
     let pr = p.grid.crs.projector().unwrap();
     let nm = 1209.6;
     let index = survey(&obs, &solar, nm, &p.grid, &pr).unwrap().index;
-    let on = |g: &Grid| m3_on_grid(&obs, &solar, nm, g, &pr, &g.geographic(&pr), Some(&index));
+    let on = |g: &Grid| {
+        m3_on_grid(
+            &obs,
+            &solar,
+            nm,
+            g,
+            &pr,
+            g.geographic(&pr).bearing.view(),
+            Some(&index),
+        )
+    };
     let whole = on(&p.grid).unwrap();
     let (mut compared, mut finite) = (0, 0);
     for (r0, c0, rows, cols) in [(101, -37, 96, 150), (0, 128, 128, 128), (150, 19, 106, 77)] {

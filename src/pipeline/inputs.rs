@@ -201,7 +201,7 @@ pub(super) fn observations_on(
     swaths: &[SwathIndex],
     grid: &Grid,
     pr: &Projector,
-    geo: &crate::grid::Geographic,
+    bearing: ndarray::ArrayView2<f64>,
 ) -> Result<Vec<(usize, ingest::ImageOnGrid)>> {
     let mut shots = Vec::new();
     for (k, (obs, index)) in inputs.obs.iter().zip(swaths).enumerate() {
@@ -214,7 +214,7 @@ pub(super) fn observations_on(
             o.inputs.wavelength_nm,
             grid,
             pr,
-            geo,
+            bearing,
             Some(index),
         )?;
         Zip::from(&mut img.reflectance)
@@ -248,8 +248,11 @@ pub(super) fn ingest_window(
 ) -> Result<Ingested> {
     let pr = projector(&window.crs)?;
     let geo = window.geographic(&pr);
-    let shots = observations_on(o, inputs, swaths, window, &pr, &geo)?;
+    // The DEM first: the observations need only the bearings, and the longitudes and
+    // latitudes are freed before their swath arrays are read.
     let dem = dem_on(o, inputs, &geo);
+    let bearing = geo.bearing;
+    let shots = observations_on(o, inputs, swaths, window, &pr, bearing.view())?;
     Ok(Ingested { shots, dem })
 }
 

@@ -173,7 +173,7 @@ pub(super) fn run_gains(
     };
     let pr = projector(&coarse.crs)?;
     let geo = coarse.geographic(&pr);
-    let shots = observations_on(o, inputs, swaths, &coarse, &pr, &geo)?;
+    let shots = observations_on(o, inputs, swaths, &coarse, &pr, geo.bearing.view())?;
     let mut dem = dem_on(o, inputs, &geo);
     fill_holes(&mut dem);
     if !dem.iter().all(|v| v.is_finite()) {
