@@ -455,29 +455,34 @@ pub fn m3_on_grid(
             .par_for_each(|e, n, u, &a, &z| [*e, *n, *u] = direction(z, a));
         [e, n, u]
     };
-    let sun_enu = enu(&read2(&obsr, 0, first, n)?, &read2(&obsr, 1, first, n)?);
-    let view_enu = enu(&read2(&obsr, 2, first, n)?, &read2(&obsr, 3, first, n)?);
     // Exact: m ≥ s0 and s0 is a whole number.
-    let s0 = s0 as f64;
+    let s0f = s0 as f64;
     let dim = (grid.rows, grid.cols);
-    let nan3 = [f64::NAN; 3];
+    // One quantity at a time (the reflectance, then the Sun's and the view's unit vectors),
+    // each swath array freed before the next is read.
     let mut out_r = Array2::from_elem(dim, f64::NAN);
-    let mut out_s = Array2::from_elem(dim, nan3);
-    let mut out_v = Array2::from_elem(dim, nan3);
-    Zip::indexed(&mut out_r)
-        .and(&mut out_s)
-        .and(&mut out_v)
-        .par_for_each(|(i, j), r, s, v| {
+    Zip::indexed(&mut out_r).par_for_each(|(i, j), r| {
+        let (l, m) = (line[(i, j)], sample[(i, j)]);
+        if !l.is_nan() {
+            *r = grid::interpolate(refl.view(), l, m - s0f, Interpolation::Bilinear, false);
+        }
+    });
+    drop(refl);
+    let directions = |az: usize, zen: usize| -> Result<Array2<Vec3>> {
+        let nan3 = [f64::NAN; 3];
+        let swath = enu(&read2(&obsr, az, first, n)?, &read2(&obsr, zen, first, n)?);
+        let mut out = Array2::from_elem(dim, nan3);
+        Zip::indexed(&mut out).par_for_each(|(i, j), d| {
             let (l, m) = (line[(i, j)], sample[(i, j)]);
-            if l.is_nan() {
-                return;
+            if !l.is_nan() {
+                let b = bearing[(i, j)];
+                *d = unit_at(&swath, l, m - s0f).map_or(nan3, |u| enu_to_grid(u, b));
             }
-            let m = m - s0;
-            *r = grid::interpolate(refl.view(), l, m, Interpolation::Bilinear, false);
-            let b = bearing[(i, j)];
-            *s = unit_at(&sun_enu, l, m).map_or(nan3, |u| enu_to_grid(u, b));
-            *v = unit_at(&view_enu, l, m).map_or(nan3, |u| enu_to_grid(u, b));
         });
+        Ok(out)
+    };
+    let out_s = directions(0, 1)?;
+    let out_v = directions(2, 3)?;
     Ok(ImageOnGrid {
         reflectance: out_r,
         sun: out_s,

@@ -251,7 +251,8 @@ pub(super) fn ingest_window(
     // The DEM first: the observations need only the bearings, and the longitudes and
     // latitudes are freed before their swath arrays are read.
     let dem = dem_on(o, inputs, &geo);
-    let bearing = geo.bearing;
+    let crate::grid::Geographic { lon, lat, bearing } = geo;
+    drop((lon, lat));
     let shots = observations_on(o, inputs, swaths, window, &pr, bearing.view())?;
     Ok(Ingested { shots, dem })
 }
