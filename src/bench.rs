@@ -398,7 +398,7 @@ impl PipelineBench {
     pub fn table(&self) -> String {
         let mem = |m: Option<f64>| m.map_or("n/a".to_string(), |m| format!("{m:.0} MiB"));
         format!(
-            "sfsfuse run on {0}×{0} px synthetic products, {1} threads, halo {2} px, fastest of {12} runs each\n  one tile:            {3:.2} s ({4:.2} s/MP), peak {5}\n  {6} tiles of {7} px:  {8:.2} s ({9:.2} s/MP), peak {10}\n  tiled / single:      {11:.2}×\n",
+            "sfsfuse run on {0}×{0} px synthetic products, {1} threads, halo {2} px, fastest of {12} runs each\n  one tile:            {3:.2} s ({4:.2} s/MP), peak {5}\n  {6} {13} of {7} px:  {8:.2} s ({9:.2} s/MP), peak {10}\n  tiled / single:      {11:.2}×\n",
             self.size,
             self.threads,
             self.halo,
@@ -411,7 +411,8 @@ impl PipelineBench {
             self.tiled_seconds_per_megapixel,
             mem(self.tiled_peak_memory_mib),
             self.tiled_over_single,
-            self.repeats
+            self.repeats,
+            if self.tiles == 1 { "tile" } else { "tiles" }
         )
     }
 }
