@@ -291,7 +291,7 @@ fn a_single_tile_fuses_the_plans_ingest_exactly_as_its_own() {
         err
     };
     let first = run();
-    assert!(first.contains("1 tiles of 256 px"), "{first}");
+    assert!(first.contains("1 tile of 256 px"), "{first}");
     let made = output_bytes(&out);
     std::fs::remove_dir_all(out.join("tiles")).unwrap();
     let again = run();

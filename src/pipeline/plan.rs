@@ -512,13 +512,14 @@ pub(super) fn plan(
     )?;
     progress.finish();
     progress.note(&format!(
-        "plan: {} × {} px at {} m ({}; {}), {} tiles of {} px + {} px halo, Ī = {:.5} sr⁻¹ over {} px; DEM resolution {:.0} m ({}), σ_B {:.2} px, σ_DEM {:.2} px",
+        "plan: {} × {} px at {} m ({}; {}), {} {} of {} px + {} px halo, Ī = {:.5} sr⁻¹ over {} px; DEM resolution {:.0} m ({}), σ_B {:.2} px, σ_DEM {:.2} px",
         p.grid.rows,
         p.grid.cols,
         p.grid.spacing,
         p.resolution_source,
         p.grid.crs.name(),
         p.tiles.len(),
+        if p.tiles.len() == 1 { "tile" } else { "tiles" },
         o.tiling.tile_size,
         p.halo,
         p.intensity_scale,
