@@ -12,7 +12,7 @@
 
 use crate::error::{Error, Result};
 use crate::grid::{self, enu_to_grid, Geographic, Grid, Interpolation, Projector};
-use crate::photometry::Vec3;
+use crate::photometry::{narrow, Vec3, Vec3f};
 use crate::synth::direction;
 use ndarray::{s, Array2, ArrayView2, Zip};
 use pds::lola::{LolaDem, Projection};
@@ -74,9 +74,10 @@ pub struct ImageOnGrid {
     /// Bidirectional reflectance, sr⁻¹; 0 where dark (radiance ≤ 0 within noise); NaN
     /// outside the swath or where [`check_pixel`] refuses the pixel.
     pub reflectance: Array2<f64>,
-    /// Unit vectors to the Sun and to the camera in the grid frame; NaN outside the swath.
-    pub sun: Array2<Vec3>,
-    pub view: Array2<Vec3>,
+    /// Unit vectors to the Sun and to the camera in the grid frame, in f32 (12 bytes a pixel
+    /// each; widened exactly where they are used); NaN outside the swath.
+    pub sun: Array2<Vec3f>,
+    pub view: Array2<Vec3f>,
     /// The swath lines used, `first..end`.
     pub lines: (usize, usize),
     /// The wavelength used and the two bands blended to reach it (same band twice when exact).
@@ -468,15 +469,15 @@ pub fn m3_on_grid(
         }
     });
     drop(refl);
-    let directions = |az: usize, zen: usize| -> Result<Array2<Vec3>> {
-        let nan3 = [f64::NAN; 3];
+    let directions = |az: usize, zen: usize| -> Result<Array2<Vec3f>> {
+        let nan3 = [f32::NAN; 3];
         let swath = enu(&read2(&obsr, az, first, n)?, &read2(&obsr, zen, first, n)?);
         let mut out = Array2::from_elem(dim, nan3);
         Zip::indexed(&mut out).par_for_each(|(i, j), d| {
             let (l, m) = (line[(i, j)], sample[(i, j)]);
             if !l.is_nan() {
                 let b = bearing[(i, j)];
-                *d = unit_at(&swath, l, m - s0f).map_or(nan3, |u| enu_to_grid(u, b));
+                *d = unit_at(&swath, l, m - s0f).map_or(nan3, |u| narrow(enu_to_grid(u, b)));
             }
         });
         Ok(out)

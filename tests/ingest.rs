@@ -5,6 +5,7 @@ use pds::m3::Observation;
 use pds::solar::SolarSpectrum;
 use sfsfuse::grid::{Crs, Grid, Interpolation, LonLatBox};
 use sfsfuse::ingest::{lola_on_grid, m3_on_grid};
+use sfsfuse::photometry::widen;
 
 #[path = "../pds/tests/common/mod.rs"]
 mod common;
@@ -171,7 +172,7 @@ fn m3_global_crop_on_a_local_grid() {
     let (sz, vz, ph) = (range(1), range(3), range(4));
     let deg = |x: f64| x.clamp(-1.0, 1.0).acos().to_degrees();
     for &i in &filled {
-        let (s, v) = (img.sun[i], img.view[i]);
+        let (s, v) = (widen(&img.sun[i]), widen(&img.view[i]));
         let tol = 1e-3;
         assert!(deg(s[2]) >= sz.0 - tol && deg(s[2]) <= sz.1 + tol);
         assert!(deg(v[2]) >= vz.0 - tol && deg(v[2]) <= vz.1 + tol);
@@ -187,7 +188,7 @@ fn m3_global_crop_on_a_local_grid() {
     let (xc, yc) = (0.0, 0.0);
     let (rc, cc) = g.pixel(xc, yc);
     let i = (rc.round() as usize, cc.round() as usize);
-    let s = img.sun[i];
+    let s = widen(&img.sun[i]);
     assert!(s[0].is_finite(), "the grid centre lies inside the crop");
     let (glon, glat) = (geo.lon[i], geo.lat[i]);
     let k = (0..lon.len())

@@ -17,7 +17,7 @@ pub mod support;
 pub use objective::Energy;
 pub use observations::{Selection, Weights};
 
-use crate::photometry::{ReflectanceModel, Vec3};
+use crate::photometry::{widen, ReflectanceModel, Vec3, Vec3f};
 use crate::spectral::{self, Dct2d};
 use ndarray::{Array2, ArrayView2, CowArray, Ix2, Zip};
 use objective::{Objective, Photo};
@@ -25,20 +25,21 @@ use serde::{Deserialize, Serialize};
 use std::time::Instant;
 
 /// Unit vectors (east, north, up) to the Sun or to the camera: one for the whole grid, or one
-/// per pixel (as M3's OBS backplanes give them), owned or borrowed from the ingested image
-/// (24 bytes per pixel each: a tile does not copy them).
+/// per pixel (as M3's OBS backplanes give them) in f32, owned or borrowed from the ingested
+/// image (12 bytes per pixel each: a tile does not copy them).
 #[derive(Debug, Clone)]
 pub enum Directions<'a> {
     Uniform(Vec3),
-    PerPixel(CowArray<'a, Vec3, Ix2>),
+    PerPixel(CowArray<'a, Vec3f, Ix2>),
 }
 
 impl Directions<'_> {
+    /// The direction at pixel (i, j), in f64 (a per-pixel one widened exactly).
     #[inline]
-    pub fn at(&self, i: usize, j: usize) -> &Vec3 {
+    pub fn at(&self, i: usize, j: usize) -> Vec3 {
         match self {
-            Directions::Uniform(v) => v,
-            Directions::PerPixel(a) => &a[(i, j)],
+            Directions::Uniform(v) => *v,
+            Directions::PerPixel(a) => widen(&a[(i, j)]),
         }
     }
 
@@ -702,7 +703,7 @@ pub fn render(
         for (r, j) in row.iter_mut().zip(c0..c1) {
             *r = pr
                 .model
-                .shade(p[j], q[j], rho[(i, j)], o.sun.at(i, j), o.view.at(i, j))
+                .shade(p[j], q[j], rho[(i, j)], &o.sun.at(i, j), &o.view.at(i, j))
                 .r;
         }
     });

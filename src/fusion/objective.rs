@@ -444,8 +444,8 @@ impl<'a, 'p> Objective<'a, 'p> {
                             p[j],
                             q[j],
                             rho[(i, j)],
-                            o.sun.at(i, j),
-                            o.view.at(i, j),
+                            &o.sun.at(i, j),
+                            &o.view.at(i, j),
                         );
                         if sh.lit {
                             let r = (o.image[(i, j)] / g - sh.r) / s;
@@ -562,7 +562,7 @@ impl<'a, 'p> Objective<'a, 'p> {
                 let (pp, qq) = *slopes.get_or_insert_with(|| ops::gradient_at(z, pr.spacing, i, j));
                 let w = rho[(i, j)];
                 let (sun, view) = (o.sun.at(i, j), o.view.at(i, j));
-                let at = |dp: f64, dq: f64| model.shade_observed(pp + dp, qq + dq, w, sun, view);
+                let at = |dp: f64, dq: f64| model.shade_observed(pp + dp, qq + dq, w, &sun, &view);
                 // Forward differences of the analytic gradient: three evaluations where
                 // central ones need four (the photo's (a, b) are rounded to f32, too coarse to
                 // difference over h).

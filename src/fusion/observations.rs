@@ -156,7 +156,7 @@ pub fn weights(
         .zip(&gains)
         .map(|(o, &g)| {
             Zip::indexed(&o.image).par_map_collect(|(i, j), &v| {
-                let inc = incidence_deg(o.sun.at(i, j));
+                let inc = incidence_deg(&o.sun.at(i, j));
                 v.is_finite()
                     && v > 0.0
                     && v / g / scale >= shadow_threshold
@@ -197,7 +197,7 @@ pub fn weights(
         .map(|(((o, u), e), &nu)| {
             Zip::indexed(u).and(e).par_map_collect(|(i, j), &u, &e| {
                 if u {
-                    nu * e * incidence_taper(incidence_deg(o.sun.at(i, j)), sel.max_incidence_deg)
+                    nu * e * incidence_taper(incidence_deg(&o.sun.at(i, j)), sel.max_incidence_deg)
                 } else {
                     0.0
                 }
@@ -299,11 +299,11 @@ pub fn estimate_gains(pr: &Problem, usable: &[Array2<bool>], z: ArrayView2<f64>)
                             let ij = oj.image[(i, c)] / g[j];
                             let ik = ok.image[(i, c)] / g[k];
                             let Albedo::Value(rho) =
-                                model.invert(ij, pp, qq, oj.sun.at(i, c), oj.view.at(i, c))
+                                model.invert(ij, pp, qq, &oj.sun.at(i, c), &oj.view.at(i, c))
                             else {
                                 continue;
                             };
-                            let r = model.shade(pp, qq, rho, ok.sun.at(i, c), ok.view.at(i, c));
+                            let r = model.shade(pp, qq, rho, &ok.sun.at(i, c), &ok.view.at(i, c));
                             if r.lit && r.r > 0.0 {
                                 out.push(ik.ln() - r.r.ln());
                             }
@@ -415,7 +415,7 @@ pub fn invert_albedo(
                     }
                     let ik = o.image[(i, j)] / w.gains[k];
                     // ReflectanceModel::invert, keeping the cosines for the joint step.
-                    let Some(g) = incidence(pp, qq, o.sun.at(i, j), o.view.at(i, j)) else {
+                    let Some(g) = incidence(pp, qq, &o.sun.at(i, j), &o.view.at(i, j)) else {
                         continue;
                     };
                     if let Albedo::Value(r) = model.invert_cosines(ik, &g.cos) {

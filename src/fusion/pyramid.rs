@@ -11,7 +11,7 @@
 //! coarse image does not alias relief finer than the block into the coarse solve.
 
 use super::{Directions, FusionError, FusionParams, Observation, Problem, StageReport};
-use crate::photometry::Vec3;
+use crate::photometry::{narrow, Vec3f};
 use ndarray::{Array2, ArrayView2, Zip};
 
 /// A problem's arrays block-averaged by `factor` (owned; [`Coarse::problem`] borrows them).
@@ -62,9 +62,10 @@ pub fn block_mean(a: ArrayView2<f64>, f: usize) -> Array2<f64> {
     })
 }
 
-/// Block means of unit vectors over their finite members, renormalised; NaN where a block
-/// has none (no geometry there, as where an observation's swath ends).
-pub fn block_mean_vectors(a: ArrayView2<Vec3>, f: usize) -> Array2<Vec3> {
+/// Block means of unit vectors over their finite members (summed in f64), renormalised and
+/// stored in f32; NaN where a block has none (no geometry there, as where an observation's
+/// swath ends).
+pub fn block_mean_vectors(a: ArrayView2<Vec3f>, f: usize) -> Array2<Vec3f> {
     let dim = a.dim();
     Array2::from_shape_fn(coarse_dim(dim, f), |(i, j)| {
         let (r0, r1, c0, c1) = block(dim, f, i, j);
@@ -74,16 +75,16 @@ pub fn block_mean_vectors(a: ArrayView2<Vec3>, f: usize) -> Array2<Vec3> {
                 let v = &a[(r, c)];
                 if v.iter().all(|x| x.is_finite()) {
                     for k in 0..3 {
-                        s[k] += v[k];
+                        s[k] += f64::from(v[k]);
                     }
                 }
             }
         }
         let n = (s[0] * s[0] + s[1] * s[1] + s[2] * s[2]).sqrt();
         if n > 0.0 {
-            [s[0] / n, s[1] / n, s[2] / n]
+            narrow([s[0] / n, s[1] / n, s[2] / n])
         } else {
-            [f64::NAN; 3]
+            [f32::NAN; 3]
         }
     })
 }

@@ -106,7 +106,7 @@ pub(super) fn build(
     let (cr, cc) = pyramid::coarse_dim((grid.rows, grid.cols), f);
     let n = inputs.obs.len();
     let mut images = vec![Array2::from_elem((cr, cc), f64::NAN); n];
-    let mut suns = vec![Array2::from_elem((cr, cc), [f64::NAN; 3]); n];
+    let mut suns = vec![Array2::from_elem((cr, cc), [f32::NAN; 3]); n];
     let mut views = suns.clone();
     let mut dem = Array2::from_elem((cr, cc), f64::NAN);
     let mut kept = None;
