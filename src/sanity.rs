@@ -10,7 +10,7 @@
 //!   the product must be the input DEM).
 
 use crate::fusion::{self, Fusion, Problem};
-use ndarray::{s, Array2, ArrayView2};
+use ndarray::{s, Array2};
 use serde::{Deserialize, Serialize};
 
 /// Additive sums over a set of pixels.
@@ -121,22 +121,17 @@ impl TileSums {
         core: (usize, usize, usize, usize),
     ) -> TileSums {
         let (r0, r1, c0, c1) = core;
-        fn win(
-            a: ArrayView2<'_, f64>,
-            (r0, r1, c0, c1): (usize, usize, usize, usize),
-        ) -> ArrayView2<'_, f64> {
-            a.slice_move(s![r0..r1, c0..c1])
-        }
+        let cut = s![r0..r1, c0..c1];
         let (support, dem, z) = (
-            win(f.support.view(), core),
-            win(problem.dem, core),
-            win(fused.view(), core),
+            f.support.slice(cut),
+            problem.dem.slice(cut),
+            fused.slice(cut),
         );
         let mut out = TileSums {
             all: Sums::default(),
             observations: vec![Sums::default(); observations],
         };
-        let seen = problem.footprint().slice_move(s![r0..r1, c0..c1]);
+        let seen = problem.footprint().slice_move(cut);
         for ((i, j), &d) in dem.indexed_iter() {
             let class = if seen[(i, j)] {
                 0
@@ -151,8 +146,8 @@ impl TileSums {
         drop(seen);
         for (k, o) in problem.observations.iter().enumerate() {
             let g = f.gains[k];
-            let image = win(o.image, core);
-            let used = f.used_by[k].slice(s![r0..r1, c0..c1]);
+            let image = o.image.slice(cut);
+            let used = f.used_by[k].slice(cut);
             let mut own = ids
                 .get(k)
                 .filter(|&&id| id < observations)

@@ -10,6 +10,12 @@ fn sfsfuse() -> Command {
     Command::new(env!("CARGO_BIN_EXE_sfsfuse"))
 }
 
+/// The JSON a successful command printed (its stderr shown when it failed).
+fn json_of(o: &std::process::Output) -> serde_json::Value {
+    assert!(o.status.success(), "{}", String::from_utf8_lossy(&o.stderr));
+    serde_json::from_slice(&o.stdout).unwrap()
+}
+
 fn scratch(name: &str) -> std::path::PathBuf {
     let d = std::env::temp_dir().join(format!("sfsfuse-cli-{}-{name}", std::process::id()));
     let _ = std::fs::remove_dir_all(&d);
@@ -24,8 +30,7 @@ fn demo_writes_products_and_a_json_report() {
         .arg(&out)
         .output()
         .unwrap();
-    assert!(o.status.success(), "{}", String::from_utf8_lossy(&o.stderr));
-    let r: serde_json::Value = serde_json::from_slice(&o.stdout).unwrap();
+    let r = json_of(&o);
     assert_eq!(r["size"], 48);
     for k in [
         "input_rmse_m",
@@ -137,8 +142,7 @@ fn inspect_describes_real_products() {
         .arg(data.join("lola_ldem4/LDEM_4.LBL"))
         .output()
         .unwrap();
-    assert!(o.status.success(), "{}", String::from_utf8_lossy(&o.stderr));
-    let r: serde_json::Value = serde_json::from_slice(&o.stdout).unwrap();
+    let r = json_of(&o);
     assert_eq!(r["kind"], "LOLA GDR");
     assert_eq!(r["lines"], 720);
     // MANIFEST.md: DN −17757 … 21008, heights are DN × 0.5 m.
@@ -152,8 +156,7 @@ fn inspect_describes_real_products() {
         .arg(data.join("m3_l1b_crops/forwardDescending/M3G20081129T171431_V03_L1B_cropped.LBL"))
         .output()
         .unwrap();
-    assert!(o.status.success(), "{}", String::from_utf8_lossy(&o.stderr));
-    let r: serde_json::Value = serde_json::from_slice(&o.stdout).unwrap();
+    let r = json_of(&o);
     assert_eq!(r["kind"], "M3 L1B");
     assert_eq!(r["mode"], "GLOBAL");
     assert_eq!(r["samples"], 304);
@@ -203,8 +206,7 @@ fn inspect_shows_the_illumination_and_describes_geotiffs() {
         .arg(dir.join("M3G20090106T113423_V03_L1B_cropped.LBL"))
         .output()
         .unwrap();
-    assert!(o.status.success(), "{}", String::from_utf8_lossy(&o.stderr));
-    let r: serde_json::Value = serde_json::from_slice(&o.stdout).unwrap();
+    let r = json_of(&o);
     let bytes = std::fs::read(dir.join("M3G20090106T113423_V03_OBS_cropped.IMG")).unwrap();
     let samples = 304;
     let zen: Vec<f64> = bytes
@@ -258,8 +260,7 @@ fn inspect_shows_the_illumination_and_describes_geotiffs() {
         .arg(&tif)
         .output()
         .unwrap();
-    assert!(o.status.success(), "{}", String::from_utf8_lossy(&o.stderr));
-    let r: serde_json::Value = serde_json::from_slice(&o.stdout).unwrap();
+    let r = json_of(&o);
     assert_eq!(r["kind"], "GeoTIFF");
     assert_eq!(
         (r["width"].as_u64(), r["height"].as_u64()),
@@ -292,8 +293,7 @@ fn the_pipeline_bench_compares_the_fastest_of_its_repeated_runs() {
         ])
         .output()
         .unwrap();
-    assert!(o.status.success(), "{}", String::from_utf8_lossy(&o.stderr));
-    let r: serde_json::Value = serde_json::from_slice(&o.stdout).unwrap();
+    let r = json_of(&o);
     assert_eq!(r["tiles"], 4, "{r}");
     for (k, samples) in [
         ("single_seconds", "single_samples_seconds"),
@@ -332,8 +332,7 @@ fn bench_caps_the_paper_reference_by_time() {
         ])
         .output()
         .unwrap();
-    assert!(o.status.success(), "{}", String::from_utf8_lossy(&o.stderr));
-    let r: serde_json::Value = serde_json::from_slice(&o.stdout).unwrap();
+    let r = json_of(&o);
     let paper = &r["paper"];
     // Checked every 50 sweeps: the cap overshoots by less than one chunk.
     let per_sweep = paper["seconds"].as_f64().unwrap() / paper["iterations"].as_f64().unwrap();
@@ -370,8 +369,7 @@ fn a_bare_label_name_finds_its_data_file_in_any_case() {
         .current_dir(&dir)
         .output()
         .unwrap();
-    assert!(o.status.success(), "{}", String::from_utf8_lossy(&o.stderr));
-    let r: serde_json::Value = serde_json::from_slice(&o.stdout).unwrap();
+    let r = json_of(&o);
     assert_eq!(r["lines"], 720);
     std::fs::remove_dir_all(&dir).unwrap();
 }
