@@ -703,8 +703,7 @@ pub fn render(
         for (r, j) in row.iter_mut().zip(c0..c1) {
             *r = pr
                 .model
-                .shade(p[j], q[j], rho[(i, j)], &o.sun.at(i, j), &o.view.at(i, j))
-                .r;
+                .shade_value(p[j], q[j], rho[(i, j)], &o.sun.at(i, j), &o.view.at(i, j));
         }
     });
     out

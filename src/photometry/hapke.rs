@@ -55,7 +55,12 @@ pub enum HFunction {
 impl HFunction {
     /// H(x; w), differentiable in both arguments.
     pub fn eval<const N: usize>(&self, x: Dual<N>, w: Dual<N>) -> Dual<N> {
-        let gamma = (1.0 - w).sqrt();
+        self.eval_with_gamma(x, w, (1.0 - w).sqrt())
+    }
+
+    /// H(x; w) given γ = √(1 − w) (formed once where H is evaluated at two arguments).
+    #[inline]
+    fn eval_with_gamma<const N: usize>(&self, x: Dual<N>, w: Dual<N>, gamma: Dual<N>) -> Dual<N> {
         match self {
             HFunction::H81 => (1.0 + x * 2.0) / (1.0 + gamma * x * 2.0),
             HFunction::H02 => {
@@ -172,7 +177,8 @@ fn r_from_parts<const N: usize>(
     s: Dual<N>,
     m: f64,
 ) -> Dual<N> {
-    let hh = h.eval(mu0e, w) * h.eval(mue, w);
+    let gamma = (1.0 - w).sqrt();
+    let hh = h.eval_with_gamma(mu0e, w, gamma) * h.eval_with_gamma(mue, w, gamma);
     w * (1.0 / (4.0 * PI)) * mu0e / (mu0e + mue) * (hh + (m - 1.0)) * s
 }
 

@@ -165,6 +165,17 @@ pub trait ReflectanceModel: Send + Sync + std::fmt::Debug {
     /// observations evaluates it many times per pixel.
     fn albedo_curve(&self, c: &Cosines) -> AlbedoCurve;
 
+    /// R alone for a surface of gradient (p, q): [`ReflectanceModel::shade`]'s value to
+    /// rounding (0 where μ0 ≤ 0 or μ ≤ 0), from [`ReflectanceModel::albedo_curve`], without
+    /// the derivatives in μ0 and μ (for Hapke the roughness correction in plain f64 rather
+    /// than in dual numbers: a rendering, not a solve, needs only the value).
+    fn shade_value(&self, p: f64, q: f64, albedo: f64, sun: &Vec3, view: &Vec3) -> f64 {
+        match incidence(p, q, sun, view) {
+            None => 0.0,
+            Some(g) => self.albedo_curve(&g.cos).eval(albedo).0,
+        }
+    }
+
     /// R, ∂R/∂p, ∂R/∂q for a surface of gradient (p, q) under the given Sun and view vectors.
     fn shade(&self, p: f64, q: f64, albedo: f64, sun: &Vec3, view: &Vec3) -> Shade {
         match incidence(p, q, sun, view) {
@@ -335,6 +346,44 @@ mod tests {
                 let (np, nq) = numeric(m, p, q, &s, &v);
                 assert!((a.dr_dp - np).abs() < 1e-7, "{m:?} p {} {np}", a.dr_dp);
                 assert!((a.dr_dq - nq).abs() < 1e-7, "{m:?} q {} {nq}", a.dr_dq);
+            }
+        }
+    }
+
+    /// `shade_value` (the albedo curve's R) is `shade`'s R to rounding for every model, on
+    /// both of Hapke's roughness branches (i ≤ e and i ≥ e) and for H02, and 0 where the
+    /// surface faces away from the Sun or the camera.
+    #[test]
+    fn the_value_alone_is_the_shades_value() {
+        let h02 = Hapke {
+            h_function: HFunction::H02,
+            ..Hapke::moon()
+        };
+        let models: [&dyn ReflectanceModel; 4] =
+            [&Lambert, &Metallic::cast_iron(), &Hapke::moon(), &h02];
+        let dir = |i: f64, az: f64| {
+            let (i, az) = (i.to_radians(), az.to_radians());
+            [i.sin() * az.sin(), i.sin() * az.cos(), i.cos()]
+        };
+        for m in models {
+            for (sun, view) in [
+                (dir(60.0, 105.0), dir(2.0, 30.0)),
+                (dir(5.0, 250.0), dir(40.0, 80.0)),
+            ] {
+                for &(p, q) in &[(0.0, 0.0), (0.2, -0.1), (-0.3, 0.25), (0.05, 0.4)] {
+                    let (a, b) = (
+                        m.shade(p, q, 0.3, &sun, &view).r,
+                        m.shade_value(p, q, 0.3, &sun, &view),
+                    );
+                    assert!(
+                        (a - b).abs() <= 1e-14 * a.abs(),
+                        "{m:?} ({p}, {q}): {a} against {b}"
+                    );
+                }
+                assert_eq!(
+                    m.shade_value(3.0, 0.0, 0.3, &[0.9, 0.0, 0.436], &view),
+                    0.0
+                );
             }
         }
     }
