@@ -380,10 +380,7 @@ mod tests {
                         "{m:?} ({p}, {q}): {a} against {b}"
                     );
                 }
-                assert_eq!(
-                    m.shade_value(3.0, 0.0, 0.3, &[0.9, 0.0, 0.436], &view),
-                    0.0
-                );
+                assert_eq!(m.shade_value(3.0, 0.0, 0.3, &[0.9, 0.0, 0.436], &view), 0.0);
             }
         }
     }
