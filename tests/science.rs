@@ -59,53 +59,6 @@ fn paper_and_fast_solvers_reach_the_same_energy_with_two_observations() {
     );
 }
 
-/// An albedo stage before the last takes exactly `stage_steps` Gauss–Newton steps (a fixed
-/// count: a tile takes the steps the whole region takes), the last stage converges on its own
-/// rule, and `stage_steps = 0` converges the intermediate stage too: the elevation error is the
-/// same within a centimetre, the surfaces a few centimetres apart at most (docs/performance.md,
-/// "Intermediate stages of two steps").
-#[test]
-fn intermediate_stages_take_a_fixed_number_of_steps() {
-    let scene = generate(&SceneSpec {
-        size: 128,
-        seed: 3,
-        ..SceneSpec::default()
-    });
-    let run = |stage_steps| {
-        fuse(
-            &scene.problem(),
-            &FusionParams {
-                stage_steps,
-                ..FusionParams::default()
-            },
-        )
-        .unwrap()
-    };
-    // Stages: the coarse reference (one record), the 10-px stage, the 4-px stage; each
-    // stage's log starts with its starting state (iteration 0).
-    let sigmas: Vec<f64> = run(2).stages.iter().map(|s| s.sigma_rho).collect();
-    assert_eq!(sigmas, [100.0, 10.0, 4.0]);
-    for steps in [1, 2, 3] {
-        let f = run(steps);
-        assert_eq!(
-            f.stages[1].iterations.len(),
-            steps + 1,
-            "stage_steps = {steps}"
-        );
-    }
-    let (two, converged) = (run(2), run(0));
-    let taken = converged.stages[1].iterations.len() - 1;
-    assert!(taken > 2, "the converged 10-px stage took {taken} steps");
-    let (e2, e0) = (
-        rmse(&two.height, &scene.truth_height),
-        rmse(&converged.height, &scene.truth_height),
-    );
-    let d = rmse(&two.height, &converged.height);
-    eprintln!("two steps {e2:.4} m, converged {e0:.4} m, apart {d:.4} m RMS");
-    assert!((e2 - e0).abs() < 0.01, "{e2:.4} m against {e0:.4} m");
-    assert!(d < 0.05, "two steps against converged: {d:.4} m RMS");
-}
-
 /// The edge-aware membrane's energy (per-pixel weights from the starting surface, here the
 /// truth, so that they are not uniform): the `paper` iteration approaches the fast solver's
 /// minimum of it too.

@@ -215,15 +215,13 @@ pub struct FusionParams {
     /// A stage stops when an iteration lowers E by less than this fraction (for `fast` a
     /// guard against stagnation: it stops on `step_tolerance`).
     pub tolerance: f64,
-    /// `fast`: an albedo stage before the last takes exactly this many Gauss–Newton steps
-    /// (fewer only where the energy stops decreasing); 0: every stage converges to
-    /// `step_tolerance`, as the last does. Such a stage only hands the next one its surface,
-    /// and the next stage's albedo moves the surface further than the steps it skips: on the
-    /// demo scenes, several observations and the products the fused DEM is the same to 1 cm
-    /// with 2 as with every stage converged. A fixed count, not a threshold on the steps, so
-    /// that a tile and the whole region take the same steps whatever their window holds
-    /// (docs/performance.md, "Intermediate stages of two steps").
-    pub stage_steps: usize,
+    /// `fast`: an albedo stage before the last stops when no height changes by more than this
+    /// many grid spacings ε in a step (0.3: 42 m at 140 m/px). Such a stage only hands the
+    /// next one its surface, and the next stage's albedo moves the surface further than the
+    /// steps this skips: on the demo scenes the fused DEM is the same to 1 cm with 0.3 as with
+    /// every stage converged to `step_tolerance`, at 0.7–0.8× the time (docs/performance.md).
+    /// Like `step_tolerance`, a local rule, so a tile stops where the whole region would.
+    pub stage_step_tolerance: f64,
     /// A `fast` stage stops when no height changes by more than this many grid spacings ε in
     /// one Gauss–Newton step (0.01: 1.4 m at 140 m/px), or when the contraction of the last two
     /// steps' largest changes says the steps to come would not (`fast::remaining`). The
@@ -301,7 +299,7 @@ impl Default for FusionParams {
             shadow_threshold: 0.1,
             max_iterations: 30,
             tolerance: 1e-9,
-            stage_steps: 2,
+            stage_step_tolerance: 0.3,
             step_tolerance: 0.01,
             curvature_residual: 0.05,
             cg_iterations: 60,
@@ -552,7 +550,7 @@ pub fn validate_params(params: &FusionParams) -> Result<(), FusionError> {
             });
         }
     }
-    let checks: [(&'static str, f64, bool, &'static str); 19] = [
+    let checks: [(&'static str, f64, bool, &'static str); 20] = [
         (
             "cg_tolerance",
             params.cg_tolerance,
@@ -627,6 +625,12 @@ pub fn validate_params(params: &FusionParams) -> Result<(), FusionError> {
             params.shadow_threshold,
             params.shadow_threshold >= 0.0,
             "must be ≥ 0",
+        ),
+        (
+            "stage_step_tolerance",
+            params.stage_step_tolerance,
+            params.stage_step_tolerance >= 0.0,
+            "must be ≥ 0 (grid spacings)",
         ),
         (
             "step_tolerance",
@@ -924,14 +928,11 @@ fn fine_stages(
         .last()
         .copied()
         .filter(|_| multi.is_some());
-    // A stage before the last only hands the next its surface: it takes `stage_steps` steps.
-    let early = match params.stage_steps {
-        0 => params.clone(),
-        n => FusionParams {
-            step_tolerance: 0.0,
-            max_iterations: n.min(params.max_iterations),
-            ..params.clone()
-        },
+    // A stage before the last only hands the next its surface: it stops on
+    // `stage_step_tolerance`.
+    let early = FusionParams {
+        step_tolerance: params.step_tolerance.max(params.stage_step_tolerance),
+        ..params.clone()
     };
     for (m, &sigma) in sigmas.iter().enumerate() {
         let t0 = Instant::now();
