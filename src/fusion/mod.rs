@@ -20,7 +20,7 @@ pub use observations::{Selection, Weights};
 use crate::photometry::{widen, ReflectanceModel, Vec3, Vec3f};
 use crate::spectral::{self, Dct2d};
 use ndarray::{Array2, ArrayView2, CowArray, Ix2, Zip};
-use objective::{Objective, Photo};
+use objective::{MembraneRule, Objective, Photo};
 use serde::{Deserialize, Serialize};
 use std::time::Instant;
 
@@ -261,8 +261,21 @@ pub struct FusionParams {
     /// ([`objective::Objective::set_membrane_weights`]); 0 keeps η everywhere.
     pub edge_membrane_slope: f64,
     /// Where several observations carry a pixel, the membrane's weight is η × this (blended
-    /// by the multi-coverage c(x)), and plain, not edge-aware.
+    /// by the multi-coverage c(x)), before the factors of `multi_eta_stiffness` and
+    /// `multi_edge_membrane_slope`.
     pub multi_eta_factor: f64,
+    /// k_m: where several observations carry a pixel the membrane is edge-aware, its weight
+    /// × 1/√(1 + |∇(z − z_DEM)|²/k_m²) of the surface each stage starts from (a slope; 0:
+    /// plain there). Two or more Suns fix the slopes of walls and rims, which a plain
+    /// membrane flattens (docs/science.md, "Several observations").
+    pub multi_edge_membrane_slope: f64,
+    /// S₀: where several observations carry a pixel the membrane is further scaled by
+    /// min(1, √(S/S₀)), S the photometric stiffness of a level surface there
+    /// ([`objective::Objective::level_stiffness`]: Σ_k |∇ ln R_k|² over the observations, in
+    /// the slopes); 0 turns it off. Under high Suns the shading changes little with slope and
+    /// a fixed η holds the surface to the DEM's gradients (docs/science.md, "Several
+    /// observations").
+    pub multi_eta_stiffness: f64,
     /// The first albedo stage is solved on the grid block-averaged by this factor and its
     /// correction z − z_DEM interpolated back ([`pyramid`]); 1 solves it on the full grid.
     pub coarse_factor: usize,
@@ -305,11 +318,13 @@ impl Default for FusionParams {
             cg_iterations: 60,
             cg_tolerance: 0.02,
             edge_ramp_px: 16.0,
-            multi_albedo_sigma: 1.0,
+            multi_albedo_sigma: 0.5,
             multi_final_albedo_sigma: 0.7,
             multi_delta_factor: 0.3,
             edge_membrane_slope: 0.0,
-            multi_eta_factor: 1.0,
+            multi_eta_factor: 4.0,
+            multi_edge_membrane_slope: 0.03,
+            multi_eta_stiffness: 4.0,
             coarse_factor: 4,
             dem_height_length_px: 30.0,
             dem_track_weight: 0.1,
@@ -321,8 +336,9 @@ impl Default for FusionParams {
 impl FusionParams {
     /// The edge-aware membrane for single-image work (docs/science.md, "Edge-aware
     /// membrane"): η = 0.5 where the correction is flat, η/√(1 + |∇(z − z_DEM)|²/0.03²) on
-    /// steep corrections, δ = 100; where several observations carry a pixel the plain membrane
-    /// and DEM term keep the defaults' weights (η·0.2 = 0.1, δ·0.15 = 15). On the synthetic
+    /// steep corrections, δ = 100; where several observations carry a pixel the membrane and
+    /// DEM term keep the defaults' weights (η·0.8 = 0.4 before the stiffness and edge factors,
+    /// δ·0.15 = 15). On the synthetic
     /// scenes it lowers single-image elevation errors by 8–10 %; it is not the default because
     /// several observations gain nothing from it (their ratio to the single image would rise
     /// from 0.65× to 0.71×) and on the real M3 crop it moves the DEM half as far.
@@ -331,7 +347,7 @@ impl FusionParams {
             delta: 100.0,
             eta: 0.5,
             edge_membrane_slope: 0.03,
-            multi_eta_factor: 0.2,
+            multi_eta_factor: 0.8,
             multi_delta_factor: 0.15,
             ..Self::default()
         }
@@ -550,7 +566,7 @@ pub fn validate_params(params: &FusionParams) -> Result<(), FusionError> {
             });
         }
     }
-    let checks: [(&'static str, f64, bool, &'static str); 20] = [
+    let checks: [(&'static str, f64, bool, &'static str); 22] = [
         (
             "cg_tolerance",
             params.cg_tolerance,
@@ -601,6 +617,18 @@ pub fn validate_params(params: &FusionParams) -> Result<(), FusionError> {
             params.multi_eta_factor,
             params.multi_eta_factor >= 0.0,
             "must be ≥ 0",
+        ),
+        (
+            "multi_edge_membrane_slope",
+            params.multi_edge_membrane_slope,
+            params.multi_edge_membrane_slope >= 0.0,
+            "must be ≥ 0 (a slope; 0 keeps the plain membrane where observations overlap)",
+        ),
+        (
+            "multi_eta_stiffness",
+            params.multi_eta_stiffness,
+            params.multi_eta_stiffness >= 0.0,
+            "must be ≥ 0 (0: off)",
         ),
         (
             "dem_height_length_px",
@@ -936,13 +964,8 @@ fn fine_stages(
     };
     for (m, &sigma) in sigmas.iter().enumerate() {
         let t0 = Instant::now();
-        obj.set_membrane_weights(
-            z.view(),
-            params.edge_membrane_slope,
-            params.multi_eta_factor,
-        );
-        let w = &obj.weights;
-        let rho = albedo_map(pr, w, &obj.dct, z.view(), sigma)?;
+        let rho = albedo_map(pr, &obj.weights, &obj.dct, z.view(), sigma)?;
+        obj.set_membrane_weights(z.view(), rho.view(), MembraneRule::of(params));
         let last = m + 1 == sigmas.len() && multi_stage.is_none();
         let stage_params = if last || params.solver == SolverKind::Paper {
             params
@@ -958,20 +981,16 @@ fn fine_stages(
     }
     if let (Some(last), Some(multi)) = (multi_stage, &multi) {
         let t0 = Instant::now();
-        obj.set_membrane_weights(
-            z.view(),
-            params.edge_membrane_slope,
-            params.multi_eta_factor,
-        );
-        let w = &obj.weights;
         let maps = albedo_maps(
             pr,
-            w,
+            &obj.weights,
             &obj.dct,
             z.view(),
             &[params.multi_albedo_sigma, last],
         )?;
         let rho = blend(&maps[0], &maps[1], multi);
+        drop(maps);
+        obj.set_membrane_weights(z.view(), rho.view(), MembraneRule::of(params));
         let iterations = minimise(&obj, &mut z, rho.view(), params, &mut |_| {});
         stages.push(StageReport {
             sigma_rho: params.multi_albedo_sigma,
@@ -1110,11 +1129,7 @@ pub fn solve_fixed_albedo(
     observe: &mut dyn FnMut(&Energy),
 ) -> Result<Vec<IterationRecord>, FusionError> {
     let mut obj = objective(pr, params)?;
-    obj.set_membrane_weights(
-        z.view(),
-        params.edge_membrane_slope,
-        params.multi_eta_factor,
-    );
+    obj.set_membrane_weights(z.view(), rho, MembraneRule::of(params));
     Ok(minimise(&obj, z, rho, params, observe))
 }
 

@@ -96,6 +96,43 @@ pub struct Iterate {
     pub energy: Energy,
 }
 
+/// How a stage weighs the membrane ([`Objective::set_membrane_weights`]).
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub struct MembraneRule {
+    /// k of the edge-aware membrane (a slope; 0: off).
+    pub slope: f64,
+    /// f: the membrane's factor where several observations carry a pixel.
+    pub multi_factor: f64,
+    /// k_m: the edge-aware membrane's slope where several observations carry a pixel (0:
+    /// plain there).
+    pub multi_slope: f64,
+    /// S₀: where several observations carry a pixel the membrane is scaled by
+    /// min(1, √(S/S₀)) of their photometric stiffness S (0: off).
+    pub stiffness: f64,
+}
+
+/// e(k) = 1/√(1 + g²/k²) for a correction slope of squared size g² (1 when k = 0): the
+/// edge-aware membrane's factor ([`Objective::set_membrane_weights`]).
+fn edge_factor(g2: f64, k: f64) -> f64 {
+    if k > 0.0 {
+        1.0 / (1.0 + g2 / (k * k)).sqrt()
+    } else {
+        1.0
+    }
+}
+
+impl MembraneRule {
+    /// The rule of `params`.
+    pub fn of(params: &super::FusionParams) -> Self {
+        Self {
+            slope: params.edge_membrane_slope,
+            multi_factor: params.multi_eta_factor,
+            multi_slope: params.multi_edge_membrane_slope,
+            stiffness: params.multi_eta_stiffness,
+        }
+    }
+}
+
 /// Precomputed operators for one problem.
 pub struct Objective<'a, 'p> {
     pub problem: &'a Problem<'p>,
@@ -278,35 +315,91 @@ impl<'a, 'p> Objective<'a, 'p> {
     }
 
     /// Set the membrane's per-pixel weight η·ω(x) for the albedo stage that starts from
-    /// surface `z`: ω = (1 − c)·m + c·f, c the multi-coverage of [`Weights::multiplicity`],
-    /// f = `multi_factor` and m = 1/√(1 + |∇(z − z_DEM)|²/k²) (∇ the central difference,
-    /// k = `slope`, dimensionless; m = 1 when k = 0). Stored as r_η = 1 − ω.
+    /// surface `z` with albedo `rho`: ω = (1 − c)·e(k) + c·f·a·e(k_m), c the multi-coverage of
+    /// [`Weights::multiplicity`], e(k) = 1/√(1 + |∇(z − z_DEM)|²/k²) (∇ the central
+    /// difference; k a slope, e = 1 when k = 0) with k = `m.slope` and k_m = `m.multi_slope`,
+    /// f = `m.multi_factor` and a = min(1, √(S/S₀)), S the photometric stiffness of
+    /// [`Objective::level_stiffness`] and S₀ = `m.stiffness` (a = 1 when S₀ = 0). Stored as
+    /// r_η = 1 − ω.
     ///
     /// The membrane pulls the correction's gradients towards 0, which flattens small craters'
     /// walls and rims (docs/science.md, "Edge-aware membrane"); where the surface already
     /// departs steeply from the DEM it pulls less, like a total-variation penalty
     /// re-linearised once per stage. Where two or more Suns carry a pixel the image fixes
-    /// every slope and a plain, weaker membrane (η·f) serves better. ω is fixed within a
-    /// stage, so each stage's energy keeps its form.
-    pub fn set_membrane_weights(&mut self, z: ArrayView2<f64>, slope: f64, multi_factor: f64) {
+    /// every slope: there the membrane is edge-aware by default (stronger where the correction
+    /// is flat, weaker on walls and rims) and scaled by a to the images' own stiffness, since
+    /// under a high Sun the shading changes little with slope and a fixed η would hold the
+    /// surface to the DEM's gradients (docs/science.md, "Several observations"). ω is fixed
+    /// within a stage, so each stage's energy keeps its form.
+    pub fn set_membrane_weights(
+        &mut self,
+        z: ArrayView2<f64>,
+        rho: ArrayView2<f64>,
+        m: MembraneRule,
+    ) {
         self.membrane_relief = None;
-        if self.eta == 0.0 || (slope <= 0.0 && multi_factor == 1.0) {
+        if self.eta == 0.0 {
+            return;
+        }
+        let multi = self.weights.weight.len() > 1
+            && (m.multi_factor != 1.0 || m.stiffness > 0.0 || m.multi_slope > 0.0);
+        if m.slope <= 0.0 && !multi {
             return;
         }
         let c = self.weights.multiplicity();
+        let a = if m.stiffness > 0.0 && c.iter().any(|&c| c > 0.0) {
+            let s = self.level_stiffness(rho, &c);
+            s.mapv(|s| (s / m.stiffness).sqrt().min(1.0))
+        } else {
+            Array2::ones(c.dim())
+        };
         let (p, q) = ops::gradient(self.correction(z).view(), self.problem.spacing);
-        let k2 = slope * slope;
-        let r = Zip::from(&p).and(&q).and(&c).par_map_collect(|&p, &q, &c| {
-            let m = if k2 > 0.0 {
-                1.0 / (1.0 + (p * p + q * q) / k2).sqrt()
-            } else {
-                1.0
-            };
-            (1.0 - c) * (1.0 - m) + c * (1.0 - multi_factor)
-        });
+        let r = Zip::from(&p)
+            .and(&q)
+            .and(&c)
+            .and(&a)
+            .par_map_collect(|&p, &q, &c, &a| {
+                let g2 = p * p + q * q;
+                let e = edge_factor(g2, m.slope);
+                let em = edge_factor(g2, m.multi_slope);
+                (1.0 - c) * (1.0 - e) + c * (1.0 - m.multi_factor * a * em)
+            });
         if r.iter().any(|&r| r != 0.0) {
             self.membrane_relief = Some(r);
         }
+    }
+
+    /// The photometric stiffness of a level surface, S(x) = Σ_k u_k(x)·|∇ ln R_k|², where
+    /// c(x) > 0 (0 elsewhere): ∇ the derivative in the slopes (p, q) at p = q = 0 under the
+    /// pixel's own Sun and view and albedo ρ(x), u_k = w_k/ν_k the edge ramp and incidence
+    /// taper of [`Weights`] (ν-free, so S is a property of the geometry, not of the images'
+    /// brightness). It is the trace of E_I's Gauss–Newton curvature in (p, q), in units of
+    /// relative brightness: ≈ 2.6 for two Suns 30–35° above the horizon, ≈ 0.3 for two at
+    /// 55–60°. An observation that would see the level surface unlit adds nothing.
+    pub fn level_stiffness(&self, rho: ArrayView2<f64>, c: &Array2<f64>) -> Array2<f64> {
+        let pr = self.problem;
+        let w = &self.weights;
+        Zip::indexed(c)
+            .and(rho)
+            .par_map_collect(|(i, j), &c, &rho| {
+                if c <= 0.0 {
+                    return 0.0;
+                }
+                let mut s = 0.0;
+                for ((o, wk), &nu) in pr.observations.iter().zip(&w.weight).zip(&w.noise) {
+                    let u = f64::from(wk[(i, j)]) / nu;
+                    if u <= 0.0 {
+                        continue;
+                    }
+                    let sh = pr
+                        .model
+                        .shade(0.0, 0.0, rho, &o.sun.at(i, j), &o.view.at(i, j));
+                    if sh.r > 0.0 {
+                        s += u * ((sh.dr_dp / sh.r).powi(2) + (sh.dr_dq / sh.r).powi(2));
+                    }
+                }
+                s
+            })
     }
 
     /// The mean of r_η(x) (0 without it): the preconditioner uses η·(1 − mean r_η).
@@ -1034,6 +1127,67 @@ mod tests {
         );
     }
 
+    /// The level surface's photometric stiffness against its closed form for Lambert
+    /// (ln R = ln μ0 + const, ∂ ln μ0/∂(p, q) = −(s_x, s_y)/s_z at p = q = 0, so
+    /// S = Σ_k tan² i_k), and the several-observation membrane it scales: ω = f·√(S/S₀) where
+    /// two observations carry a flat correction in full, capped at f; one observation's pixels
+    /// keep η (no field where only one observation exists).
+    #[test]
+    fn the_several_observation_membrane_follows_the_level_stiffness() {
+        let (ny, nx) = (6, 40);
+        let dem = Array2::from_shape_fn((ny, nx), |(i, j)| 3.0 * i as f64 - 0.5 * j as f64);
+        let (a, b) = (
+            Array2::from_elem((ny, nx), 0.2),
+            Array2::from_shape_fn((ny, nx), |(_, j)| if j < 20 { f64::NAN } else { 0.2 }),
+        );
+        let model = crate::photometry::Lambert;
+        let mut pr = Problem::single(
+            a.view(),
+            Directions::Uniform(crate::synth::direction(60.0, 100.0)),
+            Directions::Uniform(crate::synth::direction(0.0, 0.0)),
+            dem.view(),
+            100.0,
+            1.5,
+            &model,
+        );
+        pr.observations.push(crate::fusion::Observation {
+            image: b.view(),
+            sun: Directions::Uniform(crate::synth::direction(45.0, 220.0)),
+            view: Directions::Uniform(crate::synth::direction(0.0, 0.0)),
+        });
+        let w = crate::fusion::observations::weights(&pr, vec![1.0, 1.0], 0.2, None, 0.0, 0.0);
+        let mut obj = Objective::new(&pr, 3.0, 0.2, 1.2, 1.5, 0.2, w);
+        let rho = Array2::from_elem((ny, nx), 0.5);
+        let c = obj.weights.multiplicity();
+        let s = obj.level_stiffness(rho.view(), &c);
+        let tan2 = |deg: f64| deg.to_radians().tan().powi(2);
+        // Where both see the pixel: tan² 60° + tan² 45° = 4; where one does, c = 0 and S is
+        // not formed.
+        assert!(
+            (s[(3, 30)] - (tan2(60.0) + tan2(45.0))).abs() < 1e-9,
+            "{}",
+            s[(3, 30)]
+        );
+        assert_eq!(s[(3, 5)], 0.0);
+        // A flat correction (z = z_DEM) leaves the edge factors at 1: ω = f·min(1, √(S/S₀)).
+        for (stiffness, want) in [(16.0, 4.0 * 0.5), (4.0, 4.0), (0.0, 4.0)] {
+            let rule = MembraneRule {
+                slope: 0.0,
+                multi_factor: 4.0,
+                multi_slope: 0.03,
+                stiffness,
+            };
+            obj.set_membrane_weights(dem.view(), rho.view(), rule);
+            let r = obj.membrane_relief.as_ref().unwrap();
+            assert!(
+                (1.0 - r[(3, 30)] - want).abs() < 1e-6,
+                "S₀ {stiffness}: {}",
+                r[(3, 30)]
+            );
+            assert_eq!(r[(3, 5)], 0.0, "one observation keeps η");
+        }
+    }
+
     /// With the edge-aware membrane's per-pixel weights (and the plain, weaker membrane where
     /// two observations overlap) the gradient still matches E.
     #[test]
@@ -1046,15 +1200,22 @@ mod tests {
         let mut obj = Objective::new(&pr, 3.0, 0.5, 1.2, 1.5, 0.03, w);
         // The weights come from another surface than the one the gradient is checked at.
         let start = &dem + &z.mapv(|v| 0.5 * v);
-        obj.set_membrane_weights(start.view(), 0.05, 0.2);
+        let rho = Array2::from_elem(dem.dim(), 0.3);
+        let rule = |slope, multi_factor, stiffness| MembraneRule {
+            slope,
+            multi_factor,
+            multi_slope: 0.0,
+            stiffness,
+        };
+        obj.set_membrane_weights(start.view(), rho.view(), rule(0.05, 0.2, 0.0));
         let r = obj.membrane_relief.as_ref().unwrap();
         // Single coverage: 1 − m, strictly between 0 and 1 on a steep correction; full double
         // coverage: 1 − 0.2 (to the rounding of the weights, held in f32).
         assert!(r[(5, 2)] > 0.1 && r[(5, 2)] < 1.0, "{}", r[(5, 2)]);
         assert!((r[(5, 14)] - 0.8).abs() < 1e-6, "{}", r[(5, 14)]);
         assert_gradient_matches(&obj, &z, &[(3, 4), (6, 9), (5, 15), (11, 25), (0, 29)]);
-        // k = 0 and a factor of 1: the plain membrane, no field at all.
-        obj.set_membrane_weights(start.view(), 0.0, 1.0);
+        // k = 0, a factor of 1 and no stiffness rule: the plain membrane, no field at all.
+        obj.set_membrane_weights(start.view(), rho.view(), rule(0.0, 1.0, 0.0));
         assert!(obj.membrane_relief.is_none());
     }
 
