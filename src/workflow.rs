@@ -693,8 +693,8 @@ directory = "out"
         // The halo depends on the DEM (σ_DEM, its point spread): the plan sets it. With a DEM
         // 4× coarser the largest σ is the first albedo stage, 100 px, when tiles solve it;
         // with the plan's coarse reference it is the track weighting's 9 px along the columns
-        // through the DEM term's blur (σ_DEM 3 px, point spread 4/√2 px): 4·√(81 + 9 + 8) =
-        // 39.6 px, as the second albedo stage's 4 × 10 px.
+        // through the DEM term's blur (σ_DEM 2 px, point spread 4/√2 px): 4·√(81 + 4 + 8) =
+        // 38.6 px, under the second albedo stage's 4 × 10 px.
         assert_eq!(o.tiling.halo, None);
         assert!(!o.sigma_dem_given);
         let psf = crate::fusion::dem_psf_sigma(4.0);

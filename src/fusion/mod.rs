@@ -150,17 +150,17 @@ pub fn dem_psf_sigma(factor: f64) -> f64 {
 }
 
 /// Default σ_DEM, in grid pixels, for a DEM whose independent heights are `factor` grid pixels
-/// apart: 0.75 × factor (at least 1 px) up to 4× coarser, where it reaches the 3 px tuned on
-/// the demo scene, then max(3, 0.35 × factor). What matters most for a coarse DEM is its point
+/// apart: 0.5 × factor (at least 1 px) up to 4× coarser, where it reaches the 2 px tuned on
+/// the demo scene, then max(2, 0.35 × factor). What matters most for a coarse DEM is its point
 /// spread B ([`dem_psf_sigma`], from the *effective* resolution); σ_DEM low-passes the
 /// comparison: wide enough to keep the DEM's noise and interpolation ramps out of E_DEM,
 /// narrow enough to keep the slopes a fine DEM does resolve (docs/science.md, "The DEM's
 /// resolution").
 pub fn dem_sigma(factor: f64) -> f64 {
     if factor <= 4.0 {
-        (0.75 * factor).max(1.0)
+        (0.5 * factor).max(1.0)
     } else {
-        (0.35 * factor).max(3.0)
+        (0.35 * factor).max(2.0)
     }
 }
 
@@ -306,7 +306,7 @@ impl Default for FusionParams {
             gamma: 2.5,
             delta: 50.0,
             eta: 0.1,
-            sigma_dem: 3.0,
+            sigma_dem: 2.0,
             albedo_sigmas: vec![100.0, 10.0, 4.0],
             final_albedo_sigma: 1.0,
             shadow_threshold: 0.1,
@@ -320,10 +320,10 @@ impl Default for FusionParams {
             edge_ramp_px: 16.0,
             multi_albedo_sigma: 0.5,
             multi_final_albedo_sigma: 0.7,
-            multi_delta_factor: 0.3,
+            multi_delta_factor: 0.2,
             edge_membrane_slope: 0.0,
-            multi_eta_factor: 4.0,
-            multi_edge_membrane_slope: 0.03,
+            multi_eta_factor: 6.0,
+            multi_edge_membrane_slope: 0.02,
             multi_eta_stiffness: 4.0,
             coarse_factor: 4,
             dem_height_length_px: 30.0,
@@ -337,8 +337,8 @@ impl FusionParams {
     /// The edge-aware membrane for single-image work (docs/science.md, "Edge-aware
     /// membrane"): η = 0.5 where the correction is flat, η/√(1 + |∇(z − z_DEM)|²/0.03²) on
     /// steep corrections, δ = 100; where several observations carry a pixel the membrane and
-    /// DEM term keep the defaults' weights (η·0.8 = 0.4 before the stiffness and edge factors,
-    /// δ·0.15 = 15). On the synthetic
+    /// DEM term keep the defaults' weights (η·1.2 = 0.6 before the stiffness and edge factors,
+    /// δ·0.1 = 10). On the synthetic
     /// scenes it lowers single-image elevation errors by 8–10 %; it is not the default because
     /// several observations gain nothing from it (their ratio to the single image would rise
     /// from 0.65× to 0.71×) and on the real M3 crop it moves the DEM half as far.
@@ -347,8 +347,8 @@ impl FusionParams {
             delta: 100.0,
             eta: 0.5,
             edge_membrane_slope: 0.03,
-            multi_eta_factor: 0.8,
-            multi_delta_factor: 0.15,
+            multi_eta_factor: 1.2,
+            multi_delta_factor: 0.1,
             ..Self::default()
         }
     }
