@@ -220,7 +220,10 @@ pub struct FusionParams {
     /// next one its surface, and the next stage's albedo moves the surface further than the
     /// steps this skips: on the demo scenes the fused DEM is the same to 1 cm with 0.3 as with
     /// every stage converged to `step_tolerance`, at 0.7–0.8× the time (docs/performance.md).
-    /// Like `step_tolerance`, a local rule, so a tile stops where the whole region would.
+    /// Not applied when the membrane is edge-aware (`edge_membrane_slope`, or
+    /// `multi_edge_membrane_slope` where several observations overlap): the next stage's
+    /// membrane weights then depend on where this one stops, and where a threshold stops it
+    /// depends on the window, so such a stage takes exactly [`EDGE_STAGE_STEPS`] steps.
     pub stage_step_tolerance: f64,
     /// A `fast` stage stops when no height changes by more than this many grid spacings ε in
     /// one Gauss–Newton step (0.01: 1.4 m at 140 m/px), or when the contraction of the last two
@@ -936,6 +939,11 @@ pub fn coarse_factor_at_least(
     (ny / f >= 8 && nx / f >= 8).then_some(f)
 }
 
+/// Gauss–Newton steps of an albedo stage before the last when the membrane is edge-aware
+/// ([`FusionParams::stage_step_tolerance`]): a fixed count, so that every window takes the same
+/// steps (fewer only where the energy stops decreasing).
+pub const EDGE_STAGE_STEPS: usize = 2;
+
 /// The albedo stages of widths `sigmas` from surface `z`, then the support taper, the final
 /// albedo and the layers.
 fn fine_stages(
@@ -957,10 +965,25 @@ fn fine_stages(
         .copied()
         .filter(|_| multi.is_some());
     // A stage before the last only hands the next its surface: it stops on
-    // `stage_step_tolerance`.
-    let early = FusionParams {
-        step_tolerance: params.step_tolerance.max(params.stage_step_tolerance),
-        ..params.clone()
+    // `stage_step_tolerance`, unless the next stage's membrane weights depend on where it
+    // stops (an edge-aware membrane, by default where several observations overlap). Where a
+    // threshold stops it depends on the window (the largest change over it), so a tile and the
+    // whole region would then weigh the next stage's membrane differently (two strips through
+    // `run`: 0.89 m apart); such a stage takes exactly `EDGE_STAGE_STEPS` steps instead, the
+    // same in every window (0.17 m; docs/science.md, "Several observations").
+    let edge_aware = params.edge_membrane_slope > 0.0
+        || (multi.is_some() && params.multi_edge_membrane_slope > 0.0);
+    let early = if edge_aware {
+        FusionParams {
+            step_tolerance: 0.0,
+            max_iterations: EDGE_STAGE_STEPS.min(params.max_iterations),
+            ..params.clone()
+        }
+    } else {
+        FusionParams {
+            step_tolerance: params.step_tolerance.max(params.stage_step_tolerance),
+            ..params.clone()
+        }
     };
     for (m, &sigma) in sigmas.iter().enumerate() {
         let t0 = Instant::now();
