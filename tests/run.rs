@@ -6,7 +6,10 @@ use sfsfuse::export::read_tiff;
 use std::path::Path;
 
 mod support;
-use support::{rmse, run_ok, scene_products, scratch, sfsfuse, workflow, write_workflow};
+use support::{
+    largest_difference, rmse, run_ok, scene_products, scratch, sfsfuse, strip_products, workflow,
+    write_workflow,
+};
 
 /// The science-core bar (tests/science.rs) met through the whole pipeline: PDS3 products in,
 /// COGs out. Seed 10 at 256², as there.
@@ -1075,16 +1078,7 @@ fn products_describe_themselves_to_gdal() {
 /// parts one strip covers, with the tiled run seamless against a single tile.
 #[test]
 fn two_overlapping_strips_are_fused_with_a_run_wide_gain() {
-    let spec = sfsfuse::synth::SceneSpec {
-        size: 256,
-        seed: 10,
-        ..Default::default()
-    }
-    .with_observations(&sfsfuse::synth::DEMO_SUNS[..2], &[1.0, 1.05], true);
-    let scene = sfsfuse::synth::generate(&spec);
-    let grid = sfsfuse::demo::demo_grid(&spec).unwrap();
-    let dir = scratch("strips");
-    let p = sfsfuse::synth::products::write(&scene, &grid, &dir.join("products")).unwrap();
+    let (dir, p) = strip_products(256, 10, "strips");
     assert_eq!(p.m3_labels.len(), 2);
     let mut dems = Vec::new();
     for tile in [512, 96] {
@@ -1123,11 +1117,7 @@ fn two_overlapping_strips_are_fused_with_a_run_wide_gain() {
     assert!(left <= 10.0 && right <= 10.0);
     assert!(overlap <= 0.75 * 0.5 * (left + right));
     let all = rmse(&dems[0], &truth);
-    let seam = dems[0]
-        .iter()
-        .zip(&dems[1])
-        .map(|(a, b)| (a - b).abs())
-        .fold(0.0, f64::max);
+    let seam = largest_difference(&dems[0], &dems[1]);
     eprintln!("run: tiled vs single tile: largest difference {seam:.3} m (RMSE {all:.2} m)");
     assert!(seam <= 0.1 * all, "tiled vs single tile: {seam:.3} m");
     std::fs::remove_dir_all(&dir).unwrap();
@@ -1142,16 +1132,7 @@ fn two_overlapping_strips_are_fused_with_a_run_wide_gain() {
 /// "Several observations"). Bar: 0.05× the RMSE at every pixel.
 #[test]
 fn several_observations_tile_without_seams() {
-    let spec = sfsfuse::synth::SceneSpec {
-        size: 512,
-        seed: 1,
-        ..Default::default()
-    }
-    .with_observations(&sfsfuse::synth::DEMO_SUNS[..2], &[1.0, 1.05], true);
-    let scene = sfsfuse::synth::generate(&spec);
-    let grid = sfsfuse::demo::demo_grid(&spec).unwrap();
-    let dir = scratch("strips-512");
-    let p = sfsfuse::synth::products::write(&scene, &grid, &dir.join("products")).unwrap();
+    let (dir, p) = strip_products(512, 1, "strips-512");
     let mut dems = Vec::new();
     for tile in [512, 256] {
         let out = dir.join(format!("out-{tile}"));
@@ -1165,11 +1146,7 @@ fn several_observations_tile_without_seams() {
     }
     let truth = read_tiff(&p.truth_dem).unwrap().data;
     let all = rmse(&dems[0], &truth);
-    let seam = dems[0]
-        .iter()
-        .zip(&dems[1])
-        .map(|(a, b)| (a - b).abs())
-        .fold(0.0, f64::max);
+    let seam = largest_difference(&dems[0], &dems[1]);
     eprintln!("strips: RMSE {all:.2} m, tiled vs single tile: largest difference {seam:.3} m");
     assert!(seam <= 0.05 * all, "tiled vs single tile: {seam:.3} m");
     std::fs::remove_dir_all(&dir).unwrap();

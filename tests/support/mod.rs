@@ -39,6 +39,23 @@ pub fn scene_products(size: usize, seed: u64) -> &'static products::Products {
     })
 }
 
+/// The two overlapping strips of `workflows/synthetic_strips.toml` (the demo's first two Suns,
+/// the second observation 5 % brighter) over the `size`² scene of `seed`, written as products
+/// under a fresh scratch directory `name`, which is returned with them.
+pub fn strip_products(size: usize, seed: u64, name: &str) -> (PathBuf, products::Products) {
+    let spec = SceneSpec {
+        size,
+        seed,
+        ..SceneSpec::default()
+    }
+    .with_observations(&sfsfuse::synth::DEMO_SUNS[..2], &[1.0, 1.05], true);
+    let scene = generate(&spec);
+    let grid = sfsfuse::demo::demo_grid(&spec).unwrap();
+    let dir = scratch(name);
+    let p = products::write(&scene, &grid, &dir.join("products")).unwrap();
+    (dir, p)
+}
+
 /// A workflow over the scene's own grid (the region in map metres).
 pub fn workflow(p: &products::Products, out: &Path, tile: usize, extra: &str) -> String {
     let half = p.grid.rows as f64 * p.grid.spacing / 2.0;
@@ -151,4 +168,12 @@ pub fn blackbody_table(path: &Path, mode: pds::m3::Mode) {
         .map(|&w| format!("{w:.2} {:.4}\n", products::blackbody_irradiance(w)))
         .collect();
     std::fs::write(path, rows).unwrap();
+}
+
+/// max |a − b| over the pixels.
+pub fn largest_difference(a: &ndarray::Array2<f64>, b: &ndarray::Array2<f64>) -> f64 {
+    a.iter()
+        .zip(b)
+        .map(|(x, y)| (x - y).abs())
+        .fold(0.0, f64::max)
 }
