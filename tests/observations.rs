@@ -22,7 +22,7 @@ fn fused(spec: &SceneSpec) -> (Scene, Fusion) {
 
 /// Two Suns 120° apart in azimuth, then three; the second observation 5 % brighter and the
 /// third 3 % darker than the first (calibration differences). The bars: elevation RMSE ≤ 0.65×
-/// the better single image with two, ≤ 0.55× with three (this scene: 0.563× and 0.460×,
+/// the better single image with two, ≤ 0.55× with three (this scene: 0.579× and 0.486×,
 /// docs/science.md), albedo RMSE ≤ 0.008, gains recovered.
 #[test]
 fn two_and_three_illuminations_beat_the_better_single_image() {
@@ -76,7 +76,7 @@ fn two_and_three_illuminations_beat_the_better_single_image() {
 /// exactly 90° apart in azimuth, both 55° high. Under a high Sun the shading changes little
 /// with slope, and a membrane weighted as under a low one held the surface to the DEM's
 /// gradients: 0.805× and 0.766× the better single image before the membrane followed the
-/// images' stiffness and walls (this scene now: 0.546× and 0.607×, docs/science.md).
+/// images' stiffness and walls (this scene now: 0.572× and 0.606×, docs/science.md).
 #[test]
 fn two_high_suns_beat_the_better_single_image() {
     let spec = base();
