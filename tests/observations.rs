@@ -72,7 +72,8 @@ fn two_and_three_illuminations_beat_the_better_single_image() {
     assert!(h3 < h2, "a third Sun must help: {h3:.2} m vs {h2:.2} m");
 }
 
-/// High Suns: the example pair (azimuth/elevation 110°/55° and 250°/60°) and two Suns
+/// High Suns: the example pair of `sfsfuse synth --help` (azimuth/elevation 110°/55° and
+/// 250°/60°) and two Suns
 /// exactly 90° apart in azimuth, both 55° high. Under a high Sun the shading changes little
 /// with slope, and a membrane weighted as under a low one held the surface to the DEM's
 /// gradients: 0.805× and 0.766× the better single image before the membrane followed the
