@@ -73,11 +73,11 @@ fn two_and_three_illuminations_beat_the_better_single_image() {
 }
 
 /// High Suns: the example pair of `sfsfuse synth --help` (azimuth/elevation 110°/55° and
-/// 250°/60°) and two Suns
-/// exactly 90° apart in azimuth, both 55° high. Under a high Sun the shading changes little
-/// with slope, and a membrane weighted as under a low one held the surface to the DEM's
-/// gradients: 0.805× and 0.766× the better single image before the membrane followed the
-/// images' stiffness and walls (this scene now: 0.572× and 0.606×, docs/science.md).
+/// 250°/60°) and two Suns exactly 90° apart in azimuth, both 55° high. Under a high Sun the
+/// shading changes little with slope, and a membrane weighted as under a low one held the
+/// surface to the DEM's gradients: 0.805× and 0.766× the better single image before the
+/// membrane followed the images' stiffness and walls (this scene now: 0.572× and 0.606×,
+/// docs/science.md).
 #[test]
 fn two_high_suns_beat_the_better_single_image() {
     let spec = base();
