@@ -804,24 +804,38 @@ pub(crate) fn relief_gradient_into<T: Real>(
     let (ny, nx) = u.dim();
     let half = to::<T>(0.5);
     let two = to::<T>(2.0);
-    let fx = |i: usize, j: usize| {
-        if j + 1 < nx {
-            half * (r[(i, j)] + r[(i, j + 1)]) * (u[(i, j + 1)] - u[(i, j)])
-        } else {
-            T::zero()
+    // Row slices (a copy only if an input is not in standard layout): each row's fluxes are
+    // formed once, the eastern one carried over as the next pixel's western one.
+    let (r, u) = (r.as_standard_layout(), u.as_standard_layout());
+    let (rs, us) = (
+        r.as_slice().expect("standard layout"),
+        u.as_slice().expect("standard layout"),
+    );
+    fn row<T>(a: &[T], nx: usize, i: usize) -> &[T] {
+        &a[i * nx..(i + 1) * nx]
+    }
+    Zip::indexed(out.rows_mut()).par_for_each(|i, mut g| {
+        let (r0, u0) = (row(rs, nx, i), row(us, nx, i));
+        let above = (i > 0).then(|| (row(rs, nx, i - 1), row(us, nx, i - 1)));
+        let below = (i + 1 < ny).then(|| (row(rs, nx, i + 1), row(us, nx, i + 1)));
+        let mut west = T::zero();
+        for (j, g) in g.iter_mut().enumerate() {
+            let east = if j + 1 < nx {
+                half * (r0[j] + r0[j + 1]) * (u0[j + 1] - u0[j])
+            } else {
+                T::zero()
+            };
+            let north = match above {
+                Some((ra, ua)) => half * (ra[j] + r0[j]) * (u0[j] - ua[j]),
+                None => T::zero(),
+            };
+            let south = match below {
+                Some((rb, ub)) => half * (r0[j] + rb[j]) * (ub[j] - u0[j]),
+                None => T::zero(),
+            };
+            *g = two * (west - east + north - south) / e2 + two * height * r0[j] * u0[j];
+            west = east;
         }
-    };
-    let fy = |i: usize, j: usize| {
-        if i + 1 < ny {
-            half * (r[(i, j)] + r[(i + 1, j)]) * (u[(i + 1, j)] - u[(i, j)])
-        } else {
-            T::zero()
-        }
-    };
-    Zip::indexed(out).par_for_each(|(i, j), g| {
-        let west = if j > 0 { fx(i, j - 1) } else { T::zero() };
-        let north = if i > 0 { fy(i - 1, j) } else { T::zero() };
-        *g = two * (west - fx(i, j) + north - fy(i, j)) / e2 + two * height * r[(i, j)] * u[(i, j)];
     });
 }
 

@@ -22,7 +22,7 @@
 
 use super::support;
 use super::Problem;
-use crate::photometry::{incidence, Albedo, AlbedoCurve, Cosines, ReflectanceModel};
+use crate::photometry::{incidence, Albedo, AlbedoCurve, ReflectanceModel};
 use ndarray::{Array2, ArrayView2, Axis, Zip};
 use rayon::prelude::*;
 use serde::{Deserialize, Serialize};
@@ -399,8 +399,8 @@ pub fn invert_albedo(
         .zip(strength.axis_iter_mut(Axis(0)))
         .enumerate()
         .for_each(|(i, ((mut rrow, mut orow), mut srow))| {
-            let mut data: Vec<(f64, f64, Cosines)> = Vec::new();
-            let mut curves: Vec<(f64, f64, AlbedoCurve)> = Vec::new();
+            // (w_k, I_k/g_k, R_k as a function of the albedo) of the observations usable here.
+            let mut data: Vec<(f64, f64, AlbedoCurve)> = Vec::new();
             // The row's slopes (no slope arrays of the grid's size).
             let (mut p, mut q) = (vec![0.0; dim.1], vec![0.0; dim.1]);
             super::ops::gradient_row(z.view(), pr.spacing, i, &mut p, &mut q);
@@ -414,15 +414,18 @@ pub fn invert_albedo(
                         continue;
                     }
                     let ik = o.image[(i, j)] / w.gains[k];
-                    // ReflectanceModel::invert, keeping the cosines for the joint step.
                     let Some(g) = incidence(pp, qq, &o.sun.at(i, j), &o.view.at(i, j)) else {
                         continue;
                     };
-                    if let Albedo::Value(r) = model.invert_cosines(ik, &g.cos) {
+                    // R_k(ρ) at this pixel's slope: the albedo-free factors once per
+                    // observation, for its own inversion (ReflectanceModel::invert_cosines,
+                    // bit for bit) and for every joint Gauss–Newton step.
+                    let curve = model.albedo_curve(&g.cos);
+                    if let Albedo::Value(r) = curve.invert(ik) {
                         sw += wk;
                         swr += wk * r;
                         s2 += wk * ik * ik;
-                        data.push((wk, ik, g.cos));
+                        data.push((wk, ik, curve));
                     }
                 }
                 if data.is_empty() {
@@ -430,16 +433,9 @@ pub fn invert_albedo(
                 }
                 let mut r = swr / sw;
                 if data.len() > 1 {
-                    // R_k(ρ) at this pixel's slope: the albedo-free factors once per
-                    // observation, then every Gauss–Newton step is a few arithmetic operations.
-                    curves.clear();
-                    curves.extend(
-                        data.iter()
-                            .map(|(wk, ik, c)| (*wk, *ik, model.albedo_curve(c))),
-                    );
                     for _ in 0..4 {
                         let (mut num, mut den) = (0.0, 0.0);
-                        for (wk, ik, curve) in &curves {
+                        for (wk, ik, curve) in &data {
                             let (f0, jac) = curve.eval(r);
                             num += wk * jac * (ik - f0);
                             den += wk * jac * jac;

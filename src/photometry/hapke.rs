@@ -341,48 +341,16 @@ impl WCurve {
             }
         }
     }
-}
-
-impl Hapke {
-    /// r(w) at cosines `c` ([`WCurve`]).
-    pub fn w_curve(&self, c: &Cosines) -> WCurve {
-        let (mu0e, mue, s, m) =
-            self.w_free(Dual::<0>::constant(c.mu0), Dual::constant(c.mu), c.cos_g);
-        let (a, b, s) = (mu0e.v, mue.v, s.v);
-        WCurve {
-            h_function: self.h_function,
-            a,
-            b,
-            s,
-            m,
-            k: a / (a + b) * s / (4.0 * PI),
-            n: (1.0 + 2.0 * a) * (1.0 + 2.0 * b),
-        }
-    }
-}
-
-impl ReflectanceModel for Hapke {
-    fn reflectance(&self, albedo: f64, c: &Cosines) -> ReflectanceCos {
-        let (mu0e, mue, s, m) = self.w_free(Dual::<2>::var(c.mu0, 0), Dual::var(c.mu, 1), c.cos_g);
-        let r = r_from_parts(self.h_function, Dual::constant(albedo), mu0e, mue, s, m);
-        ReflectanceCos {
-            r: r.v,
-            dr_dmu0: r.d[0],
-            dr_dmu: r.d[1],
-        }
-    }
 
     /// Newton on w with a bisection fallback; r(w) is strictly increasing (docs/photometry.md).
-    /// The w-free factors are computed once, in plain f64 ([`WCurve`]: with H81 a step is then
-    /// one square root and four divisions). r(w_max) is evaluated only
+    /// With H81 a step is one square root and four divisions. r(w_max) is evaluated only
     /// when the iteration reaches w_max (the observation may be out of range), and the
     /// iteration stops at 10⁻¹² relative, far below any use of the albedo.
-    fn invert_cosines(&self, observed: f64, c: &Cosines) -> Albedo {
+    pub fn invert(&self, observed: f64) -> Albedo {
         if observed <= 0.0 {
             return Albedo::Value(0.0);
         }
-        let curve = self.w_curve(c);
-        let r = |w: f64| curve.eval(w);
+        let r = |w: f64| self.eval(w);
         let (mut lo, mut hi) = (0.0, W_MAX);
         let mut in_range = false;
         // Start from the secant through the origin and w = 0.5 (r(w)/w varies slowly in w).
@@ -423,6 +391,42 @@ impl ReflectanceModel for Hapke {
             return Albedo::OutOfRange;
         }
         Albedo::Value(w)
+    }
+}
+
+impl Hapke {
+    /// r(w) at cosines `c` ([`WCurve`]).
+    pub fn w_curve(&self, c: &Cosines) -> WCurve {
+        let (mu0e, mue, s, m) =
+            self.w_free(Dual::<0>::constant(c.mu0), Dual::constant(c.mu), c.cos_g);
+        let (a, b, s) = (mu0e.v, mue.v, s.v);
+        WCurve {
+            h_function: self.h_function,
+            a,
+            b,
+            s,
+            m,
+            k: a / (a + b) * s / (4.0 * PI),
+            n: (1.0 + 2.0 * a) * (1.0 + 2.0 * b),
+        }
+    }
+}
+
+impl ReflectanceModel for Hapke {
+    fn reflectance(&self, albedo: f64, c: &Cosines) -> ReflectanceCos {
+        let (mu0e, mue, s, m) = self.w_free(Dual::<2>::var(c.mu0, 0), Dual::var(c.mu, 1), c.cos_g);
+        let r = r_from_parts(self.h_function, Dual::constant(albedo), mu0e, mue, s, m);
+        ReflectanceCos {
+            r: r.v,
+            dr_dmu0: r.d[0],
+            dr_dmu: r.d[1],
+        }
+    }
+
+    /// Newton on w with a bisection fallback on the curve of these cosines
+    /// ([`WCurve::invert`]: the w-free factors computed once, in plain f64).
+    fn invert_cosines(&self, observed: f64, c: &Cosines) -> Albedo {
+        self.w_curve(c).invert(observed)
     }
 
     fn albedo_curve(&self, c: &Cosines) -> AlbedoCurve {

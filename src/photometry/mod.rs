@@ -102,6 +102,15 @@ impl AlbedoCurve {
             AlbedoCurve::Hapke(c) => c.eval(rho),
         }
     }
+
+    /// Solve R(ρ) = `observed` for ρ on this curve: the model's
+    /// [`ReflectanceModel::invert_cosines`] at the curve's cosines, bit for bit.
+    pub fn invert(&self, observed: f64) -> Albedo {
+        match self {
+            AlbedoCurve::Linear(u) => invert_linear(observed, *u),
+            AlbedoCurve::Hapke(c) => c.invert(observed),
+        }
+    }
 }
 
 /// Geometry of one pixel for a surface of gradient (p, q): the cosines and their p, q partials.
