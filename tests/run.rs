@@ -57,7 +57,7 @@ fn synthetic_products_through_run_meet_the_accuracy_bar() {
     assert_eq!(rec["workflow"]["solver"]["delta"], 50.0);
     // The plan's coarse reference stands for the first albedo stage: the halo covers the
     // second (4 × 10 px) and E_DEM's track weighting, 9 px along the columns through the DEM
-    // term's blur of about 4 px (σ_DEM ⊕ the point spread): 4·√(9² + 4.2²) = 39.7 px.
+    // term's blur of 3.6 px (σ_DEM 2 ⊕ the point spread 3): 4·√(9² + 3.6²) = 38.8 px.
     assert_eq!(rec["halo"], 40);
     assert_eq!(rec["reference"]["factor"], 4);
     assert_eq!(rec["reference"]["rows"], 64);
@@ -78,6 +78,49 @@ fn synthetic_products_through_run_meet_the_accuracy_bar() {
             .unwrap()
             .len()
             > 1
+    );
+    std::fs::remove_dir_all(&dir).unwrap();
+}
+
+/// The same bar with nothing said about the DEM's point spread: the plan takes it from the
+/// LOLA-like product's effective resolution, here the LOLA track gap at the region's latitude
+/// (600 m × cos 13.4°, coarser than the product's 474 m MAP_SCALE). The product's true blur is
+/// ≈ 3.0 px (tests/support's workflow); with the track gap taken as 1000 m the plan set 4.9 px
+/// and E_DEM's deconvolution gave 47 m on the 512² products, worse than their input.
+#[test]
+fn synthetic_products_at_the_default_point_spread_meet_the_accuracy_bar() {
+    let p = scene_products(256, 10);
+    let dir = scratch("default-psf");
+    let out = dir.join("out");
+    let text = workflow(p, &out, 512, "");
+    let text = text.replace("dem_psf_sigma_px = 3.0\n", "");
+    assert!(!text.contains("dem_psf_sigma_px"));
+    let wf = write_workflow(&dir, &text);
+    run_ok(&["run", "--progress", "lines"], &wf);
+    let rec: serde_json::Value =
+        serde_json::from_slice(&std::fs::read(out.join("run.json")).unwrap()).unwrap();
+    // σ_B = f/√2 with f = r_eff/ε (docs/science.md, "The DEM's resolution").
+    let r_eff = 600.0 * 13.4f64.to_radians().cos();
+    let want = r_eff / 140.0 / std::f64::consts::SQRT_2;
+    let got = rec["dem_psf_sigma"].as_f64().unwrap();
+    assert!((got - want).abs() < 1e-6, "σ_B {got} px, want {want} px");
+    assert!(
+        rec["dem_resolution_source"]
+            .as_str()
+            .unwrap()
+            .contains("track gap"),
+        "{}",
+        rec["dem_resolution_source"]
+    );
+    let truth = read_tiff(&p.truth_dem).unwrap().data;
+    let dem = read_tiff(&out.join("dem.tif")).unwrap().data;
+    let input = read_tiff(&out.join("input_dem.tif")).unwrap().data;
+    let (e_in, e_out) = (rmse(&input, &truth), rmse(&dem, &truth));
+    eprintln!("σ_B {got:.3} px: input {e_in:.2} m → fused {e_out:.2} m");
+    assert!(e_out <= 10.0, "fused elevation RMSE {e_out:.2} m > 10 m");
+    assert!(
+        2.0 * e_out <= e_in,
+        "{e_out:.2} m is not 2× below the input's {e_in:.2} m"
     );
     std::fs::remove_dir_all(&dir).unwrap();
 }
@@ -705,7 +748,7 @@ fn a_region_wider_than_the_swath_keeps_the_input_dem_off_the_image() {
     let dem = read_tiff(&out.join("dem.tif")).unwrap().data;
     let input = read_tiff(&out.join("input_dem.tif")).unwrap().data;
     let truth = read_tiff(&p.truth_dem).unwrap().data;
-    // σ_DEM = 2.43 px (the rule at the products' 973 m): the band is 7.3 px, plus a pixel of
+    // σ_DEM = 2 px (the rule at the products' 584 m): the band is 6 px, plus a pixel of
     // bilinear no-data at the swath edge.
     let far = |j: usize| j + 10 < c0 || j >= c1 + 10;
     let (mut ss, mut k) = (0.0, 0);

@@ -187,10 +187,13 @@ impl Dem {
     }
 }
 
-/// Typical gap between LOLA ground tracks at the equator, metres: after years of polar orbits
-/// the tracks still leave kilometre-scale gaps at low latitudes that gridded products fill by
-/// interpolation (docs/science.md, "The DEM's effective resolution").
-pub const LOLA_TRACK_GAP_M: f64 = 1000.0;
+/// Gap between LOLA ground tracks at the equator that a gridded product interpolates across,
+/// metres. After 20 000+ polar orbits the equator has been crossed ≈ 40 000 times (a mean
+/// spacing near 300 m), unevenly: gaps of a kilometre and, in places, several kilometres
+/// remain. 600 m stands for the gaps a gridded product typically bridges; it errs low of the
+/// kilometre gaps because an overestimated point spread costs far more than an underestimated
+/// one (E_DEM then deconvolves: docs/science.md, "The DEM's resolution").
+pub const LOLA_TRACK_GAP_M: f64 = 600.0;
 
 /// Every observation whose swath reaches `grid`, on it (`index` of [`Plan::swaths`]), in input
 /// order with its index: reflectance NaN where the geometry is not finite; observations
