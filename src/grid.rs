@@ -12,6 +12,7 @@
 
 use ndarray::{Array2, ArrayView2, Zip};
 use proj4rs::proj::Proj;
+use rayon::prelude::*;
 use serde::{Deserialize, Serialize};
 
 /// The IAU 2015 Moon sphere radius (IAU_2015:30100), metres.
@@ -661,6 +662,76 @@ pub fn swath_samples(
     (lo <= hi).then(|| (lo.saturating_sub(2), (hi + 3).min(ns)))
 }
 
+/// Every [`SAMPLE_STRIDE`]-th sample of each line (and the last): enough to bound the samples
+/// that can reach a window ([`swath_sample_superset`]) at a fraction of the projections.
+pub const SAMPLE_STRIDE: usize = 8;
+
+/// A range `[c0, c1)` of samples that contains [`swath_samples`]' range for `grid`, found by
+/// projecting only every [`SAMPLE_STRIDE`]-th sample of each line (longitudes `lon`, latitudes
+/// `lat`, degrees): the samples within 3·L_c + 4 grid pixels of the grid, L_c the longest edge
+/// between neighbouring projected samples, widened by a stride and the two samples
+/// [`swath_samples`] adds on each side. A sample within L + 1 of the grid (L the fine mesh's
+/// longest edge, ≤ L_c) lies within L_c of a projected neighbour, which is then within the
+/// margin. `None` where no projected sample is near: the caller projects the whole lines.
+pub fn swath_sample_superset(
+    grid: &Grid,
+    pr: &Projector,
+    lon: ArrayView2<f64>,
+    lat: ArrayView2<f64>,
+) -> Option<(usize, usize)> {
+    let (nl, ns) = lon.dim();
+    if ns == 0 || nl == 0 {
+        return None;
+    }
+    let mut picks: Vec<usize> = (0..ns).step_by(SAMPLE_STRIDE).collect();
+    if picks.last() != Some(&(ns - 1)) {
+        picks.push(ns - 1);
+    }
+    let at = |i: usize, j: usize| {
+        pr.forward(lon[(i, j)], lat[(i, j)])
+            .map(|(x, y)| grid.pixel(x, y))
+            .filter(|(r, c)| r.is_finite() && c.is_finite())
+    };
+    let pos: Vec<Vec<Option<(f64, f64)>>> = (0..nl)
+        .into_par_iter()
+        .map(|i| picks.iter().map(|&j| at(i, j)).collect())
+        .collect();
+    let dist = |a: Option<(f64, f64)>, b: Option<(f64, f64)>| match (a, b) {
+        (Some(a), Some(b)) => (a.0 - b.0).hypot(a.1 - b.1),
+        _ => 0.0,
+    };
+    let mut edge = 0.0f64;
+    for i in 0..nl {
+        for k in 0..picks.len() {
+            if k + 1 < picks.len() {
+                edge = edge.max(dist(pos[i][k], pos[i][k + 1]));
+            }
+            if i + 1 < nl {
+                edge = edge.max(dist(pos[i][k], pos[i + 1][k]));
+            }
+        }
+    }
+    let m = 3.0 * edge + 4.0;
+    let (rows, cols) = (grid.rows as f64, grid.cols as f64);
+    let (mut lo, mut hi) = (usize::MAX, 0);
+    for row in &pos {
+        for (&j, p) in picks.iter().zip(row) {
+            if let Some((r, c)) = *p {
+                if r >= -m && r <= rows - 1.0 + m && c >= -m && c <= cols - 1.0 + m {
+                    lo = lo.min(j);
+                    hi = hi.max(j);
+                }
+            }
+        }
+    }
+    (lo <= hi).then(|| {
+        (
+            lo.saturating_sub(SAMPLE_STRIDE + 2),
+            (hi + SAMPLE_STRIDE + 3).min(ns),
+        )
+    })
+}
+
 /// [`swath_positions`] from the grid positions of the samples `[sample_offset, …)` of each
 /// line ([`swath_grid_positions`], [`swath_samples`]); the samples it returns count from the
 /// swath's first, as the whole line's would.
@@ -911,5 +982,64 @@ mod tests {
             }
         }
         assert!(inside > 1000, "{inside}");
+    }
+
+    /// Projecting every 8th sample bounds the samples a window needs: on a curved, rotated
+    /// swath wider than the windows, the superset holds [`swath_samples`]' range of the whole
+    /// lines, and the resampling from it is the whole lines' to the bit.
+    #[test]
+    fn a_sample_superset_resamples_a_window_as_the_whole_lines_do() {
+        let crs = Crs::Stereographic {
+            lat_0: 0.0,
+            lon_0: 0.0,
+        };
+        let pr = crs.projector().unwrap();
+        let g = Grid::new(crs, 120, 120, -6000.0, 6000.0, 100.0).unwrap();
+        let (a, s) = (25f64.to_radians().cos(), 25f64.to_radians().sin());
+        // 60 lines × 203 samples of ≈ 70 m, bent along the line (a quadratic in the sample).
+        let place = |l: f64, m: f64| {
+            let u = m * 70.0 - 7000.0;
+            let v = 5800.0 - l * 190.0 + 2e-4 * u * u;
+            pr.inverse(u * a - v * s, u * s + v * a).unwrap()
+        };
+        let (nl, ns) = (60, 203);
+        let mut lon = Array2::zeros((nl, ns));
+        let mut lat = Array2::zeros((nl, ns));
+        for ((l, m), v) in lon.indexed_iter_mut() {
+            (*v, lat[(l, m)]) = place(l as f64, m as f64);
+        }
+        let mut narrower = 0;
+        for (r0, c0) in [(0, 0), (40, 70), (80, 10), (10, 90), (60, 60)] {
+            let w = g.window(r0, c0, 40, 30);
+            let (gr, gc) = swath_grid_positions(&w, &pr, lon.view(), lat.view());
+            let Some((s0, s1)) = swath_samples(&w, gr.view(), gc.view()) else {
+                continue;
+            };
+            let (u0, u1) = swath_sample_superset(&w, &pr, lon.view(), lat.view()).unwrap();
+            assert!(
+                u0 <= s0 && s1 <= u1,
+                "window ({r0}, {c0}): {s0}..{s1} not in {u0}..{u1}"
+            );
+            narrower += usize::from(u1 - u0 < ns);
+            let cols = ndarray::s![.., s0..s1];
+            let whole = swath_positions_from(&w, gr.slice(cols), gc.slice(cols), s0);
+            let sub = ndarray::s![.., u0..u1];
+            let (sr, sc) = swath_grid_positions(&w, &pr, lon.slice(sub), lat.slice(sub));
+            let (t0, t1) = swath_samples(&w, sr.view(), sc.view()).unwrap();
+            let within = ndarray::s![.., t0..t1];
+            let part = swath_positions_from(&w, sr.slice(within), sc.slice(within), u0 + t0);
+            for (x, y) in whole
+                .0
+                .iter()
+                .zip(&part.0)
+                .chain(whole.1.iter().zip(&part.1))
+            {
+                assert!(
+                    x.to_bits() == y.to_bits(),
+                    "window ({r0}, {c0}): {x} vs {y}"
+                );
+            }
+        }
+        assert!(narrower >= 3, "{narrower}");
     }
 }

@@ -432,17 +432,24 @@ pub fn m3_on_grid(
         )));
     };
     let n = end - first;
-    let (gr, gc) = {
+    // Only the samples that can reach the grid are projected (those of a superset found from
+    // every 8th sample: a tile is often narrower than the swath) and resampled; sample
+    // positions still count from the line's first sample.
+    let (gr, gc, c0) = {
         let lon = read2(&loc, 0, first, n)?;
         let lat = read2(&loc, 1, first, n)?;
-        grid::swath_grid_positions(grid, pr, lon.view(), lat.view())
+        let (c0, c1) = grid::swath_sample_superset(grid, pr, lon.view(), lat.view())
+            .unwrap_or((0, lon.ncols()));
+        let cols = s![.., c0..c1];
+        let (gr, gc) = grid::swath_grid_positions(grid, pr, lon.slice(cols), lat.slice(cols));
+        (gr, gc, c0)
     };
-    // Only the samples that can reach the grid are resampled (a tile narrower than the
-    // swath); sample positions still count from the line's first sample.
-    let (s0, s1) = grid::swath_samples(grid, gr.view(), gc.view()).unwrap_or((0, gr.ncols()));
-    let cols = s![.., s0..s1];
-    let (line, sample) = grid::swath_positions_from(grid, gr.slice(cols), gc.slice(cols), s0);
+    let (s0, s1) = grid::swath_samples(grid, gr.view(), gc.view())
+        .map_or((c0, c0 + gr.ncols()), |(a, b)| (c0 + a, c0 + b));
+    let within = s![.., s0 - c0..s1 - c0];
+    let (line, sample) = grid::swath_positions_from(grid, gr.slice(within), gc.slice(within), s0);
     drop((gr, gc));
+    let cols = s![.., s0..s1];
     let (refl, (lo, up), e, _) = reflectance_lines(obs, &obsr, solar, nm, (first, n), s0..s1)?;
     // East, north and up components, each filled in the one pass that computes the vector.
     let enu = |az: &Array2<f64>, zen: &Array2<f64>| -> [Array2<f64>; 3] {
