@@ -796,6 +796,33 @@ pub fn swath_positions_from(
 mod tests {
     use super::*;
 
+    /// A stereographic CRS centred on (0°, 0°) and its projector.
+    fn centred() -> (Crs, Projector) {
+        let crs = Crs::Stereographic {
+            lat_0: 0.0,
+            lon_0: 0.0,
+        };
+        (crs, crs.projector().unwrap())
+    }
+
+    /// The longitudes and latitudes of an `nl` × `ns` swath whose pixel (line, sample) lies at
+    /// map point `place(line, sample)`, rotated by `deg` about the origin.
+    fn swath_lon_lat(
+        pr: &Projector,
+        (nl, ns): (usize, usize),
+        deg: f64,
+        place: impl Fn(f64, f64) -> (f64, f64),
+    ) -> (Array2<f64>, Array2<f64>) {
+        let (a, s) = (deg.to_radians().cos(), deg.to_radians().sin());
+        let mut lon = Array2::zeros((nl, ns));
+        let mut lat = Array2::zeros((nl, ns));
+        for ((l, m), v) in lon.indexed_iter_mut() {
+            let (u, w) = place(l as f64, m as f64);
+            (*v, lat[(l, m)]) = pr.inverse(u * a - w * s, u * s + w * a).unwrap();
+        }
+        (lon, lat)
+    }
+
     /// A position a rounding error off a centre interpolates as the centre itself: its
     /// support does not reach a no-data neighbour.
     #[test]
@@ -935,24 +962,12 @@ mod tests {
     fn swath_mesh_fills_without_holes_and_inverts_the_mapping() {
         // A synthetic swath: 40 lines × 30 samples, rotated 20° against the grid and skewed,
         // in a stereographic grid at the centre.
-        let crs = Crs::Stereographic {
-            lat_0: 0.0,
-            lon_0: 0.0,
-        };
-        let pr = crs.projector().unwrap();
+        let (crs, pr) = centred();
         let g = Grid::new(crs, 50, 50, -2500.0, 2500.0, 100.0).unwrap();
         let (a, s) = (20f64.to_radians().cos(), 20f64.to_radians().sin());
-        let place = |l: f64, m: f64| {
-            let (u, v) = (m * 130.0 - 1900.0, 2400.0 - l * 120.0 + m * 5.0);
-            let (x, y) = (u * a - v * s, u * s + v * a);
-            pr.inverse(x, y).unwrap()
-        };
-        let mut lon = Array2::zeros((40, 30));
-        let mut lat = Array2::zeros((40, 30));
-        for ((l, m), v) in lon.indexed_iter_mut() {
-            *v = place(l as f64, m as f64).0;
-            lat[(l, m)] = place(l as f64, m as f64).1;
-        }
+        let (lon, lat) = swath_lon_lat(&pr, (40, 30), 20.0, |l, m| {
+            (m * 130.0 - 1900.0, 2400.0 - l * 120.0 + m * 5.0)
+        });
         let (line, sample) = swath_positions(&g, &pr, lon.view(), lat.view());
         // The placement is affine in map coordinates, so each grid centre has an exact
         // (line, sample), which barycentric interpolation reproduces: inside the swath's
@@ -989,25 +1004,15 @@ mod tests {
     /// lines, and the resampling from it is the whole lines' to the bit.
     #[test]
     fn a_sample_superset_resamples_a_window_as_the_whole_lines_do() {
-        let crs = Crs::Stereographic {
-            lat_0: 0.0,
-            lon_0: 0.0,
-        };
-        let pr = crs.projector().unwrap();
+        let (crs, pr) = centred();
         let g = Grid::new(crs, 120, 120, -6000.0, 6000.0, 100.0).unwrap();
-        let (a, s) = (25f64.to_radians().cos(), 25f64.to_radians().sin());
-        // 60 lines × 203 samples of ≈ 70 m, bent along the line (a quadratic in the sample).
-        let place = |l: f64, m: f64| {
+        // 60 lines × 203 samples of ≈ 70 m, bent along the line (a quadratic in the sample),
+        // rotated 25°.
+        let ns = 203;
+        let (lon, lat) = swath_lon_lat(&pr, (60, ns), 25.0, |l, m| {
             let u = m * 70.0 - 7000.0;
-            let v = 5800.0 - l * 190.0 + 2e-4 * u * u;
-            pr.inverse(u * a - v * s, u * s + v * a).unwrap()
-        };
-        let (nl, ns) = (60, 203);
-        let mut lon = Array2::zeros((nl, ns));
-        let mut lat = Array2::zeros((nl, ns));
-        for ((l, m), v) in lon.indexed_iter_mut() {
-            (*v, lat[(l, m)]) = place(l as f64, m as f64);
-        }
+            (u, 5800.0 - l * 190.0 + 2e-4 * u * u)
+        });
         let mut narrower = 0;
         for (r0, c0) in [(0, 0), (40, 70), (80, 10), (10, 90), (60, 60)] {
             let w = g.window(r0, c0, 40, 30);
