@@ -513,6 +513,15 @@ impl Workflow {
                 }
                 o.sigma_dem_given = given("sigma_dem");
                 o.dem_track_weight_given = given("dem_track_weight");
+                // A membrane the workflow sets is the one it gets: the rule for a coarse DEM
+                // (fusion::coarse_dem_membrane) stays off unless asked for by name.
+                if !given("coarse_dem_membrane")
+                    && ["eta", "edge_membrane_slope", "multi_eta_factor"]
+                        .iter()
+                        .any(|k| given(k))
+                {
+                    o.solver.coarse_dem_membrane = false;
+                }
                 validate_solver(&o.solver).map_err(fail)?;
                 validate_layers(&o.output.layers).map_err(fail)?;
             }
@@ -709,6 +718,27 @@ directory = "out"
         assert!(g.sigma_dem_given);
         assert_eq!(o.photometry, ModelSpec::Hapke(Hapke::moon()));
         assert_eq!(o.solver, FusionParams::default());
+    }
+
+    /// The membrane rule for a coarse DEM is on by default, off when the workflow sets the
+    /// membrane itself, and on again when it names the rule.
+    #[test]
+    fn a_membrane_the_workflow_sets_turns_the_coarse_dem_rule_off() {
+        let rule = |solver: &str| {
+            let text = MINIMAL.replace("[output]", &format!("[solver]\n{solver}\n[output]"));
+            let Workflow::Orbital(o) =
+                Workflow::parse(&text, Path::new("w.toml"), Path::new(".")).unwrap()
+            else {
+                panic!()
+            };
+            o.solver.coarse_dem_membrane
+        };
+        assert!(rule("delta = 40.0"));
+        assert!(!rule("eta = 0.2"));
+        assert!(!rule("edge_membrane_slope = 0.05"));
+        assert!(!rule("multi_eta_factor = 3.0"));
+        assert!(rule("eta = 0.2\ncoarse_dem_membrane = true"));
+        assert!(!rule("coarse_dem_membrane = false"));
     }
 
     #[test]

@@ -170,6 +170,7 @@ pub fn coarse_params(params: &FusionParams, f: usize) -> FusionParams {
         multi_final_albedo_sigma: div(params.multi_final_albedo_sigma),
         edge_ramp_px: div(params.edge_ramp_px),
         coarse_factor: 1,
+        coarse_dem_membrane: false,
         ..params.clone()
     }
 }
@@ -184,7 +185,10 @@ pub fn reference(
     f: usize,
 ) -> Result<(Array2<f64>, StageReport), FusionError> {
     let t0 = std::time::Instant::now();
-    let fused = super::fuse(coarse, &coarse_params(params, f))?;
+    // The rule for a coarse DEM from the fine grid's point spread (the coarse problem's is
+    // σ_B/f), as the tiles apply it.
+    let params = super::coarse_dem_membrane(params, coarse.dem_psf_sigma * f as f64);
+    let fused = super::fuse(coarse, &coarse_params(&params, f))?;
     let correction = &fused.height - &coarse.dem;
     Ok((
         correction,

@@ -227,6 +227,8 @@ pub(super) struct RunRecord<'a> {
     /// E_DEM's track weighting the tiles used and why (orbital runs).
     pub(super) dem_track_weight: Option<f64>,
     pub(super) dem_track_source: Option<String>,
+    /// The membrane where one observation carries a pixel (orbital runs; `Plan::membrane`).
+    pub(super) membrane: Option<String>,
     /// The plan's coarse reference (orbital runs with one).
     pub(super) reference: Option<ReferenceInfo>,
     pub(super) threads: usize,
@@ -530,6 +532,7 @@ pub(super) fn mosaic(
         sigma_dem: Some(plan.sigma_dem),
         dem_track_weight: Some(plan.dem_track_weight),
         dem_track_source: Some(plan.dem_track_source.clone()),
+        membrane: Some(plan.membrane.clone()),
         reference: plan.reference.clone(),
         threads: rayon::current_num_threads(),
         tiles: records,

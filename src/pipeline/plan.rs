@@ -33,6 +33,10 @@ pub struct Plan {
     pub dem_track_weight: f64,
     #[serde(default)]
     pub dem_track_source: String,
+    /// The membrane where one observation carries a pixel, as the tiles apply it
+    /// ([`fusion::coarse_dem_membrane`] from σ_B, or the workflow's own).
+    #[serde(default)]
+    pub membrane: String,
     /// One per M3 observation, in input order.
     pub swaths: Vec<SwathIndex>,
     /// Radiometric gain g_k of each observation, relative to the first of its overlapping
@@ -90,6 +94,28 @@ pub(super) fn north_turn_deg(grid: &Grid, pr: &crate::grid::Projector) -> f64 {
         }
     }
     turn
+}
+
+/// What the membrane is where one observation carries a pixel, for the plan's note and the
+/// run record: the edge-aware membrane of [`fusion::coarse_dem_membrane`] when the DEM's point
+/// spread `dem_psf_sigma` calls for it, else the workflow's η and k.
+fn membrane_note(params: &FusionParams, dem_psf_sigma: f64) -> String {
+    let eff = fusion::coarse_dem_membrane(params, dem_psf_sigma);
+    if eff.eta != params.eta {
+        format!(
+            "edge-aware for a DEM {:.1}× coarser than the grid (fusion::coarse_dem_membrane): η {:.3}, k {:.4}",
+            dem_psf_sigma * std::f64::consts::SQRT_2,
+            eff.eta,
+            eff.edge_membrane_slope
+        )
+    } else if params.edge_membrane_slope > 0.0 {
+        format!(
+            "edge-aware as the workflow sets it: η {}, k {}",
+            params.eta, params.edge_membrane_slope
+        )
+    } else {
+        format!("plain, η {}", params.eta)
+    }
 }
 
 /// E_DEM's track weighting for a run ([`FusionParams::dem_track_weight`]) and why: the
@@ -436,6 +462,7 @@ pub(super) fn plan(
         dem_track_weight,
         ..o.solver.clone()
     };
+    let membrane = membrane_note(&params, dem_psf_sigma);
     let reference_factor = super::reference::factor(&grid, &params);
     let halo = o.tiling.halo.unwrap_or_else(|| {
         crate::workflow::auto_halo(&params, dem_psf_sigma, reference_factor.is_some())
@@ -501,6 +528,7 @@ pub(super) fn plan(
         sigma_dem,
         dem_track_weight,
         dem_track_source,
+        membrane,
         swaths,
         reference: built.as_ref().map(|b| b.info.clone()),
     };
@@ -533,6 +561,7 @@ pub(super) fn plan(
         "plan: E_DEM track weight {} ({})",
         p.dem_track_weight, p.dem_track_source
     ));
+    progress.note(&format!("plan: membrane {}", p.membrane));
     if let Some(r) = &p.reference {
         progress.note(&format!(
             "plan: coarse reference on {} × {} px of {} × {} grid pixels ({} Gauss–Newton steps, {:.1} s)",
