@@ -96,11 +96,26 @@ pub(super) fn north_turn_deg(grid: &Grid, pr: &crate::grid::Projector) -> f64 {
     turn
 }
 
-/// What the membrane is where one observation carries a pixel, for the plan's note and the
-/// run record: the edge-aware membrane of [`fusion::coarse_dem_membrane`] when the DEM's point
-/// spread `dem_psf_sigma` calls for it, else the workflow's η and k.
-fn membrane_note(params: &FusionParams, dem_psf_sigma: f64) -> String {
+/// What the membrane is, for the plan's note and the run record: where one observation
+/// carries a pixel, the edge-aware membrane of [`fusion::coarse_dem_membrane`] when the DEM's
+/// point spread `dem_psf_sigma` calls for it, else the workflow's η and k; with several
+/// observations, also their own (docs/science.md, "Several observations").
+fn membrane_note(params: &FusionParams, dem_psf_sigma: f64, observations: usize) -> String {
     let eff = fusion::coarse_dem_membrane(params, dem_psf_sigma);
+    let single = membrane_single(params, &eff, dem_psf_sigma);
+    if observations < 2 {
+        return single;
+    }
+    format!(
+        "{single}; where several observations carry a pixel: η·{:.3} × min(1, √(S/{})), edge-aware with k_m {}",
+        eff.eta * eff.multi_eta_factor,
+        eff.multi_eta_stiffness,
+        eff.multi_edge_membrane_slope
+    )
+}
+
+/// [`membrane_note`]'s part for the pixels one observation carries.
+fn membrane_single(params: &FusionParams, eff: &FusionParams, dem_psf_sigma: f64) -> String {
     if eff.eta != params.eta {
         format!(
             "edge-aware for a DEM {:.1}× coarser than the grid (fusion::coarse_dem_membrane): η {:.3}, k {:.4}",
@@ -462,7 +477,7 @@ pub(super) fn plan(
         dem_track_weight,
         ..o.solver.clone()
     };
-    let membrane = membrane_note(&params, dem_psf_sigma);
+    let membrane = membrane_note(&params, dem_psf_sigma, inputs.obs.len());
     let reference_factor = super::reference::factor(&grid, &params);
     let halo = o.tiling.halo.unwrap_or_else(|| {
         crate::workflow::auto_halo(&params, dem_psf_sigma, reference_factor.is_some())
