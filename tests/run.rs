@@ -55,6 +55,9 @@ fn synthetic_products_through_run_meet_the_accuracy_bar() {
     let rec: serde_json::Value =
         serde_json::from_slice(&std::fs::read(out.join("run.json")).unwrap()).unwrap();
     assert_eq!(rec["workflow"]["solver"]["delta"], 50.0);
+    // A DEM ≈ 4× coarser than the grid keeps the plain membrane (fusion::coarse_dem_membrane
+    // starts at 5×).
+    assert_eq!(rec["membrane"], "plain, η 0.1");
     // The plan's coarse reference stands for the first albedo stage: the halo covers the
     // second (4 × 10 px) and E_DEM's track weighting, 9 px along the columns through the DEM
     // term's blur of 3.6 px (σ_DEM 2 ⊕ the point spread 3): 4·√(9² + 3.6²) = 38.8 px.
@@ -941,6 +944,12 @@ directory = "{out}"
         .as_str()
         .unwrap()
         .contains("ground sample distance of"));
+    // LDEM_4 is ≈ 50× coarser than that grid: the membrane is the coarse DEM's, in full.
+    let membrane = rec["membrane"].as_str().unwrap();
+    assert!(
+        membrane.starts_with("edge-aware for a DEM") && membrane.contains("η 0.800"),
+        "{membrane}"
+    );
     std::fs::remove_dir_all(&dir).unwrap();
 }
 
