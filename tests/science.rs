@@ -220,6 +220,14 @@ fn bad_problems_are_reported() {
     pr.observations[0].image = dark.view();
     let e = fuse(&pr, &FusionParams::default()).unwrap_err().to_string();
     assert!(e.contains("no pixel"), "{e}");
+    // A point spread that is no number is refused by its name, not through the membrane
+    // parameters the rule for a coarse DEM would derive from it.
+    for psf in [f64::NAN, -1.0, f64::INFINITY] {
+        let mut pr = scene.problem();
+        pr.dem_psf_sigma = psf;
+        let e = fuse(&pr, &FusionParams::default()).unwrap_err().to_string();
+        assert!(e.contains("dem_psf_sigma"), "{psf}: {e}");
+    }
     let params = FusionParams {
         eta: -1.0,
         ..FusionParams::default()

@@ -372,7 +372,8 @@ pub fn coarse_dem_membrane(params: &FusionParams, dem_psf_sigma: f64) -> FusionP
     let f = dem_psf_sigma * std::f64::consts::SQRT_2;
     let t = ((f - 5.0) / 2.0).clamp(0.0, 1.0);
     let t = t * t * (3.0 - 2.0 * t);
-    if t <= 0.0 {
+    // Also a point spread that is not a number (refused with its name by `validate`).
+    if t.is_nan() || t <= 0.0 {
         return p;
     }
     p.eta = params.eta + t * (COARSE_DEM_ETA - params.eta);
@@ -929,7 +930,9 @@ pub(crate) fn objective<'a, 'p>(
 /// `params.coarse_factor` = f > 1 the whole fusion first runs on the grid block-averaged by f
 /// ([`pyramid::reference`]) and the stages after the first start from its result.
 pub fn fuse(pr: &Problem, params: &FusionParams) -> Result<Fusion, FusionError> {
-    validate(pr, params)?;
+    // The parameters as given are checked before the rule for a coarse DEM rewrites them;
+    // the problem is checked with them by `objective`.
+    validate_params(params)?;
     let params = &coarse_dem_membrane(params, pr.dem_psf_sigma);
     let obj = objective(pr, params)?;
     let mut z = pr.dem.to_owned();
@@ -954,7 +957,7 @@ pub fn fuse_from(
     params: &FusionParams,
     start: Array2<f64>,
 ) -> Result<Fusion, FusionError> {
-    validate(pr, params)?;
+    validate_params(params)?;
     let params = &coarse_dem_membrane(params, pr.dem_psf_sigma);
     let obj = objective(pr, params)?;
     if start.dim() != pr.dem.dim() {
