@@ -248,6 +248,11 @@ pub struct FusionParams {
     /// Width, in pixels, of the band inside an observation's edge over which its weight ramps
     /// up where another observation carries on ([`observations::edge_weights`]).
     pub edge_ramp_px: f64,
+    /// β: an observation's weight on a pixel next to one it sees shadowed, where another
+    /// observation sees the pixel away from its own shadows ([`observations::shadow_edge_factors`];
+    /// 1: the full weight). Such a pixel is likely part in shadow, which the reflectance does
+    /// not model (docs/science.md, "Several observations"). No effect with one observation.
+    pub shadow_edge_weight: f64,
     /// Where two or more observations see a pixel under different Suns, shading and albedo
     /// separate pixel by pixel: a last albedo stage of this σ_ρ (pixels) is run there,
     /// blended into the last configured stage by the multi-coverage c(x) of
@@ -326,6 +331,7 @@ impl Default for FusionParams {
             cg_iterations: 60,
             cg_tolerance: 0.02,
             edge_ramp_px: 16.0,
+            shadow_edge_weight: 0.25,
             multi_albedo_sigma: 0.5,
             multi_final_albedo_sigma: 0.7,
             multi_delta_factor: 0.2,
@@ -615,7 +621,7 @@ pub fn validate_params(params: &FusionParams) -> Result<(), FusionError> {
             });
         }
     }
-    let checks: [(&'static str, f64, bool, &'static str); 22] = [
+    let checks: [(&'static str, f64, bool, &'static str); 23] = [
         (
             "cg_tolerance",
             params.cg_tolerance,
@@ -651,6 +657,12 @@ pub fn validate_params(params: &FusionParams) -> Result<(), FusionError> {
             params.edge_ramp_px,
             params.edge_ramp_px >= 0.0,
             "must be ≥ 0 pixels",
+        ),
+        (
+            "shadow_edge_weight",
+            params.shadow_edge_weight,
+            params.shadow_edge_weight > 0.0 && params.shadow_edge_weight <= 1.0,
+            "must be in (0, 1]",
         ),
         ("gamma", params.gamma, params.gamma > 0.0, "must be > 0"),
         ("delta", params.delta, params.delta >= 0.0, "must be ≥ 0"),
@@ -895,6 +907,7 @@ pub(crate) fn objective<'a, 'p>(
             pr.noise_weights.clone(),
             params.shadow_threshold,
             params.edge_ramp_px,
+            params.shadow_edge_weight,
         )
     };
     if pr.gains.is_none() && k > 1 {

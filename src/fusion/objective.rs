@@ -371,9 +371,9 @@ impl<'a, 'p> Objective<'a, 'p> {
 
     /// The photometric stiffness of a level surface, S(x) = Σ_k u_k(x)·|∇ ln R_k|², where
     /// c(x) > 0 (0 elsewhere): ∇ the derivative in the slopes (p, q) at p = q = 0 under the
-    /// pixel's own Sun and view and albedo ρ(x), u_k = w_k/ν_k the edge ramp and incidence
-    /// taper of [`Weights`] (ν-free, so S is a property of the geometry, not of the images'
-    /// brightness). It is the trace of E_I's Gauss–Newton curvature in (p, q), in units of
+    /// pixel's own Sun and view and albedo ρ(x), u_k = w_k/ν_k the edge ramp, incidence taper
+    /// and shadow-edge factor of [`Weights`] (ν-free, so S is a property of the geometry, not
+    /// of the images' brightness). It is the trace of E_I's Gauss–Newton curvature in (p, q), in units of
     /// relative brightness: ≈ 2.6 for two Suns 30–35° above the horizon, ≈ 0.3 for two at
     /// 55–60°. An observation that would see the level surface unlit adds nothing.
     pub fn level_stiffness(&self, rho: ArrayView2<f64>, c: &Array2<f64>) -> Array2<f64> {
@@ -950,7 +950,7 @@ mod tests {
     /// Every finite pixel usable, unit gains, no edge ramps.
     fn weights_of(pr: &Problem, scale: f64) -> Weights {
         let k = pr.observations.len();
-        crate::fusion::observations::weights(pr, vec![1.0; k], scale, None, 0.0, 0.0)
+        crate::fusion::observations::weights(pr, vec![1.0; k], scale, None, 0.0, 0.0, 1.0)
     }
 
     /// ∂E/∂z at `points` of `z` (albedo 0.4) against central differences of E.
@@ -1051,6 +1051,7 @@ mod tests {
             Some(vec![1.0, 0.7]),
             0.0,
             4.0,
+            1.0,
         )
     }
 
@@ -1169,7 +1170,7 @@ mod tests {
             sun: Directions::Uniform(crate::synth::direction(45.0, 220.0)),
             view: Directions::Uniform(crate::synth::direction(0.0, 0.0)),
         });
-        let w = crate::fusion::observations::weights(&pr, vec![1.0, 1.0], 0.2, None, 0.0, 0.0);
+        let w = crate::fusion::observations::weights(&pr, vec![1.0, 1.0], 0.2, None, 0.0, 0.0, 1.0);
         let mut obj = Objective::new(&pr, 3.0, 0.2, 1.2, 1.5, 0.2, w);
         let rho = Array2::from_elem((ny, nx), 0.5);
         let c = obj.weights.multiplicity();
@@ -1210,7 +1211,8 @@ mod tests {
         let (a, b) = two_strips(1.0);
         let model = Hapke::moon();
         let pr = two_observations(&a, &b, &dem, &model);
-        let w = crate::fusion::observations::weights(&pr, vec![1.0, 1.0], 0.03, None, 0.0, 4.0);
+        let w =
+            crate::fusion::observations::weights(&pr, vec![1.0, 1.0], 0.03, None, 0.0, 4.0, 1.0);
         let mut obj = Objective::new(&pr, 3.0, 0.5, 1.2, 1.5, 0.03, w);
         // The weights come from another surface than the one the gradient is checked at.
         let start = &dem + &z.mapv(|v| 0.5 * v);

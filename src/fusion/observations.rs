@@ -5,7 +5,7 @@
 //! E_I = Σ_k Σ_x w_k(x)·(I_k(x)/g_k − R(p, q, ρ; s_k, v_k))²/Ī², with
 //! * g_k, the gain of observation k (its detector and calibration relative to the reference:
 //!   I_k = g_k·R), estimated from where observations overlap ([`estimate_gains`]);
-//! * w_k(x) = ν_k·e_k(x)·τ_k(x) on the pixels k sees lit (0 elsewhere):
+//! * w_k(x) = ν_k·e_k(x)·τ_k(x)·s_k(x) on the pixels k sees lit (0 elsewhere):
 //!   - ν_k = (Ī/Ī_k)², Ī_k the mean of I_k/g_k over its valid pixels: each image's error
 //!     (noise, calibration, photometric model) is taken as a fixed fraction of its own
 //!     brightness, so a dim low-Sun image weighs as much per unit of relative error as a
@@ -15,7 +15,10 @@
 //!     edge wherever another one carries on, so no strip edge is a step in the data; where it
 //!     is alone e_k = 1;
 //!   - τ_k(x), 1 up to 10° before the maximum incidence and a smoothstep to 0 at it: near the
-//!     terminator shadows and roughness make the model least reliable.
+//!     terminator shadows and roughness make the model least reliable;
+//!   - β (`shadow_edge_weight`) on a pixel next to one k sees shadowed, wherever another
+//!     observation carries the pixel away from its own shadows ([`shadow_edge_factors`]); 1
+//!     elsewhere.
 //! * Selection: pixels outside [min, max] incidence drop out; with `max_per_pixel` = M > 0 only
 //!   the M observations of largest w_k·μ_k (μ the cosine of the emission angle) are kept at a
 //!   pixel.
@@ -67,9 +70,9 @@ pub struct Weights {
 }
 
 impl Weights {
-    /// c(x) = min(1, Σ_k u_k/max_k u_k − 1), u_k = w_k/ν_k (the edge ramp and incidence taper):
-    /// 0 where one observation carries the pixel (or none), 1 where a second one carries it in
-    /// full, continuous across the edge ramps.
+    /// c(x) = min(1, Σ_k u_k/max_k u_k − 1), u_k = w_k/ν_k (the edge ramp, incidence taper
+    /// and shadow-edge factor): 0 where one observation carries the pixel (or none), 1 where a
+    /// second one carries it in full, continuous across the edge ramps.
     pub fn multiplicity(&self) -> Array2<f64> {
         let dim = self.weight[0].dim();
         let mut sum = Array2::<f64>::zeros(dim);
@@ -139,8 +142,73 @@ pub fn edge_weights(footprints: &[Array2<bool>], width: f64) -> Vec<Array2<f64>>
         .collect()
 }
 
-/// The usable pixels and weights of every observation, with the given gains g_k, scale Ī and
-/// noise weights ν_k (`None`: (Ī/Ī_k)²).
+/// The pixels next to a shadow (within one pixel, the eight neighbours) that observation `o`
+/// sees valid: image-shadowed pixels are those of I/g/Ī below `threshold`, as in [`weights`].
+fn near_shadow(o: &super::Observation, gain: f64, scale: f64, threshold: f64) -> Array2<bool> {
+    let dark = o
+        .image
+        .mapv(|v| v.is_finite() && v / gain / scale < threshold);
+    let (ny, nx) = dark.dim();
+    let mut near = Array2::from_elem((ny, nx), false);
+    near.axis_iter_mut(Axis(0))
+        .into_par_iter()
+        .enumerate()
+        .for_each(|(i, mut row)| {
+            let rows = i.saturating_sub(1)..(i + 2).min(ny);
+            for (j, n) in row.iter_mut().enumerate() {
+                let cols = j.saturating_sub(1)..(j + 2).min(nx);
+                *n = rows.clone().any(|a| cols.clone().any(|b| dark[(a, b)]));
+            }
+        });
+    near
+}
+
+/// s_k(x), the shadow-edge factors, applied to the weights in place: β = `beta` where
+/// observation k carries x (w_k > 0) within one pixel of a pixel it sees shadowed, and another
+/// observation carries x with no shadow of its own that near; 1 elsewhere. A detector pixel
+/// next to a cast shadow is likely part in shadow (the shadow mask marks only the pixels
+/// mostly dark), and the solver's reflectance has no partial shadow: there the forward model
+/// is 10–15 % of the mean brightness off, against 2–3 % elsewhere (docs/science.md, "What
+/// limits several Suns"), so where another observation sees the pixel cleanly it carries the
+/// pixel. A pixel no other observation sees cleanly keeps its weights: one observation's
+/// results never change.
+pub fn shadow_edge_factors(
+    pr: &Problem,
+    gains: &[f64],
+    scale: f64,
+    threshold: f64,
+    beta: f64,
+    weight: &mut [Array2<f64>],
+) {
+    if weight.len() < 2 || beta >= 1.0 {
+        return;
+    }
+    let near: Vec<Array2<bool>> = pr
+        .observations
+        .iter()
+        .zip(gains)
+        .map(|(o, &g)| near_shadow(o, g, scale, threshold))
+        .collect();
+    // How many observations carry each pixel away from their own shadows.
+    let mut clean = Array2::<u8>::zeros(weight[0].dim());
+    for (w, n) in weight.iter().zip(&near) {
+        Zip::from(&mut clean)
+            .and(w)
+            .and(n)
+            .for_each(|c, &w, &n| *c += u8::from(w > 0.0 && !n));
+    }
+    for (w, n) in weight.iter_mut().zip(&near) {
+        Zip::from(w).and(n).and(&clean).par_for_each(|w, &n, &c| {
+            if n && c > 0 {
+                *w *= beta;
+            }
+        });
+    }
+}
+
+/// The usable pixels and weights of every observation, with the given gains g_k, scale Ī,
+/// noise weights ν_k (`None`: (Ī/Ī_k)²) and shadow-edge factor β ([`shadow_edge_factors`];
+/// 1: none).
 pub fn weights(
     pr: &Problem,
     gains: Vec<f64>,
@@ -148,6 +216,7 @@ pub fn weights(
     noise: Option<Vec<f64>>,
     shadow_threshold: f64,
     edge_ramp_px: f64,
+    shadow_edge_weight: f64,
 ) -> Weights {
     let sel = pr.selection;
     let mut usable: Vec<Array2<bool>> = pr
@@ -204,6 +273,14 @@ pub fn weights(
             })
         })
         .collect();
+    shadow_edge_factors(
+        pr,
+        &gains,
+        scale,
+        shadow_threshold,
+        shadow_edge_weight,
+        &mut weight,
+    );
     if sel.max_per_pixel > 0 && pr.observations.len() > sel.max_per_pixel {
         keep_best(pr, &mut usable, &mut weight, sel.max_per_pixel);
     }
@@ -494,6 +571,101 @@ mod tests {
         assert_eq!(e[0][(5, 30)], 1.0);
         // Off its footprint an observation has no weight.
         assert_eq!(e[0][(5, 45)], 0.0);
+    }
+
+    /// Observation 0 sees a 3 × 3 shadow at rows/columns 5..8 and another at 14..17, where
+    /// observation 1 has no data (rows 13 on); observation 1 sees a shadow at rows 5..8,
+    /// columns 9..11. With β = 0.25, 0's weight drops to β exactly on the eight-neighbour ring
+    /// of its first shadow where 1 sees the pixel cleanly, and nowhere else.
+    #[test]
+    fn a_pixel_next_to_a_shadow_weighs_less_only_where_another_observation_sees_it_cleanly() {
+        use crate::fusion::{Directions, Observation};
+        use crate::photometry::Hapke;
+        let n = 20;
+        let lit = |i: usize, j: usize| 0.03 + 0.001 * ((i + 2 * j) % 3) as f64;
+        let a = Array2::from_shape_fn((n, n), |(i, j)| {
+            let block = |lo: usize| (lo..lo + 3).contains(&i) && (lo..lo + 3).contains(&j);
+            if block(5) || block(14) {
+                1e-4
+            } else {
+                lit(i, j)
+            }
+        });
+        let b = Array2::from_shape_fn((n, n), |(i, j)| {
+            if i >= 13 {
+                f64::NAN
+            } else if (5..8).contains(&i) && (9..11).contains(&j) {
+                1e-4
+            } else {
+                lit(j, i)
+            }
+        });
+        let dem = Array2::zeros((n, n));
+        let model = Hapke::moon();
+        let mut pr = Problem::single(
+            a.view(),
+            Directions::Uniform(crate::synth::direction(40.0, 100.0)),
+            Directions::Uniform(crate::synth::direction(0.0, 0.0)),
+            dem.view(),
+            100.0,
+            0.0,
+            &model,
+        );
+        pr.observations.push(Observation {
+            image: b.view(),
+            sun: Directions::Uniform(crate::synth::direction(45.0, 250.0)),
+            view: Directions::Uniform(crate::synth::direction(0.0, 0.0)),
+        });
+        let w = |beta: f64| {
+            weights(
+                &pr,
+                vec![1.0, 1.0],
+                0.03,
+                Some(vec![1.0, 1.0]),
+                0.1,
+                0.0,
+                beta,
+            )
+        };
+        let (full, edged) = (w(1.0), w(0.25));
+        assert_eq!(full.usable, edged.usable);
+        let ring = |i: usize, j: usize, lo: usize| {
+            (lo - 1..lo + 4).contains(&i) && (lo - 1..lo + 4).contains(&j)
+        };
+        for i in 0..n {
+            for j in 0..n {
+                let (f0, e0) = (full.weight[0][(i, j)], edged.weight[0][(i, j)]);
+                let (f1, e1) = (full.weight[1][(i, j)], edged.weight[1][(i, j)]);
+                // Next to 1's shadow (rows 4..9, columns 8..12): 1 is not clean there.
+                let near_b = (4..9).contains(&i) && (8..12).contains(&j);
+                if f0 > 0.0 && ring(i, j, 5) && f1 > 0.0 && !near_b {
+                    assert_eq!(e0, 0.25, "({i}, {j})");
+                } else {
+                    // Beside the second shadow 1 sees nothing; beside both shadows neither
+                    // is clean; elsewhere nothing is near a shadow.
+                    assert_eq!(e0, f0, "({i}, {j})");
+                }
+                // Next to its own shadow, 1 weighs less where 0 sees the pixel cleanly.
+                if f1 > 0.0 && near_b && f0 > 0.0 && !ring(i, j, 5) {
+                    assert_eq!(e1, 0.25, "({i}, {j})");
+                } else {
+                    assert_eq!(e1, f1, "({i}, {j})");
+                }
+            }
+        }
+        // The cases the rule leaves alone occur: beside 0's second shadow, 1 has no data; at
+        // (4, 8) both observations are next to a shadow of their own; (4, 4) is the rule's.
+        assert_eq!(edged.weight[0][(13, 13)], 1.0);
+        assert_eq!(full.weight[1][(13, 13)], 0.0);
+        assert_eq!(edged.weight[0][(4, 8)], 1.0);
+        assert_eq!(edged.weight[1][(4, 8)], 1.0);
+        assert_eq!(edged.weight[0][(4, 4)], 0.25);
+        assert_eq!(edged.weight[1][(6, 11)], 0.25);
+        // One observation: no factor anywhere.
+        pr.observations.truncate(1);
+        let one = weights(&pr, vec![1.0], 0.03, None, 0.1, 0.0, 0.25);
+        assert!(one.weight[0].iter().all(|&w| w == 0.0 || w == 1.0));
+        assert!(one.weight[0][(4, 4)] == 1.0);
     }
 
     #[test]

@@ -241,6 +241,7 @@ pub(super) fn run_gains(
             None,
             o.solver.shadow_threshold,
             0.0,
+            1.0,
         );
         let g = fusion::observations::estimate_gains(&problem, &w.usable, dem.view());
         for ((k, _), g) in shots.iter().zip(g) {
