@@ -334,13 +334,14 @@ fn bench_caps_the_paper_reference_by_time() {
         .unwrap();
     let r = json_of(&o);
     let paper = &r["paper"];
-    // Checked every 50 sweeps: the cap overshoots by less than one chunk.
-    let per_sweep = paper["seconds"].as_f64().unwrap() / paper["iterations"].as_f64().unwrap();
-    assert!(
-        paper["seconds"].as_f64().unwrap() < 0.5 + 50.0 * per_sweep + 0.1,
-        "{r}"
-    );
-    assert!(paper["iterations"].as_u64().unwrap() < 20000, "{r}");
+    // Checked every 50 sweeps: the last chunk started under the cap and the reference stopped
+    // past it, one chunk at most. (Judged on the times the bench saw, not on an average
+    // sweep's: on a loaded machine one chunk can take far longer than the others.)
+    let checked = r["paper_cap_checked_at"].as_f64().unwrap();
+    let seconds = paper["seconds"].as_f64().unwrap();
+    assert!(checked < 0.5 && seconds >= 0.5 && checked < seconds, "{r}");
+    let iterations = paper["iterations"].as_u64().unwrap();
+    assert!(iterations < 20000 && iterations.is_multiple_of(50), "{r}");
     assert_eq!(
         r["speedup_is_lower_bound"].as_bool().unwrap(),
         paper["seconds_to_tolerance"].is_null(),
