@@ -373,9 +373,9 @@ impl<'a, 'p> Objective<'a, 'p> {
     /// c(x) > 0 (0 elsewhere): ∇ the derivative in the slopes (p, q) at p = q = 0 under the
     /// pixel's own Sun and view and albedo ρ(x), u_k = w_k/ν_k the edge ramp, incidence taper
     /// and shadow-edge factor of [`Weights`] (ν-free, so S is a property of the geometry, not
-    /// of the images' brightness). It is the trace of E_I's Gauss–Newton curvature in (p, q), in units of
-    /// relative brightness: ≈ 2.6 for two Suns 30–35° above the horizon, ≈ 0.3 for two at
-    /// 55–60°. An observation that would see the level surface unlit adds nothing.
+    /// of the images' brightness). It is the trace of E_I's Gauss–Newton curvature in (p, q),
+    /// in units of relative brightness: ≈ 2.6 for two Suns 30–35° above the horizon, ≈ 0.3
+    /// for two at 55–60°. An observation that would see the level surface unlit adds nothing.
     pub fn level_stiffness(&self, rho: ArrayView2<f64>, c: &Array2<f64>) -> Array2<f64> {
         let pr = self.problem;
         let w = &self.weights;

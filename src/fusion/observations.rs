@@ -195,7 +195,7 @@ pub fn shadow_edge_factors(
         Zip::from(&mut clean)
             .and(w)
             .and(n)
-            .for_each(|c, &w, &n| *c += u8::from(w > 0.0 && !n));
+            .for_each(|c, &w, &n| *c = c.saturating_add(u8::from(w > 0.0 && !n)));
     }
     for (w, n) in weight.iter_mut().zip(&near) {
         Zip::from(w).and(n).and(&clean).par_for_each(|w, &n, &c| {
