@@ -45,22 +45,33 @@ pub struct DemoReport {
     pub fusion_seconds: f64,
     pub megapixels_per_second: f64,
     pub outputs: Vec<PathBuf>,
+    /// The quick look's error panel spans ± this many metres (`None` without products).
+    pub quicklook_error_limit_m: Option<f64>,
     pub params: FusionParams,
     /// Per albedo stage: σ_ρ, and E with each term after every iteration.
     pub stages: Vec<crate::fusion::StageReport>,
 }
 
 /// The demo's quick look: the image, hillshades of the input, fused and true DEMs (one light),
-/// the error of the fused DEM against the truth with its colour bar, and the albedo.
-fn write_quicklook(path: &Path, scene: &Scene, f: &crate::fusion::Fusion) -> Result<()> {
+/// the error of the fused DEM against the truth with its colour bar, and the albedo. The error
+/// panel spans ± `error_limit` metres, or by default the 99th percentile of |fused − true|;
+/// returns the span used.
+fn write_quicklook(
+    path: &Path,
+    scene: &Scene,
+    f: &crate::fusion::Fusion,
+    error_limit: Option<f64>,
+) -> Result<f64> {
     let eps = scene.spec.spacing;
     let shade = |z: &Array2<f64>| rgb(&hillshade(z, eps));
     let mut input = shade(&scene.input_dem);
     scale_bar(&mut input, eps);
     let err = &f.height - &scene.truth_height;
-    let limit = quantiles(&err.mapv(f64::abs), 0.0, 0.99)
-        .map_or(1.0, |q| q.1)
-        .max(0.01);
+    let limit = error_limit.unwrap_or_else(|| {
+        quantiles(&err.mapv(f64::abs), 0.0, 0.99)
+            .map_or(1.0, |q| q.1)
+            .max(0.01)
+    });
     let stretched = |a: &Array2<f64>, title: &str, digits: usize| {
         let r = quantiles(a, 0.01, 0.99).unwrap_or((0.0, 1.0));
         Panel {
@@ -101,7 +112,8 @@ fn write_quicklook(path: &Path, scene: &Scene, f: &crate::fusion::Fusion) -> Res
         },
         stretched(&f.albedo, "albedo w", 3),
     ];
-    write_sheet(path, &panels, 3)
+    write_sheet(path, &panels, 3)?;
+    Ok(limit)
 }
 
 /// Scores of a fusion against a scene's truth: (height RMSE, albedo RMSE, albedo RMSE on lit
@@ -162,12 +174,23 @@ pub fn parse_center(text: &str) -> std::result::Result<(f64, f64), String> {
     Ok((lat, lon.rem_euclid(360.0)))
 }
 
-/// Run the demo on `spec`, writing products to `out` when given.
-pub fn run(spec: &SceneSpec, params: &FusionParams, out: Option<&Path>) -> Result<DemoReport> {
+/// Run the demo on `spec`, writing products to `out` when given; the quick look's error panel
+/// spans ± `error_limit` metres when given (so that quick looks of several runs compare).
+pub fn run(
+    spec: &SceneSpec,
+    params: &FusionParams,
+    out: Option<&Path>,
+    error_limit: Option<f64>,
+) -> Result<DemoReport> {
     if spec.size < 16 {
         return Err(Error::Usage(format!(
             "--size {} is too small: use at least 16",
             spec.size
+        )));
+    }
+    if let Some(l) = error_limit.filter(|l| !(l.is_finite() && *l > 0.0)) {
+        return Err(Error::Usage(format!(
+            "--error-limit {l}: give the error panel's span as a positive number of metres"
         )));
     }
     // Fail before computing if the products cannot be written.
@@ -183,6 +206,7 @@ pub fn run(spec: &SceneSpec, params: &FusionParams, out: Option<&Path>) -> Resul
     let (result_rmse_m, albedo_rmse, albedo_rmse_lit) = score(&scene, &fusion);
     let input_rmse_m = rmse(&scene.input_dem, &scene.truth_height);
     let mut outputs = Vec::new();
+    let mut quicklook_error_limit_m = None;
     if let Some(dir) = out {
         let grid = demo_grid(spec)?;
         let meta = [
@@ -238,7 +262,7 @@ pub fn run(spec: &SceneSpec, params: &FusionParams, out: Option<&Path>) -> Resul
             outputs.push(path);
         }
         let ql = dir.join("quicklook.png");
-        write_quicklook(&ql, &scene, &fusion)?;
+        quicklook_error_limit_m = Some(write_quicklook(&ql, &scene, &fusion, error_limit)?);
         outputs.push(ql);
     }
     let shadow_fraction =
@@ -269,6 +293,7 @@ pub fn run(spec: &SceneSpec, params: &FusionParams, out: Option<&Path>) -> Resul
         fusion_seconds,
         megapixels_per_second: (spec.size * spec.size) as f64 / 1e6 / fusion_seconds,
         outputs,
+        quicklook_error_limit_m,
         params: params.clone(),
         stages: fusion.stages.clone(),
     })

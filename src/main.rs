@@ -45,6 +45,10 @@ enum Command {
         /// by half a strip.
         #[arg(long)]
         strips: bool,
+        /// The quick look's error panel spans ± this many metres (default: the 99th
+        /// percentile of |fused − true|), so that quick looks of several runs compare.
+        #[arg(long, value_name = "METRES")]
+        error_limit: Option<f64>,
         /// Print the report as JSON instead of a table.
         #[arg(long)]
         json: bool,
@@ -257,6 +261,7 @@ fn run(cli: Cli) -> Result<(), sfsfuse::Error> {
             solver,
             observations,
             strips,
+            error_limit,
             json,
         } => {
             let spec = SceneSpec {
@@ -273,7 +278,7 @@ fn run(cli: Cli) -> Result<(), sfsfuse::Error> {
                 SolverKind::Fast => FusionParams::default(),
                 SolverKind::Paper => FusionParams::paper(),
             };
-            let report = sfsfuse::demo::run(&spec, &params, Some(&out))?;
+            let report = sfsfuse::demo::run(&spec, &params, Some(&out), error_limit)?;
             emit(json, &report, report.table())?;
         }
         Command::Inspect { path, json } => {

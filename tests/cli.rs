@@ -104,6 +104,45 @@ fn demo_writes_products_and_a_json_report() {
         .filter(|e| e.file_name().to_string_lossy().ends_with(".tmp"))
         .collect();
     assert!(leftovers.is_empty());
+    // The error panel's span: by default within the errors' range (the 99th percentile of
+    // |fused − true|), or as given, so that quick looks of several runs compare.
+    let truth = sfsfuse::export::read_tiff(&out.join("truth_dem.tif")).unwrap();
+    let largest = (&dem.data - &truth.data)
+        .iter()
+        .fold(0.0f64, |m, &e| m.max(e.abs()));
+    let auto = r["quicklook_error_limit_m"].as_f64().unwrap();
+    assert!(auto > 0.0 && auto <= largest, "{auto} vs {largest}");
+    let o = sfsfuse()
+        .args([
+            "demo",
+            "--size",
+            "48",
+            "--json",
+            "--error-limit",
+            "7.5",
+            "--out",
+        ])
+        .arg(&out)
+        .output()
+        .unwrap();
+    assert_eq!(json_of(&o)["quicklook_error_limit_m"].as_f64(), Some(7.5));
+    assert_ne!(std::fs::read(out.join("quicklook.png")).unwrap(), png);
+    for bad in ["0", "-2", "nan", "inf"] {
+        let o = sfsfuse()
+            .args([
+                "demo",
+                "--size",
+                "16",
+                &format!("--error-limit={bad}"),
+                "--out",
+            ])
+            .arg(&out)
+            .output()
+            .unwrap();
+        assert!(!o.status.success(), "--error-limit {bad}");
+        let e = String::from_utf8_lossy(&o.stderr);
+        assert!(e.contains("--error-limit"), "{e}");
+    }
     std::fs::remove_dir_all(&out).unwrap();
 }
 
