@@ -145,19 +145,31 @@ pub fn edge_weights(footprints: &[Array2<bool>], width: f64) -> Vec<Array2<f64>>
 /// The pixels next to a shadow (within one pixel, the eight neighbours) that observation `o`
 /// sees valid: image-shadowed pixels are those of I/g/Ī below `threshold`, as in [`weights`].
 fn near_shadow(o: &super::Observation, gain: f64, scale: f64, threshold: f64) -> Array2<bool> {
-    let dark = o
-        .image
-        .mapv(|v| v.is_finite() && v / gain / scale < threshold);
-    let (ny, nx) = dark.dim();
+    let (ny, nx) = o.image.dim();
+    // Each row's dark pixels widened by one column to either side, then each output row the
+    // union of its three neighbouring widened rows (a 3 × 3 dilation in two passes).
+    let mut wide = Array2::from_elem((ny, nx), false);
+    wide.axis_iter_mut(Axis(0))
+        .into_par_iter()
+        .zip(o.image.axis_iter(Axis(0)).into_par_iter())
+        .for_each(|(mut out, row)| {
+            for (j, v) in row.iter().enumerate() {
+                if v.is_finite() && v / gain / scale < threshold {
+                    for k in j.saturating_sub(1)..(j + 2).min(nx) {
+                        out[k] = true;
+                    }
+                }
+            }
+        });
     let mut near = Array2::from_elem((ny, nx), false);
     near.axis_iter_mut(Axis(0))
         .into_par_iter()
         .enumerate()
-        .for_each(|(i, mut row)| {
-            let rows = i.saturating_sub(1)..(i + 2).min(ny);
-            for (j, n) in row.iter_mut().enumerate() {
-                let cols = j.saturating_sub(1)..(j + 2).min(nx);
-                *n = rows.clone().any(|a| cols.clone().any(|b| dark[(a, b)]));
+        .for_each(|(i, mut out)| {
+            for a in i.saturating_sub(1)..(i + 2).min(ny) {
+                Zip::from(&mut out)
+                    .and(wide.row(a))
+                    .for_each(|n, &w| *n |= w);
             }
         });
     near
