@@ -347,18 +347,17 @@ impl<'a, 'p> Objective<'a, 'p> {
             return;
         }
         let c = self.weights.multiplicity();
-        let a = if m.stiffness > 0.0 && c.iter().any(|&c| c > 0.0) {
+        // a(x), only where the stiffness rule is on and observations overlap (1 elsewhere).
+        let a = (m.stiffness > 0.0 && c.iter().any(|&c| c > 0.0)).then(|| {
             let s = self.level_stiffness(rho, &c);
             s.mapv(|s| (s / m.stiffness).sqrt().min(1.0))
-        } else {
-            Array2::ones(c.dim())
-        };
+        });
         let (p, q) = ops::gradient(self.correction(z).view(), self.problem.spacing);
-        let r = Zip::from(&p)
+        let r = Zip::indexed(&p)
             .and(&q)
             .and(&c)
-            .and(&a)
-            .par_map_collect(|&p, &q, &c, &a| {
+            .par_map_collect(|ij, &p, &q, &c| {
+                let a = a.as_ref().map_or(1.0, |a| a[ij]);
                 let g2 = p * p + q * q;
                 let e = edge_factor(g2, m.slope);
                 let em = edge_factor(g2, m.multi_slope);
