@@ -376,8 +376,7 @@ pub fn coarse_dem_membrane(params: &FusionParams, dem_psf_sigma: f64) -> FusionP
         return p;
     }
     let f = dem_psf_sigma * std::f64::consts::SQRT_2;
-    let t = ((f - 5.0) / 2.0).clamp(0.0, 1.0);
-    let t = t * t * (3.0 - 2.0 * t);
+    let t = support::smoothstep((f - 5.0) / 2.0);
     // Also a point spread that is not a number (refused with its name by `validate`).
     if t.is_nan() || t <= 0.0 {
         return p;

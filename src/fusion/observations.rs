@@ -23,7 +23,7 @@
 //!   the M observations of largest w_k·μ_k (μ the cosine of the emission angle) are kept at a
 //!   pixel.
 
-use super::support;
+use super::support::{self, smoothstep};
 use super::Problem;
 use crate::photometry::{incidence, Albedo, AlbedoCurve, ReflectanceModel};
 use ndarray::{Array2, ArrayView2, Axis, Zip};
@@ -96,12 +96,6 @@ impl Weights {
 /// Incidence angle, degrees, of a Sun vector in the grid frame (z up).
 pub fn incidence_deg(sun: &[f64; 3]) -> f64 {
     sun[2].clamp(-1.0, 1.0).acos().to_degrees()
-}
-
-/// C¹ step: 0 at t ≤ 0, 1 at t ≥ 1.
-fn smoothstep(t: f64) -> f64 {
-    let t = t.clamp(0.0, 1.0);
-    t * t * (3.0 - 2.0 * t)
 }
 
 /// τ(i) for incidence `i` and maximum incidence `max` (degrees).

@@ -73,6 +73,12 @@ pub fn distance(mask: &Array2<bool>) -> Array2<f64> {
     d
 }
 
+/// C¹ step: 0 at t ≤ 0, 1 at t ≥ 1, 3t² − 2t³ between (NaN stays NaN).
+pub(crate) fn smoothstep(t: f64) -> f64 {
+    let t = t.clamp(0.0, 1.0);
+    t * t * (3.0 - 2.0 * t)
+}
+
 /// The support weight s(d): 1 for d ≤ r0, 0 for d ≥ r1, C¹ smoothstep between.
 pub fn weight(d: f64, r0: f64, r1: f64) -> f64 {
     if d <= r0 {
@@ -80,8 +86,7 @@ pub fn weight(d: f64, r0: f64, r1: f64) -> f64 {
     } else if d >= r1 {
         0.0
     } else {
-        let t = (r1 - d) / (r1 - r0);
-        t * t * (3.0 - 2.0 * t)
+        smoothstep((r1 - d) / (r1 - r0))
     }
 }
 
