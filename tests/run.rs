@@ -886,6 +886,38 @@ fn a_solar_table_of_the_other_mode_is_refused() {
     std::fs::remove_dir_all(&dir).unwrap();
 }
 
+/// The same observation listed twice — by one label, or by a copy of it elsewhere — is refused
+/// naming both entries, before anything is written: it would count each pixel twice (and as
+/// two observations in the `observations` layer) where one image sees the ground.
+#[test]
+fn an_observation_listed_twice_is_refused() {
+    let p = scene_products(256, 10);
+    let dir = scratch("twice");
+    let copy = support::copy_products(p, &dir.join("copy"));
+    let label = p.m3_label.display().to_string();
+    for (name, second) in [
+        ("same label", label.clone()),
+        ("copy", copy.m3_label.display().to_string()),
+    ] {
+        let out = dir.join(name.replace(' ', "_"));
+        let text = workflow(p, &out, 512, "").replace(
+            &format!("m3 = [{label:?}]"),
+            &format!("m3 = [{label:?}, {second:?}]"),
+        );
+        assert!(text.contains(&second), "{name}: {text}");
+        let err = run_err(&write_workflow(&dir, &text));
+        assert!(
+            err.contains("[inputs] m3")
+                && err.contains("M3G20991231T000000_V03_RDN twice")
+                && err.contains("entries 1 and 2")
+                && err.contains(&second),
+            "{name}: {err}"
+        );
+        assert!(!out.join("dem.tif").exists(), "{name}");
+    }
+    std::fs::remove_dir_all(&dir).unwrap();
+}
+
 /// A real five-line M3 crop with LOLA LDEM_4 (σ_B ≈ 35 px at 150 m) on a region far wider
 /// than the swath: the DEM changes only along the swath, by tens of metres at most, and not
 /// at all beyond the band; the fused DEM explains the image better than LDEM_4.

@@ -25,6 +25,7 @@ impl Inputs {
             .iter()
             .map(|p| Observation::open(p))
             .collect::<std::result::Result<_, _>>()?;
+        check_distinct(&obs)?;
         let solar = SolarSpectrum::read(&o.inputs.solar_spectrum)?;
         check_solar_mode(&solar, &obs)?;
         Ok(Inputs {
@@ -60,6 +61,47 @@ impl Inputs {
         v.dedup();
         Ok(v)
     }
+}
+
+/// A PDS product's PRODUCT_ID, else its label's file name (without the extension).
+pub(super) fn product_id(label: &pds::Label, path: &Path) -> String {
+    label
+        .get("PRODUCT_ID")
+        .and_then(|v| v.as_str())
+        .map(str::to_string)
+        .unwrap_or_else(|| {
+            path.file_stem()
+                .map(|s| s.to_string_lossy().into_owned())
+                .unwrap_or_default()
+        })
+}
+
+/// Each observation once. The same L1B product listed twice (by the same label, or by copies
+/// whose labels give the same PRODUCT_ID) would count each of its pixels twice: twice its
+/// weight in E_I, an `observations` layer of 2 where one image sees the ground, and the
+/// several-observation rules (docs/science.md, "Several observations") where there is one
+/// Sun.
+pub(super) fn check_distinct(obs: &[Observation]) -> Result<()> {
+    let key = |o: &Observation| {
+        (
+            std::fs::canonicalize(&o.label_path).unwrap_or_else(|_| o.label_path.clone()),
+            product_id(&o.label, &o.label_path).to_ascii_uppercase(),
+        )
+    };
+    let keys: Vec<_> = obs.iter().map(key).collect();
+    for (j, b) in keys.iter().enumerate() {
+        if let Some(i) = keys[..j].iter().position(|a| a.0 == b.0 || a.1 == b.1) {
+            return Err(Error::Usage(format!(
+                "[inputs] m3 lists the observation {} twice (entries {} and {}: {} and {}): each observation may be listed once — remove one of them",
+                b.1,
+                i + 1,
+                j + 1,
+                obs[i].label_path.display(),
+                obs[j].label_path.display()
+            )));
+        }
+    }
+    Ok(())
 }
 
 /// The solar table must follow the observations' band sampling: M3's GLOBAL and TARGET modes
@@ -144,18 +186,7 @@ impl Dem {
     /// GeoTIFF.
     fn product_id(&self) -> Option<String> {
         let Dem::Pds(d) = self else { return None };
-        let id = d
-            .label
-            .get("PRODUCT_ID")
-            .and_then(|v| v.as_str())
-            .map(str::to_string)
-            .or_else(|| {
-                d.label_path
-                    .file_stem()
-                    .map(|s| s.to_string_lossy().into_owned())
-            })
-            .unwrap_or_default();
-        Some(id.to_ascii_uppercase())
+        Some(product_id(&d.label, &d.label_path).to_ascii_uppercase())
     }
 
     /// The spacing of the independent heights behind the DEM at latitude `lat` (degrees), and

@@ -84,17 +84,7 @@ pub(super) fn product_metadata(
     plan: &Plan,
     key: &str,
 ) -> Vec<(&'static str, String)> {
-    let id = |label: &pds::Label, path: &Path| {
-        label
-            .get("PRODUCT_ID")
-            .and_then(|v| v.as_str())
-            .map(str::to_string)
-            .unwrap_or_else(|| {
-                path.file_stem()
-                    .map(|s| s.to_string_lossy().into_owned())
-                    .unwrap_or_default()
-            })
-    };
+    let id = inputs::product_id;
     let m3: Vec<String> = inputs
         .obs
         .iter()
