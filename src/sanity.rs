@@ -275,6 +275,12 @@ impl Sanity {
         )
         .flatten()
         .collect();
+        for o in observations.iter().filter(|o| o.footprint_pixels == 0) {
+            warnings.push(format!(
+                "{}: the observation does not reach the region and was not used: check [inputs] m3 and [region]",
+                o.label
+            ));
+        }
         if a.change[2].0 > 0 && o_max > 1e-3 {
             warnings.push(format!(
                 "the DEM changed beyond the transition band around the image (max {o_max:.3} m): it should be the input DEM there"
@@ -315,6 +321,10 @@ impl Sanity {
         );
         if self.observations.len() > 1 {
             for o in &self.observations {
+                if o.footprint_pixels == 0 {
+                    t.push_str(&format!("  {}: 0 px (not used)\n", o.label));
+                    continue;
+                }
                 t.push_str(&format!(
                     "  {}: {} px, photometric {:.3}, correlation {:.3} → {:.3}, change {:.2} / {:.2} m\n",
                     o.label,

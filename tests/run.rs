@@ -1181,6 +1181,15 @@ fn two_overlapping_strips_are_fused_with_a_run_wide_gain() {
         assert_eq!(obs[0]["gain"], 1.0);
         let g = obs[1]["gain"].as_f64().unwrap();
         assert!((g / 1.05 - 1.0).abs() < 0.005, "gain {g}");
+        assert!(obs[0]["gain_source"]
+            .as_str()
+            .unwrap()
+            .starts_with("1 by definition: the first observation listed"));
+        assert!(obs[1]["gain_source"]
+            .as_str()
+            .unwrap()
+            .starts_with("estimated where the observations overlap, relative to observation 1"));
+        assert!(rec["sanity"]["warnings"].as_array().unwrap().is_empty());
         for o in obs {
             assert!(o["photometric_fraction"].as_f64().unwrap() > 0.95, "{o}");
         }
@@ -1204,6 +1213,109 @@ fn two_overlapping_strips_are_fused_with_a_run_wide_gain() {
     let seam = largest_difference(&dems[0], &dems[1]);
     eprintln!("run: tiled vs single tile: largest difference {seam:.3} m (RMSE {all:.2} m)");
     assert!(seam <= 0.1 * all, "tiled vs single tile: {seam:.3} m");
+    std::fs::remove_dir_all(&dir).unwrap();
+}
+
+/// The record says how each gain was fixed, and the run warns where it could not be. Five
+/// strips of the 256² scene (columns [0, 85), [43, 128), [85, 171), [128, 213), [171, 256))
+/// listed without the middle one form two groups that touch but do not overlap: the fourth
+/// strip's gain is its group's own reference, not tied to the first's, and the fifth's is
+/// estimated relative to it. Over a region the first strip alone reaches, the others are
+/// listed as not used.
+#[test]
+fn the_record_says_how_each_gain_was_fixed_and_warns_where_it_was_not() {
+    let spec = sfsfuse::synth::SceneSpec {
+        size: 256,
+        seed: 10,
+        ..sfsfuse::synth::SceneSpec::default()
+    }
+    .with_observations(
+        &sfsfuse::synth::DEMO_SUNS[..5],
+        &[1.0, 1.05, 0.97, 1.02, 0.98],
+        true,
+    );
+    let scene = sfsfuse::synth::generate(&spec);
+    let grid = sfsfuse::demo::demo_grid(&spec).unwrap();
+    let dir = scratch("gain-groups");
+    let p = sfsfuse::synth::products::write(&scene, &grid, &dir.join("products")).unwrap();
+    let label = |k: usize| format!("{:?}", p.m3_labels[k].display().to_string());
+    let all = format!(
+        "m3 = [{}]",
+        (0..5).map(label).collect::<Vec<_>>().join(", ")
+    );
+    let record = |name: &str, text: String| {
+        let out = dir.join(name);
+        let text = text.replace("OUT", &out.display().to_string());
+        run_ok(
+            &["run", "--progress", "lines"],
+            &write_workflow(&dir, &text),
+        );
+        let rec: serde_json::Value =
+            serde_json::from_slice(&std::fs::read(out.join("run.json")).unwrap()).unwrap();
+        rec
+    };
+    let base = workflow(&p, Path::new("OUT"), 512, "");
+    assert!(base.contains(&all), "{base}");
+    // Without the middle strip: groups {1, 2} and {4, 5}.
+    let four = format!("m3 = [{}]", [0, 1, 3, 4].map(label).join(", "));
+    let rec = record("groups", base.replace(&all, &four));
+    let obs = rec["observations"].as_array().unwrap();
+    let source = |k: usize| obs[k]["gain_source"].as_str().unwrap().to_string();
+    assert!(source(0).starts_with("1 by definition: the first observation listed"));
+    assert!(
+        source(1).contains("relative to observation 1 ("),
+        "{}",
+        source(1)
+    );
+    assert!(
+        source(2).starts_with("1 by definition: the first of a group"),
+        "{}",
+        source(2)
+    );
+    assert_eq!(obs[2]["gain"], 1.0);
+    assert!(
+        source(3).contains("relative to observation 3 ("),
+        "{}",
+        source(3)
+    );
+    // The fifth strip is 0.98 / 1.02 of the fourth.
+    let g = obs[3]["gain"].as_f64().unwrap();
+    assert!((g / (0.98 / 1.02) - 1.0).abs() < 0.005, "gain {g}");
+    let warnings = rec["sanity"]["warnings"].to_string();
+    assert!(
+        warnings.contains("form 2 groups that do not overlap"),
+        "{warnings}"
+    );
+    // A region of the first 40 columns: only the first strip reaches it.
+    let half = p.grid.rows as f64 * p.grid.spacing / 2.0;
+    let x_max = -half + 40.0 * p.grid.spacing;
+    let rec = record(
+        "unreached",
+        base.replace(&format!("x_max = {half}"), &format!("x_max = {x_max}")),
+    );
+    let obs = rec["observations"].as_array().unwrap();
+    let source = |k: usize| obs[k]["gain_source"].as_str().unwrap().to_string();
+    assert!(source(0).starts_with("1 by definition: the first observation listed"));
+    let warnings = rec["sanity"]["warnings"].to_string();
+    for (k, (o, label)) in obs.iter().zip(&p.m3_labels).enumerate().skip(1) {
+        assert!(
+            source(k).starts_with("none: the observation does not reach the region"),
+            "{}",
+            source(k)
+        );
+        assert_eq!(o["footprint_pixels"], 0);
+        assert!(
+            warnings.contains(&format!(
+                "{}: the observation does not reach the region",
+                label.display()
+            )),
+            "{warnings}"
+        );
+    }
+    assert!(
+        !warnings.contains("groups that do not overlap"),
+        "{warnings}"
+    );
     std::fs::remove_dir_all(&dir).unwrap();
 }
 

@@ -911,7 +911,7 @@ pub(crate) fn objective<'a, 'p>(
     };
     if pr.gains.is_none() && k > 1 {
         let first = weights(gains, scale);
-        gains = observations::estimate_gains(pr, &first.usable, pr.dem);
+        gains = observations::estimate_gains(pr, &first.usable, pr.dem).gains;
         if pr.intensity_scale.is_none() {
             scale = mean_intensity(pr, &gains).0;
         }

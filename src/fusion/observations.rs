@@ -345,25 +345,40 @@ pub const GAIN_SAMPLES: usize = 1 << 16;
 /// Fewest overlapping pixels from which a pair of observations informs the gains.
 pub const MIN_OVERLAP: usize = 50;
 
+/// The gains of [`estimate_gains`] and what each is relative to.
+#[derive(Debug, Clone, PartialEq)]
+pub struct GainEstimate {
+    /// g_k.
+    pub gains: Vec<f64>,
+    /// The observation g_k is relative to: the first (lowest index) of its overlapping group,
+    /// itself for that one; `None` where it overlaps no other observation by
+    /// [`MIN_OVERLAP`] pixels, so that nothing tied its gain down and g = 1 is assumed.
+    pub relative_to: Vec<Option<usize>>,
+}
+
 /// The gains g_k, from where observations overlap on surface `z`: for each pair (j, k) the
 /// median over their common usable pixels (every `stride`-th row and column, at most about
 /// [`GAIN_SAMPLES`]) of ln(I_k/g_k) − ln R_k(ρ_j), ρ_j inverted from
 /// I_j/g_j, is the error of ln g_k − ln g_j; the logs are corrected by least squares over the
 /// pairs (weighted by overlap size) with the first observation of each connected group fixed,
 /// three times over (R is not linear in ρ for Hapke). Observations overlapping no other keep
-/// g = 1.
-pub fn estimate_gains(pr: &Problem, usable: &[Array2<bool>], z: ArrayView2<f64>) -> Vec<f64> {
+/// g = 1. The groups are those of the first pass's pairs.
+pub fn estimate_gains(pr: &Problem, usable: &[Array2<bool>], z: ArrayView2<f64>) -> GainEstimate {
     let k_obs = pr.observations.len();
     let mut log_g = vec![0.0; k_obs];
+    let mut relative_to: Vec<Option<usize>> = (0..k_obs).map(|_| None).collect();
     if k_obs < 2 {
-        return vec![1.0; k_obs];
+        return GainEstimate {
+            gains: vec![1.0; k_obs],
+            relative_to: (0..k_obs).map(Some).collect(),
+        };
     }
     let (p, q) = super::ops::gradient(z, pr.spacing);
     let model: &dyn ReflectanceModel = pr.model;
     // Every `stride`-th row and column: at most ≈ GAIN_SAMPLES pixels per pair (a median needs
     // no more, and each sample costs an albedo inversion).
     let stride = ((z.len() as f64 / GAIN_SAMPLES as f64).sqrt().ceil() as usize).max(1);
-    for _ in 0..3 {
+    for pass in 0..3 {
         let g: Vec<f64> = log_g.iter().map(|l: &f64| l.exp()).collect();
         let mut pairs = Vec::new();
         for j in 0..k_obs {
@@ -406,18 +421,27 @@ pub fn estimate_gains(pr: &Problem, usable: &[Array2<bool>], z: ArrayView2<f64>)
         if pairs.is_empty() {
             break;
         }
+        if pass == 0 {
+            let root = group_roots(k_obs, &pairs);
+            for &(j, k, _, _) in &pairs {
+                relative_to[j] = Some(root[j]);
+                relative_to[k] = Some(root[k]);
+            }
+        }
         let delta = solve_pairs(k_obs, &pairs);
         for (l, d) in log_g.iter_mut().zip(&delta) {
             *l += d;
         }
     }
-    log_g.iter().map(|l| l.exp()).collect()
+    GainEstimate {
+        gains: log_g.iter().map(|l| l.exp()).collect(),
+        relative_to,
+    }
 }
 
-/// Least squares δ_k − δ_j = c_jk (weight n_jk) over the pairs, δ = 0 at the first
-/// observation of each connected group (Gauss–Seidel; the groups are small graphs).
-fn solve_pairs(k_obs: usize, pairs: &[(usize, usize, f64, f64)]) -> Vec<f64> {
-    // Connected groups: the reference is each group's lowest index.
+/// The connected groups of the observations linked by `pairs`: each observation's group
+/// root, the group's lowest index (itself where it is in no pair).
+fn group_roots(k_obs: usize, pairs: &[(usize, usize, f64, f64)]) -> Vec<usize> {
     let mut group: Vec<usize> = (0..k_obs).collect();
     let find = |g: &Vec<usize>, mut a: usize| {
         while g[a] != a {
@@ -430,7 +454,15 @@ fn solve_pairs(k_obs: usize, pairs: &[(usize, usize, f64, f64)]) -> Vec<f64> {
         let (lo, hi) = (a.min(b), a.max(b));
         group[hi] = lo;
     }
-    let reference: Vec<bool> = (0..k_obs).map(|k| find(&group, k) == k).collect();
+    (0..k_obs).map(|k| find(&group, k)).collect()
+}
+
+/// Least squares δ_k − δ_j = c_jk (weight n_jk) over the pairs, δ = 0 at the first
+/// observation of each connected group (Gauss–Seidel; the groups are small graphs).
+fn solve_pairs(k_obs: usize, pairs: &[(usize, usize, f64, f64)]) -> Vec<f64> {
+    // Connected groups: the reference is each group's lowest index.
+    let root = group_roots(k_obs, pairs);
+    let reference: Vec<bool> = (0..k_obs).map(|k| root[k] == k).collect();
     let mut d = vec![0.0; k_obs];
     for _ in 0..500 {
         let mut moved = 0.0f64;
@@ -559,6 +591,8 @@ mod tests {
         for (g, w) in d.iter().zip(want) {
             assert!((g - w).abs() < 1e-9, "{d:?}");
         }
+        // The groups' roots: their lowest index; observation 5 is alone.
+        assert_eq!(group_roots(6, &pairs), [0, 0, 0, 3, 3, 5]);
     }
 
     #[test]

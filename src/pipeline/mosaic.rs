@@ -238,12 +238,70 @@ pub(super) struct ObservationRecord {
     pub(super) label: PathBuf,
     /// Radiometric gain g relative to the first observation of its overlapping group.
     pub(super) gain: f64,
+    /// How that gain was fixed ([`gain_source`]).
+    pub(super) gain_source: String,
     /// Noise weight ν (docs/science.md, "Several observations").
     pub(super) noise_weight: f64,
     /// Its pixels on the grid (its footprint).
     pub(super) footprint_pixels: usize,
     /// The share of its footprint where it carried photometric information.
     pub(super) photometric_fraction: f64,
+}
+
+/// How observation `k`'s gain was fixed, in words: estimated relative to the first observation
+/// of its overlapping group (`reference`, [`fusion::observations::GainEstimate`]), 1 by
+/// definition for that one, assumed 1 where it overlaps no other, or not used.
+pub(super) fn gain_source(
+    k: usize,
+    reference: Option<usize>,
+    footprint: usize,
+    labels: &[String],
+) -> String {
+    match reference {
+        _ if footprint == 0 => {
+            "none: the observation does not reach the region and was not used".into()
+        }
+        _ if k == 0 => "1 by definition: the first observation listed is the reference".into(),
+        None => "assumed 1: the observation overlaps no other on the region".into(),
+        Some(r) if r == k => "1 by definition: the first of a group of observations that overlaps none listed before it (its gain is not tied to the first observation's)".into(),
+        Some(r) => format!(
+            "estimated where the observations overlap, relative to observation {} ({})",
+            r + 1,
+            labels.get(r).map_or("?", String::as_str)
+        ),
+    }
+}
+
+/// A warning where the observations that reach the region fall into more than one group that
+/// overlap none of the others: gains are estimated within a group and assumed equal between
+/// groups, so the albedo may step where two groups meet. `reference` as in [`gain_source`].
+pub(super) fn gain_groups_warning(
+    labels: &[String],
+    footprints: &[usize],
+    reference: &[Option<usize>],
+) -> Option<String> {
+    let mut groups: Vec<(usize, Vec<&str>)> = Vec::new();
+    for (k, label) in labels.iter().enumerate() {
+        if footprints.get(k).copied().unwrap_or(0) == 0 {
+            continue;
+        }
+        let root = reference.get(k).copied().flatten().unwrap_or(k);
+        match groups.iter_mut().find(|(r, _)| *r == root) {
+            Some((_, members)) => members.push(label),
+            None => groups.push((root, vec![label])),
+        }
+    }
+    (groups.len() > 1).then(|| {
+        let list: Vec<String> = groups
+            .iter()
+            .map(|(_, m)| format!("[{}]", m.join(", ")))
+            .collect();
+        format!(
+            "the observations form {} groups that do not overlap one another on the region ({}): their gains are estimated within a group and assumed equal between groups, so the albedo may step where two groups meet; an observation overlapping both would tie them",
+            groups.len(),
+            list.join("; ")
+        )
+    })
 }
 
 /// [`Metrics`] gathered band by band.
@@ -504,7 +562,17 @@ pub(super) fn mosaic(
         .iter()
         .map(|o| o.label_path.display().to_string())
         .collect();
-    let sanity = Sanity::from_sums(&sums, &labels);
+    let mut sanity = Sanity::from_sums(&sums, &labels);
+    let footprints: Vec<usize> = sanity
+        .observations
+        .iter()
+        .map(|o| o.footprint_pixels)
+        .collect();
+    sanity.warnings.extend(gain_groups_warning(
+        &labels,
+        &footprints,
+        &plan.gain_reference,
+    ));
     let record = RunRecord {
         tool: "sfsfuse",
         version: env!("CARGO_PKG_VERSION"),
@@ -535,6 +603,12 @@ pub(super) fn mosaic(
             .map(|(k, ob)| ObservationRecord {
                 label: ob.label_path.clone(),
                 gain: plan.gains.get(k).copied().unwrap_or(1.0),
+                gain_source: gain_source(
+                    k,
+                    plan.gain_reference.get(k).copied().flatten(),
+                    footprints.get(k).copied().unwrap_or(0),
+                    &labels,
+                ),
                 noise_weight: plan.noise_weights.get(k).copied().unwrap_or(1.0),
                 footprint_pixels: sanity.observations.get(k).map_or(0, |o| o.footprint_pixels),
                 photometric_fraction: sanity

@@ -43,6 +43,11 @@ pub struct Plan {
     /// group (1 where it overlaps no other).
     #[serde(default)]
     pub gains: Vec<f64>,
+    /// What each gain is relative to, by input index
+    /// ([`fusion::observations::GainEstimate::relative_to`]; `None`: nothing tied it down, or
+    /// the observation does not reach the grid).
+    #[serde(default)]
+    pub gain_reference: Vec<Option<usize>>,
     /// Noise weight ν_k of each observation (docs/science.md, "Several observations").
     #[serde(default)]
     pub noise_weights: Vec<f64>,
@@ -194,14 +199,14 @@ pub(super) const GAIN_PIXELS: usize = 1 << 20;
 
 /// The gains of the observations, estimated once for the whole run (tiles must agree on them)
 /// by [`fusion::observations::estimate_gains`] on the grid decimated to at most
-/// [`GAIN_PIXELS`], over the input DEM.
+/// [`GAIN_PIXELS`], over the input DEM, and what each is relative to (input indices).
 pub(super) fn run_gains(
     o: &Orbital,
     inputs: &Inputs,
     grid: &Grid,
     swaths: &[SwathIndex],
     scale: f64,
-) -> Result<Vec<f64>> {
+) -> Result<(Vec<f64>, Vec<Option<usize>>)> {
     let f = ((grid.rows * grid.cols) as f64 / GAIN_PIXELS as f64)
         .sqrt()
         .ceil()
@@ -219,7 +224,7 @@ pub(super) fn run_gains(
     fill_holes(&mut dem);
     if !dem.iter().all(|v| v.is_finite()) {
         // No DEM on the grid at all: the tiles will say so; gains cannot be estimated.
-        return Ok(vec![1.0; inputs.obs.len()]);
+        return Ok((vec![1.0; inputs.obs.len()], vec![None; inputs.obs.len()]));
     }
     let problem = Problem {
         observations: fusion_observations(&shots),
@@ -233,6 +238,11 @@ pub(super) fn run_gains(
         selection: o.inputs.selection(),
     };
     let mut gains = vec![1.0; inputs.obs.len()];
+    // Input indices: `shots` holds the observations that reach the grid, in input order.
+    let mut reference = vec![None; inputs.obs.len()];
+    if let [(k, _)] = shots[..] {
+        reference[k] = Some(k);
+    }
     if problem.observations.len() > 1 {
         let w = fusion::observations::weights(
             &problem,
@@ -244,11 +254,12 @@ pub(super) fn run_gains(
             1.0,
         );
         let g = fusion::observations::estimate_gains(&problem, &w.usable, dem.view());
-        for ((k, _), g) in shots.iter().zip(g) {
+        for (((k, _), g), r) in shots.iter().zip(g.gains).zip(g.relative_to) {
             gains[*k] = g;
+            reference[*k] = r.map(|r| shots[r].0);
         }
     }
-    Ok(gains)
+    Ok((gains, reference))
 }
 
 /// The grid spacing of an orbital workflow and where it came from.
@@ -493,11 +504,11 @@ pub(super) fn plan(
     let tiles = tiling::layout(grid.rows, grid.cols, o.tiling.tile_size, halo);
     let blend = o.tiling.blend.unwrap_or(halo / 4).min(halo);
     let intensity_scale = sum / count as f64;
-    let gains = if inputs.obs.len() > 1 {
+    let (gains, gain_reference) = if inputs.obs.len() > 1 {
         progress.stage("planning: radiometric gains where observations overlap");
         run_gains(o, inputs, &grid, &swaths, intensity_scale)?
     } else {
-        vec![1.0]
+        (vec![1.0], vec![Some(0)])
     };
     // ν_k = (Ī/Ī_k)², Ī_k the observation's mean reflectance over its pixels on the grid,
     // corrected by its gain (fusion::observations); 1 for a single observation.
@@ -536,6 +547,7 @@ pub(super) fn plan(
         intensity_scale,
         intensity_pixels: count,
         gains,
+        gain_reference,
         noise_weights,
         dem_psf_sigma,
         resolution_source,
