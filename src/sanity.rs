@@ -275,11 +275,18 @@ impl Sanity {
         )
         .flatten()
         .collect();
-        for o in observations.iter().filter(|o| o.footprint_pixels == 0) {
-            warnings.push(format!(
-                "{}: the observation does not reach the region and was not used: check [inputs] m3 and [region]",
-                o.label
-            ));
+        for o in &observations {
+            if o.footprint_pixels == 0 {
+                warnings.push(format!(
+                    "{}: the observation does not reach the region and was not used: check [inputs] m3 and [region]",
+                    o.label
+                ));
+            } else if o.photometric_fraction == 0.0 {
+                warnings.push(format!(
+                    "{}: the observation covers {} px of the region but none was used (all in shadow, or outside [inputs] min_incidence_deg … max_incidence_deg, or beyond max_observations_per_pixel)",
+                    o.label, o.footprint_pixels
+                ));
+            }
         }
         if a.change[2].0 > 0 && o_max > 1e-3 {
             warnings.push(format!(

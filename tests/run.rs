@@ -1316,6 +1316,26 @@ fn the_record_says_how_each_gain_was_fixed_and_warns_where_it_was_not() {
         !warnings.contains("groups that do not overlap"),
         "{warnings}"
     );
+    // An incidence window of 50–58° leaves out the first Sun (60° from the zenith) and keeps
+    // the second (55°): the first covers the region but is not used, and says so.
+    let window = "[inputs]\nmin_incidence_deg = 50.0\nmax_incidence_deg = 58.0";
+    let rec = record(
+        "window",
+        base.replace(&all, &format!("m3 = [{}, {}]", label(0), label(1)))
+            .replace("[inputs]", window),
+    );
+    let obs = rec["observations"].as_array().unwrap();
+    assert_eq!(obs[0]["photometric_fraction"], 0.0);
+    assert!(obs[1]["photometric_fraction"].as_f64().unwrap() > 0.9);
+    let warnings = rec["sanity"]["warnings"].to_string();
+    assert!(
+        warnings.contains(&format!(
+            "{}: the observation covers {} px of the region but none was used",
+            p.m3_labels[0].display(),
+            obs[0]["footprint_pixels"]
+        )),
+        "{warnings}"
+    );
     std::fs::remove_dir_all(&dir).unwrap();
 }
 
