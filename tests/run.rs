@@ -1327,7 +1327,15 @@ fn the_record_says_how_each_gain_was_fixed_and_warns_where_it_was_not() {
     let obs = rec["observations"].as_array().unwrap();
     assert_eq!(obs[0]["photometric_fraction"], 0.0);
     assert!(obs[1]["photometric_fraction"].as_f64().unwrap() > 0.9);
+    assert!(obs[0]["gain_source"]
+        .as_str()
+        .unwrap()
+        .starts_with("none: the observation covers the region but was used nowhere"));
     let warnings = rec["sanity"]["warnings"].to_string();
+    assert!(
+        !warnings.contains("groups that do not overlap"),
+        "{warnings}"
+    );
     assert!(
         warnings.contains(&format!(
             "{}: the observation covers {} px of the region but none was used",

@@ -250,17 +250,19 @@ pub(super) struct ObservationRecord {
 
 /// How observation `k`'s gain was fixed, in words: estimated relative to the first observation
 /// of its overlapping group (`reference`, [`fusion::observations::GainEstimate`]), 1 by
-/// definition for that one, assumed 1 where it overlaps no other, or not used.
+/// definition for that one, assumed 1 where it overlaps no other, or none where the
+/// observation was not used (its footprint on the region and photometric fraction given).
 pub(super) fn gain_source(
     k: usize,
     reference: Option<usize>,
-    footprint: usize,
+    (footprint, photometric): (usize, f64),
     labels: &[String],
 ) -> String {
     match reference {
         _ if footprint == 0 => {
             "none: the observation does not reach the region and was not used".into()
         }
+        _ if photometric == 0.0 => "none: the observation covers the region but was used nowhere".into(),
         _ if k == 0 => "1 by definition: the first observation listed is the reference".into(),
         None => "assumed 1: the observation overlaps no other on the region".into(),
         Some(r) if r == k => "1 by definition: the first of a group of observations that overlaps none listed before it (its gain is not tied to the first observation's)".into(),
@@ -272,17 +274,17 @@ pub(super) fn gain_source(
     }
 }
 
-/// A warning where the observations that reach the region fall into more than one group that
+/// A warning where the observations used on the region fall into more than one group that
 /// overlap none of the others: gains are estimated within a group and assumed equal between
 /// groups, so the albedo may step where two groups meet. `reference` as in [`gain_source`].
 pub(super) fn gain_groups_warning(
     labels: &[String],
-    footprints: &[usize],
+    used: &[bool],
     reference: &[Option<usize>],
 ) -> Option<String> {
     let mut groups: Vec<(usize, Vec<&str>)> = Vec::new();
     for (k, label) in labels.iter().enumerate() {
-        if footprints.get(k).copied().unwrap_or(0) == 0 {
+        if !used.get(k).copied().unwrap_or(false) {
             continue;
         }
         let root = reference.get(k).copied().flatten().unwrap_or(k);
@@ -563,16 +565,15 @@ pub(super) fn mosaic(
         .map(|o| o.label_path.display().to_string())
         .collect();
     let mut sanity = Sanity::from_sums(&sums, &labels);
-    let footprints: Vec<usize> = sanity
+    let coverage: Vec<(usize, f64)> = sanity
         .observations
         .iter()
-        .map(|o| o.footprint_pixels)
+        .map(|o| (o.footprint_pixels, o.photometric_fraction))
         .collect();
-    sanity.warnings.extend(gain_groups_warning(
-        &labels,
-        &footprints,
-        &plan.gain_reference,
-    ));
+    let used: Vec<bool> = coverage.iter().map(|&(n, f)| n > 0 && f > 0.0).collect();
+    sanity
+        .warnings
+        .extend(gain_groups_warning(&labels, &used, &plan.gain_reference));
     let record = RunRecord {
         tool: "sfsfuse",
         version: env!("CARGO_PKG_VERSION"),
@@ -606,7 +607,7 @@ pub(super) fn mosaic(
                 gain_source: gain_source(
                     k,
                     plan.gain_reference.get(k).copied().flatten(),
-                    footprints.get(k).copied().unwrap_or(0),
+                    coverage.get(k).copied().unwrap_or((0, 0.0)),
                     &labels,
                 ),
                 noise_weight: plan.noise_weights.get(k).copied().unwrap_or(1.0),
