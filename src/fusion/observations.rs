@@ -136,8 +136,15 @@ pub fn edge_weights(footprints: &[Array2<bool>], width: f64) -> Vec<Array2<f64>>
         .collect()
 }
 
+/// Whether a valid image value `v` is image-shadowed: I/g/Ī below `threshold` (g the
+/// observation's gain, Ī the scale). [`weights`] leaves such pixels out of E_I;
+/// [`shadow_edge_factors`] looks at their neighbours.
+fn image_shadowed(v: f64, gain: f64, scale: f64, threshold: f64) -> bool {
+    v / gain / scale < threshold
+}
+
 /// The pixels next to a shadow (within one pixel, the eight neighbours) that observation `o`
-/// sees valid: image-shadowed pixels are those of I/g/Ī below `threshold`, as in [`weights`].
+/// sees valid: image-shadowed pixels as in [`image_shadowed`].
 fn near_shadow(o: &super::Observation, gain: f64, scale: f64, threshold: f64) -> Array2<bool> {
     let (ny, nx) = o.image.dim();
     // Each row's dark pixels widened by one column to either side, then each output row the
@@ -148,7 +155,7 @@ fn near_shadow(o: &super::Observation, gain: f64, scale: f64, threshold: f64) ->
         .zip(o.image.axis_iter(Axis(0)).into_par_iter())
         .for_each(|(mut out, row)| {
             for (j, v) in row.iter().enumerate() {
-                if v.is_finite() && v / gain / scale < threshold {
+                if v.is_finite() && image_shadowed(*v, gain, scale, threshold) {
                     for k in j.saturating_sub(1)..(j + 2).min(nx) {
                         out[k] = true;
                     }
@@ -234,7 +241,7 @@ pub fn weights(
                 let inc = incidence_deg(&o.sun.at(i, j));
                 v.is_finite()
                     && v > 0.0
-                    && v / g / scale >= shadow_threshold
+                    && !image_shadowed(v, g, scale, shadow_threshold)
                     && inc >= sel.min_incidence_deg
                     && inc < sel.max_incidence_deg
             })
