@@ -260,6 +260,13 @@ pub struct FusionParams {
     pub multi_albedo_sigma: f64,
     /// σ of the final albedo map where c(x) = 1 (blended by c with `final_albedo_sigma`).
     pub multi_final_albedo_sigma: f64,
+    /// How many times the last stage where observations overlap alternates its albedo
+    /// inversion (at `multi_albedo_sigma`) and its surface solve (≥ 1). At that σ_ρ the
+    /// albedo is nearly per pixel and follows the surface it is inverted from, so a second
+    /// inversion from the solved surface moves the joint minimum on (docs/science.md,
+    /// "Several observations"). Every pass but the last takes [`PASS_STEPS`] steps, the same
+    /// in every window.
+    pub multi_albedo_passes: usize,
     /// Where several observations carry a pixel, δ is lowered to δ × this (blended by the
     /// multi-coverage c(x); [`objective::Objective::with_multi_delta`]); 1 keeps δ everywhere.
     pub multi_delta_factor: f64,
@@ -334,6 +341,7 @@ impl Default for FusionParams {
             shadow_edge_weight: 0.25,
             multi_albedo_sigma: 0.5,
             multi_final_albedo_sigma: 0.7,
+            multi_albedo_passes: 2,
             multi_delta_factor: 0.2,
             edge_membrane_slope: 0.0,
             multi_eta_factor: 6.0,
@@ -609,6 +617,7 @@ fn check_all<const N: usize>(
 pub fn validate_params(params: &FusionParams) -> Result<(), FusionError> {
     let counts = [
         ("max_iterations", params.max_iterations),
+        ("multi_albedo_passes", params.multi_albedo_passes),
         ("cg_iterations", params.cg_iterations),
     ];
     for (name, n) in counts {
@@ -1008,6 +1017,10 @@ pub fn coarse_factor_at_least(
 /// steps (fewer only where the energy stops decreasing).
 pub const EDGE_STAGE_STEPS: usize = 2;
 
+/// Gauss–Newton steps of each pass of the last stage where observations overlap but the final
+/// one ([`FusionParams::multi_albedo_passes`]): a fixed count, as [`EDGE_STAGE_STEPS`].
+pub const PASS_STEPS: usize = 1;
+
 /// The albedo stages of widths `sigmas` from surface `z`, then the support taper, the final
 /// albedo and the layers.
 fn fine_stages(
@@ -1067,23 +1080,39 @@ fn fine_stages(
         });
     }
     if let (Some(last), Some(multi)) = (multi_stage, &multi) {
-        let t0 = Instant::now();
-        let maps = albedo_maps(
-            pr,
-            &obj.weights,
-            &obj.dct,
-            z.view(),
-            &[params.multi_albedo_sigma, last],
-        )?;
-        let rho = blend(&maps[0], &maps[1], multi);
-        drop(maps);
-        obj.set_membrane_weights(z.view(), rho.view(), MembraneRule::of(params));
-        let iterations = minimise(&obj, &mut z, rho.view(), params, &mut |_| {});
-        stages.push(StageReport {
-            sigma_rho: params.multi_albedo_sigma,
-            iterations,
-            seconds: t0.elapsed().as_secs_f64(),
-        });
+        // Every pass but the last hands the next its surface, from which the next inverts its
+        // albedo and weighs its membrane: a fixed number of steps, the same in every window
+        // (one: a second step moves the results by less than 1 mm).
+        let passes = params.multi_albedo_passes;
+        let handing_on = FusionParams {
+            step_tolerance: 0.0,
+            max_iterations: PASS_STEPS.min(params.max_iterations),
+            ..params.clone()
+        };
+        for pass in 0..passes {
+            let t0 = Instant::now();
+            let maps = albedo_maps(
+                pr,
+                &obj.weights,
+                &obj.dct,
+                z.view(),
+                &[params.multi_albedo_sigma, last],
+            )?;
+            let rho = blend(&maps[0], &maps[1], multi);
+            drop(maps);
+            obj.set_membrane_weights(z.view(), rho.view(), MembraneRule::of(params));
+            let pass_params = if pass + 1 < passes && params.solver == SolverKind::Fast {
+                &handing_on
+            } else {
+                params
+            };
+            let iterations = minimise(&obj, &mut z, rho.view(), pass_params, &mut |_| {});
+            stages.push(StageReport {
+                sigma_rho: params.multi_albedo_sigma,
+                iterations,
+                seconds: t0.elapsed().as_secs_f64(),
+            });
+        }
     }
     let w = &obj.weights;
     // Beyond the support band the result is the input DEM; within it the correction fades.
