@@ -92,6 +92,13 @@ const RENDER_ROWS: usize = 64;
 pub struct TileSums {
     pub all: Sums,
     pub observations: Vec<Sums>,
+    /// Core pixels where two or more observations were used, and of those the ones where the
+    /// observations' Suns measure east–west slopes hardly at all free of albedo
+    /// ([`fusion::observations::east_west_share`] below sin²(20°)).
+    #[serde(default)]
+    pub overlap: usize,
+    #[serde(default)]
+    pub overlap_east_west_blind: usize,
 }
 
 impl TileSums {
@@ -105,6 +112,7 @@ impl TileSums {
         TileSums {
             all,
             observations: vec![Sums::default(); observations],
+            ..TileSums::default()
         }
     }
 
@@ -130,7 +138,29 @@ impl TileSums {
         let mut out = TileSums {
             all: Sums::default(),
             observations: vec![Sums::default(); observations],
+            ..TileSums::default()
         };
+        let blind = fusion::observations::EAST_WEST_BLIND_DEG
+            .to_radians()
+            .sin()
+            .powi(2);
+        let mut suns = Vec::with_capacity(problem.observations.len());
+        for i in r0..r1 {
+            for j in c0..c1 {
+                suns.clear();
+                for (o, used) in problem.observations.iter().zip(&f.used_by) {
+                    if used[(i, j)] {
+                        suns.push(o.sun.at(i, j));
+                    }
+                }
+                if suns.len() < 2 {
+                    continue;
+                }
+                out.overlap += 1;
+                let share = fusion::observations::east_west_share(&suns);
+                out.overlap_east_west_blind += share.is_none_or(|s| s < blind) as usize;
+            }
+        }
         let seen = problem.footprint().slice_move(cut);
         for ((i, j), &d) in dem.indexed_iter() {
             let class = if seen[(i, j)] {
@@ -186,6 +216,8 @@ impl TileSums {
 
     pub fn add(&mut self, o: &TileSums) {
         self.all.add(&o.all);
+        self.overlap += o.overlap;
+        self.overlap_east_west_blind += o.overlap_east_west_blind;
         if self.observations.len() < o.observations.len() {
             self.observations
                 .resize(o.observations.len(), Sums::default());
@@ -223,6 +255,10 @@ pub struct Sanity {
     pub change_beyond_rms_m: f64,
     pub change_beyond_max_m: f64,
     pub observations: Vec<ObservationSanity>,
+    /// Pixels where two or more observations were used, and the share of them where their
+    /// Suns measure east–west slopes hardly at all free of albedo ([`TileSums::overlap`]).
+    pub overlap_pixels: usize,
+    pub overlap_east_west_blind_fraction: f64,
     pub warnings: Vec<String>,
 }
 
@@ -288,6 +324,15 @@ impl Sanity {
                 ));
             }
         }
+        let blind = s.overlap_east_west_blind as f64 / s.overlap.max(1) as f64;
+        if s.overlap > 0 && blind > 0.5 {
+            warnings.push(format!(
+                "on {:.0} % of the {} px where observations overlap, the images measure slope free of albedo only within {}° of north–south (as two Suns do whose azimuths' bisector lies that close to east or west): an east–west slope brightens or darkens them alike, as an albedo change does, so there east–west slopes come from the DEM rather than the images and the overlap gains less than under other Suns (docs/science.md, \"Where two Suns fall short of 0.65×\"); a further observation under a Sun from another quarter would measure them",
+                100.0 * blind,
+                s.overlap,
+                fusion::observations::EAST_WEST_BLIND_DEG
+            ));
+        }
         if a.change[2].0 > 0 && o_max > 1e-3 {
             warnings.push(format!(
                 "the DEM changed beyond the transition band around the image (max {o_max:.3} m): it should be the input DEM there"
@@ -304,6 +349,8 @@ impl Sanity {
             change_beyond_rms_m: o_rms,
             change_beyond_max_m: o_max,
             observations,
+            overlap_pixels: s.overlap,
+            overlap_east_west_blind_fraction: blind,
             warnings,
         }
     }
@@ -384,6 +431,7 @@ mod tests {
         let mut t = TileSums {
             all: s.clone(),
             observations: vec![o],
+            ..TileSums::default()
         };
         t.add(&TileSums::no_image(10, 1));
         assert_eq!(t.all.pixels, 15);
@@ -394,5 +442,25 @@ mod tests {
         assert!((a.photometric_fraction - 2.0 / 3.0).abs() < 1e-15);
         // Two points correlate perfectly either way: only the run-wide −1 warns.
         assert_eq!(out.warnings.len(), 1, "{:?}", out.warnings);
+        // The overlap's east–west blind share warns above one half, summed over tiles.
+        let half = |blind: usize| TileSums {
+            overlap: 10,
+            overlap_east_west_blind: blind,
+            ..TileSums::default()
+        };
+        for (a, b, warns) in [(4, 5, false), (6, 5, true)] {
+            let mut t2 = t.clone();
+            t2.add(&half(a));
+            t2.add(&half(b));
+            let out = Sanity::from_sums(&t2, &["A".into()]);
+            assert_eq!(out.overlap_pixels, 20);
+            assert!((out.overlap_east_west_blind_fraction - (a + b) as f64 / 20.0).abs() < 1e-15);
+            assert_eq!(
+                out.warnings.iter().any(|w| w.contains("north–south")),
+                warns,
+                "{:?}",
+                out.warnings
+            );
+        }
     }
 }

@@ -1190,6 +1190,7 @@ fn two_overlapping_strips_are_fused_with_a_run_wide_gain() {
             .unwrap()
             .starts_with("estimated where the observations overlap, relative to observation 1"));
         assert!(rec["sanity"]["warnings"].as_array().unwrap().is_empty());
+        assert_eq!(rec["sanity"]["overlap_east_west_blind_fraction"], 0.0);
         for o in obs {
             assert!(o["photometric_fraction"].as_f64().unwrap() > 0.95, "{o}");
         }
@@ -1213,6 +1214,41 @@ fn two_overlapping_strips_are_fused_with_a_run_wide_gain() {
     let seam = largest_difference(&dems[0], &dems[1]);
     eprintln!("run: tiled vs single tile: largest difference {seam:.3} m (RMSE {all:.2} m)");
     assert!(seam <= 0.1 * all, "tiled vs single tile: {seam:.3} m");
+    std::fs::remove_dir_all(&dir).unwrap();
+}
+
+/// Two Suns whose azimuths' bisector points east (45°/30° and 135°/30°) measure east–west
+/// slopes only together with the albedo: the run says so, with the share of the overlap where
+/// that holds (all of it here), and records it; the demo's pair (105°/30° and 225°/35°, the
+/// strips test above) gets no such warning.
+#[test]
+fn suns_mirrored_about_the_east_west_line_are_named_in_a_warning() {
+    let spec = sfsfuse::synth::SceneSpec {
+        size: 128,
+        seed: 10,
+        ..sfsfuse::synth::SceneSpec::default()
+    }
+    .with_observations(&[(45.0, 30.0), (135.0, 30.0)], &[], false);
+    let scene = sfsfuse::synth::generate(&spec);
+    let grid = sfsfuse::demo::demo_grid(&spec).unwrap();
+    let dir = scratch("mirrored");
+    let p = sfsfuse::synth::products::write(&scene, &grid, &dir.join("products")).unwrap();
+    let out = dir.join("out");
+    let wf = write_workflow(&dir, &workflow(&p, &out, 512, ""));
+    run_ok(&["run", "--progress", "lines"], &wf);
+    let rec: serde_json::Value =
+        serde_json::from_slice(&std::fs::read(out.join("run.json")).unwrap()).unwrap();
+    let sanity = &rec["sanity"];
+    assert!(sanity["overlap_pixels"].as_u64().unwrap() > 128 * 128 * 9 / 10);
+    assert!(sanity["overlap_east_west_blind_fraction"].as_f64().unwrap() > 0.99);
+    let warnings = sanity["warnings"].as_array().unwrap();
+    assert_eq!(warnings.len(), 1, "{warnings:?}");
+    let w = warnings[0].as_str().unwrap();
+    assert!(
+        w.contains("only within 20° of north–south")
+            && w.contains("east–west slopes come from the DEM"),
+        "{w}"
+    );
     std::fs::remove_dir_all(&dir).unwrap();
 }
 

@@ -25,7 +25,7 @@
 
 use super::support::{self, smoothstep};
 use super::Problem;
-use crate::photometry::{incidence, Albedo, AlbedoCurve, ReflectanceModel};
+use crate::photometry::{incidence, Albedo, AlbedoCurve, ReflectanceModel, Vec3};
 use ndarray::{Array2, ArrayView2, Axis, Zip};
 use rayon::prelude::*;
 use serde::{Deserialize, Serialize};
@@ -91,6 +91,37 @@ impl Weights {
             .and(&top)
             .map_collect(|&s, &t| if t > 0.0 { (s / t - 1.0).min(1.0) } else { 0.0 })
     }
+}
+
+/// Sun directions within this many degrees of a mirror image about the east–west line count
+/// as measuring east–west slopes only together with the albedo ([`east_west_share`]).
+pub const EAST_WEST_BLIND_DEG: f64 = 20.0;
+
+/// The share of the images' albedo-free slope information that bears on east–west slopes, for
+/// observations with Sun vectors `suns` (grid frame: x east along the rows, z up) seeing one
+/// pixel: M_xx/(M_xx + M_yy) of M = Σ_k g_k g_kᵀ − (Σ_k g_k)(Σ_k g_k)ᵀ/n, g_k = −(s_x, s_y)/s_z
+/// the gradient of ln R in the slopes on a level surface for a Lambert surface (a change of
+/// albedo moves every ln R_k alike, so only the g_k's spread about their mean measures slope
+/// free of it). Two Suns mirrored about the east–west line brighten and darken alike under an
+/// east–west slope: share 0. `None` with fewer than two Suns above the horizon or Suns all in
+/// one direction.
+pub fn east_west_share(suns: &[Vec3]) -> Option<f64> {
+    let g: Vec<(f64, f64)> = suns
+        .iter()
+        .filter(|s| s[2] > 1e-6)
+        .map(|s| (-s[0] / s[2], -s[1] / s[2]))
+        .collect();
+    if g.len() < 2 {
+        return None;
+    }
+    let n = g.len() as f64;
+    let (mx, my) = g
+        .iter()
+        .fold((0.0, 0.0), |(a, b), &(x, y)| (a + x / n, b + y / n));
+    let (xx, yy) = g.iter().fold((0.0, 0.0), |(a, b), &(x, y)| {
+        (a + (x - mx) * (x - mx), b + (y - my) * (y - my))
+    });
+    (xx + yy > 1e-12).then(|| xx / (xx + yy))
 }
 
 /// Incidence angle, degrees, of a Sun vector in the grid frame (z up).
@@ -583,6 +614,32 @@ pub fn invert_albedo(
 #[cfg(test)]
 mod tests {
     use super::*;
+
+    /// A Sun at azimuth `az` (clockwise from north) and elevation `el`, degrees, in the grid
+    /// frame (x east, y north, z up).
+    fn sun(az: f64, el: f64) -> Vec3 {
+        let (a, e) = (az.to_radians(), el.to_radians());
+        [e.cos() * a.sin(), e.cos() * a.cos(), e.sin()]
+    }
+
+    /// Suns mirrored about the east–west line measure no east–west slope free of albedo,
+    /// Suns mirrored about the north–south line nothing else; three Suns 120° apart at one
+    /// elevation measure both alike; and the share does not depend on the elevation of two
+    /// Suns in mirror image (analytic cases of `east_west_share`).
+    #[test]
+    fn the_east_west_share_of_mirrored_and_spread_suns() {
+        let share = |s: &[(f64, f64)]| {
+            east_west_share(&s.iter().map(|&(a, e)| sun(a, e)).collect::<Vec<_>>()).unwrap()
+        };
+        assert!(share(&[(45.0, 30.0), (135.0, 30.0)]) < 1e-12);
+        assert!(share(&[(315.0, 55.0), (225.0, 55.0)]) < 1e-12);
+        assert!((share(&[(90.0, 30.0), (270.0, 30.0)]) - 1.0).abs() < 1e-12);
+        assert!((share(&[(0.0, 40.0), (120.0, 40.0), (240.0, 40.0)]) - 0.5).abs() < 1e-12);
+        // 105/30 + 225/35: g₁ − g₂ mostly east–west.
+        assert!(share(&[(105.0, 30.0), (225.0, 35.0)]) > 0.9);
+        assert!(east_west_share(&[sun(90.0, 30.0)]).is_none());
+        assert!(east_west_share(&[sun(90.0, 30.0), sun(90.0, 30.0)]).is_none());
+    }
 
     #[test]
     fn pair_least_squares_recovers_log_gains_with_a_reference_per_group() {
