@@ -7,8 +7,8 @@ use std::path::Path;
 
 mod support;
 use support::{
-    largest_difference, rmse, run_ok, scene_products, scratch, sfsfuse, strip_products, workflow,
-    write_workflow,
+    largest_difference, observation_products, rmse, run_ok, scene_products, scratch, sfsfuse,
+    strip_products, workflow, write_workflow,
 };
 
 /// The science-core bar (tests/science.rs) met through the whole pipeline: PDS3 products in,
@@ -1223,16 +1223,8 @@ fn two_overlapping_strips_are_fused_with_a_run_wide_gain() {
 /// strips test above) gets no such warning.
 #[test]
 fn suns_mirrored_about_the_east_west_line_are_named_in_a_warning() {
-    let spec = sfsfuse::synth::SceneSpec {
-        size: 128,
-        seed: 10,
-        ..sfsfuse::synth::SceneSpec::default()
-    }
-    .with_observations(&[(45.0, 30.0), (135.0, 30.0)], &[], false);
-    let scene = sfsfuse::synth::generate(&spec);
-    let grid = sfsfuse::demo::demo_grid(&spec).unwrap();
-    let dir = scratch("mirrored");
-    let p = sfsfuse::synth::products::write(&scene, &grid, &dir.join("products")).unwrap();
+    let suns = [(45.0, 30.0), (135.0, 30.0)];
+    let (dir, p) = observation_products(128, 10, (&suns, &[], false), "mirrored");
     let out = dir.join("out");
     let wf = write_workflow(&dir, &workflow(&p, &out, 512, ""));
     run_ok(&["run", "--progress", "lines"], &wf);
@@ -1260,20 +1252,16 @@ fn suns_mirrored_about_the_east_west_line_are_named_in_a_warning() {
 /// listed as not used.
 #[test]
 fn the_record_says_how_each_gain_was_fixed_and_warns_where_it_was_not() {
-    let spec = sfsfuse::synth::SceneSpec {
-        size: 256,
-        seed: 10,
-        ..sfsfuse::synth::SceneSpec::default()
-    }
-    .with_observations(
-        &sfsfuse::synth::DEMO_SUNS[..5],
-        &[1.0, 1.05, 0.97, 1.02, 0.98],
-        true,
+    let (dir, p) = observation_products(
+        256,
+        10,
+        (
+            &sfsfuse::synth::DEMO_SUNS[..5],
+            &[1.0, 1.05, 0.97, 1.02, 0.98],
+            true,
+        ),
+        "gain-groups",
     );
-    let scene = sfsfuse::synth::generate(&spec);
-    let grid = sfsfuse::demo::demo_grid(&spec).unwrap();
-    let dir = scratch("gain-groups");
-    let p = sfsfuse::synth::products::write(&scene, &grid, &dir.join("products")).unwrap();
     let label = |k: usize| format!("{:?}", p.m3_labels[k].display().to_string());
     let all = format!(
         "m3 = [{}]",

@@ -43,12 +43,29 @@ pub fn scene_products(size: usize, seed: u64) -> &'static products::Products {
 /// the second observation 5 % brighter) over the `size`² scene of `seed`, written as products
 /// under a fresh scratch directory `name`, which is returned with them.
 pub fn strip_products(size: usize, seed: u64, name: &str) -> (PathBuf, products::Products) {
+    observation_products(
+        size,
+        seed,
+        (&sfsfuse::synth::DEMO_SUNS[..2], &[1.0, 1.05], true),
+        name,
+    )
+}
+
+/// The `size`² scene of `seed` seen under `suns` (azimuth/elevation, degrees) with `gains`
+/// (empty: all 1), each observation a strip of the columns when `strips`, written as products
+/// under a fresh scratch directory `name`, which is returned with them.
+pub fn observation_products(
+    size: usize,
+    seed: u64,
+    (suns, gains, strips): (&[(f64, f64)], &[f64], bool),
+    name: &str,
+) -> (PathBuf, products::Products) {
     let spec = SceneSpec {
         size,
         seed,
         ..SceneSpec::default()
     }
-    .with_observations(&sfsfuse::synth::DEMO_SUNS[..2], &[1.0, 1.05], true);
+    .with_observations(suns, gains, strips);
     let scene = generate(&spec);
     let grid = sfsfuse::demo::demo_grid(&spec).unwrap();
     let dir = scratch(name);
