@@ -665,6 +665,14 @@ directory = "out"
             .unwrap_err()
             .to_string();
         assert!(e.contains("w.toml") && e.contains("max_iterations"), "{e}");
+        let bad = lab.replace("[output]", "[solver]\nmulti_albedo_passes = 0\n[output]");
+        let e = Workflow::parse(&bad, Path::new("w.toml"), Path::new("."))
+            .unwrap_err()
+            .to_string();
+        assert!(
+            e.contains("w.toml") && e.contains("multi_albedo_passes") && e.contains("at least 1"),
+            "{e}"
+        );
         assert_eq!(FusionParams::default().dem_track_weight, 0.1);
     }
 

@@ -615,17 +615,22 @@ fn check_all<const N: usize>(
 /// is checked with this when it is loaded, so that a bad value is refused before any input is
 /// read; [`fuse`] checks it again with the problem.
 pub fn validate_params(params: &FusionParams) -> Result<(), FusionError> {
+    let never = "must be at least 1: with 0 the surface is never solved for";
     let counts = [
-        ("max_iterations", params.max_iterations),
-        ("multi_albedo_passes", params.multi_albedo_passes),
-        ("cg_iterations", params.cg_iterations),
+        ("max_iterations", params.max_iterations, never),
+        ("cg_iterations", params.cg_iterations, never),
+        (
+            "multi_albedo_passes",
+            params.multi_albedo_passes,
+            "must be at least 1: with 0 the surface is never solved at the last albedo width where observations overlap",
+        ),
     ];
-    for (name, n) in counts {
+    for (name, n, why) in counts {
         if n == 0 {
             return Err(FusionError::Parameter {
                 name,
                 value: 0.0,
-                why: "must be at least 1: with 0 the surface is never solved for",
+                why,
             });
         }
     }
