@@ -147,14 +147,15 @@ impl TileSums {
         let mut suns = Vec::with_capacity(problem.observations.len());
         for i in r0..r1 {
             for j in c0..c1 {
+                // The fusion's count of the observations it used here.
+                if f.observations[(i, j)] < 2 {
+                    continue;
+                }
                 suns.clear();
                 for (o, used) in problem.observations.iter().zip(&f.used_by) {
                     if used[(i, j)] {
                         suns.push(o.sun.at(i, j));
                     }
-                }
-                if suns.len() < 2 {
-                    continue;
                 }
                 out.overlap += 1;
                 let share = fusion::observations::east_west_share(&suns);
