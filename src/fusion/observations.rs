@@ -618,8 +618,7 @@ mod tests {
     /// A Sun at azimuth `az` (clockwise from north) and elevation `el`, degrees, in the grid
     /// frame (x east, y north, z up).
     fn sun(az: f64, el: f64) -> Vec3 {
-        let (a, e) = (az.to_radians(), el.to_radians());
-        [e.cos() * a.sin(), e.cos() * a.cos(), e.sin()]
+        crate::synth::direction(90.0 - el, az)
     }
 
     /// Suns mirrored about the east–west line measure no east–west slope free of albedo,
