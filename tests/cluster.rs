@@ -141,9 +141,15 @@ fn a_failed_tile_makes_the_mosaic_job_fail_with_the_missing_tiles() {
     let p = scene_products(256, 10);
     let dir = scratch("slurm-fail");
     let out = dir.join("out");
-    // The region runs east past the DEM: the eastern tiles cannot be fused.
-    let text = workflow(p, &out, 128, "[solver]\nalbedo_sigmas = [30.0, 10.0, 4.0]")
-        .replace("x_max = 17920", "x_max = 40000");
+    // The region runs east past the DEM: the eastern tiles cannot be fused. (Without the
+    // plan's coarse reference, which would refuse the region before submitting anything.)
+    let text = workflow(
+        p,
+        &out,
+        128,
+        "[solver]\nalbedo_sigmas = [30.0, 10.0, 4.0]\ncoarse_factor = 1",
+    )
+    .replace("x_max = 17920", "x_max = 40000");
     let wf = write_workflow(&dir, &text);
     let s = submit(&wf, &["--tiles-per-task", "1"]);
     wait(&jobs(&s));

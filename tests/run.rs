@@ -412,9 +412,29 @@ fn bad_workflows_fail_with_the_file_and_the_key() {
         !o.status.success() && e.contains("workflow.toml") && e.contains("delat"),
         "{e}"
     );
-    // A region the DEM does not cover: the error names the tile and the pixel.
+    // A region the DEM does not cover: the plan says so before it solves anything, naming
+    // the first pixel of the grid it lacks (in row 0, east of the DEM's edge).
     let far = workflow(p, &out, 128, "").replace("x_max = 17920", "x_max = 60000");
     let wf = write_workflow(&dir, &far);
+    let o = sfsfuse()
+        .args(["run", "--progress", "quiet"])
+        .arg(&wf)
+        .output()
+        .unwrap();
+    let e = String::from_utf8_lossy(&o.stderr);
+    assert!(
+        !o.status.success()
+            && e.contains("plan's coarse reference")
+            && e.contains("no LOLA DEM")
+            && e.contains("grid pixel (0, "),
+        "{e}"
+    );
+    assert!(!out.join("dem.tif").exists() && !out.join("tiles").exists());
+    // Without the reference the plan reads no DEM, and each tile over the gap names itself.
+    let wf = write_workflow(
+        &dir,
+        &far.replace("[output]", "[solver]\ncoarse_factor = 1\n[output]"),
+    );
     let o = sfsfuse()
         .args(["run", "--progress", "quiet"])
         .arg(&wf)

@@ -117,6 +117,12 @@ pub(super) fn build(
         let (r0, r1) = (i0 * f, (i1 * f).min(grid.rows));
         let win = grid.window(r0 as isize, 0, r1 - r0, grid.cols);
         let ingested = ingest_window(o, inputs, run.swaths, &win)?;
+        // A region the DEM does not cover fails here, before the reference is solved, as
+        // every tile over the gap would.
+        super::tile::dem_covers(&win, (r0, 0), &ingested.dem).map_err(|e| match e {
+            Error::Usage(m) => Error::Usage(format!("the plan's coarse reference: {m}")),
+            e => e,
+        })?;
         for (k, img) in &ingested.shots {
             let (k, rows) = (*k, s![i0..i1, ..]);
             images[k]

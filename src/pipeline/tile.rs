@@ -139,6 +139,24 @@ pub(super) fn read_tile_rows(
         .collect())
 }
 
+/// Refuse a window whose DEM has a pixel no LOLA product of `[inputs] lola` covers: the error
+/// names the first such pixel of the grid (the window's origin `at` added) and its longitude
+/// and latitude.
+pub(super) fn dem_covers(window: &Grid, at: (usize, usize), dem: &Array2<f64>) -> Result<()> {
+    let Some(((r, c), _)) = dem.indexed_iter().find(|(_, v)| !v.is_finite()) else {
+        return Ok(());
+    };
+    let (x, y) = window.xy(r as f64, c as f64);
+    let (lon, lat) = projector(&window.crs)?
+        .inverse(x, y)
+        .unwrap_or((f64::NAN, f64::NAN));
+    Err(Error::Usage(format!(
+        "no LOLA DEM of [inputs] lola covers grid pixel ({}, {}) at lon {lon:.4}, lat {lat:.4} (with the interpolation's support): add a DEM that covers the region or shrink [region]",
+        at.0 + r,
+        at.1 + c
+    )))
+}
+
 /// Run one tile and write its file atomically. `ingested`: the tile's inputs when the plan
 /// has them already (one tile over the whole grid, [`super::reference::build`]).
 pub(super) fn run_tile(
@@ -161,18 +179,10 @@ pub(super) fn run_tile(
         Some(i) => i,
         None => ingest_window(o, inputs, &plan.swaths, &grid)?,
     };
-    if let Some(((r, c), _)) = dem.indexed_iter().find(|(_, v)| !v.is_finite()) {
-        let (x, y) = grid.xy(r as f64, c as f64);
-        let (lon, lat) = projector(&grid.crs)?
-            .inverse(x, y)
-            .unwrap_or((f64::NAN, f64::NAN));
-        return Err(Error::Usage(format!(
-            "tile {}: no LOLA DEM of [inputs] lola covers grid pixel ({}, {}) at lon {lon:.4}, lat {lat:.4} (with the interpolation's support): add a DEM that covers the region or shrink [region]",
-            tile.id,
-            e.r0 + r,
-            e.c0 + c
-        )));
-    }
+    dem_covers(&grid, (e.r0, e.c0), &dem).map_err(|e| match e {
+        Error::Usage(m) => Error::Usage(format!("tile {}: {m}", tile.id)),
+        e => e,
+    })?;
     let ids: Vec<usize> = shots.iter().map(|(k, _)| *k).collect();
     let per_obs = |v: &[f64]| {
         ids.iter()
