@@ -242,6 +242,32 @@ pub struct ObservationSanity {
     pub change_footprint_max_m: f64,
 }
 
+/// What part an observation had in a run, from its figures: the one distinction the
+/// warnings, the run record's `gain_source` and the gain groups all draw.
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub enum Usage {
+    /// Its footprint misses the region.
+    OffRegion,
+    /// It covers the region, but no pixel of it was used (shadow, incidence limits, the
+    /// per-pixel maximum).
+    Unused,
+    /// It carried photometric information somewhere.
+    Used,
+}
+
+impl ObservationSanity {
+    /// [`Usage`] from the footprint and the photometric fraction.
+    pub fn usage(&self) -> Usage {
+        if self.footprint_pixels == 0 {
+            Usage::OffRegion
+        } else if self.photometric_fraction == 0.0 {
+            Usage::Unused
+        } else {
+            Usage::Used
+        }
+    }
+}
+
 /// The run's figures (see the module documentation).
 #[derive(Debug, Clone, Serialize)]
 pub struct Sanity {
@@ -313,16 +339,16 @@ impl Sanity {
         .flatten()
         .collect();
         for o in &observations {
-            if o.footprint_pixels == 0 {
-                warnings.push(format!(
+            match o.usage() {
+                Usage::OffRegion => warnings.push(format!(
                     "{}: the observation does not reach the region and was not used: check [inputs] m3 and [region]",
                     o.label
-                ));
-            } else if o.photometric_fraction == 0.0 {
-                warnings.push(format!(
+                )),
+                Usage::Unused => warnings.push(format!(
                     "{}: the observation covers {} px of the region but none was used (all in shadow, or outside [inputs] min_incidence_deg … max_incidence_deg, or beyond max_observations_per_pixel)",
                     o.label, o.footprint_pixels
-                ));
+                )),
+                Usage::Used => {}
             }
         }
         let blind = s.overlap_east_west_blind as f64 / s.overlap.max(1) as f64;
@@ -376,7 +402,7 @@ impl Sanity {
         );
         if self.observations.len() > 1 {
             for o in &self.observations {
-                if o.footprint_pixels == 0 {
+                if o.usage() == Usage::OffRegion {
                     t.push_str(&format!("  {}: 0 px (not used)\n", o.label));
                     continue;
                 }

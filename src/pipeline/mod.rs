@@ -32,7 +32,7 @@ use crate::photometry::{ModelSpec, ReflectanceModel};
 use crate::progress::Progress;
 use crate::quicklook::Thumbnail;
 use crate::raster::write_atomic;
-use crate::sanity::{Sanity, TileSums};
+use crate::sanity::{Sanity, TileSums, Usage};
 use crate::tiling::{self, Tile, Window};
 use crate::workflow::{Lab, Layer, Orbital, RegionKind, Workflow};
 use ndarray::{s, Array2, Zip};

@@ -251,22 +251,22 @@ pub(super) struct ObservationRecord {
 /// How observation `k`'s gain was fixed, in words: estimated relative to the first observation
 /// of its overlapping group (`reference`, [`fusion::observations::GainEstimate`]), 1 by
 /// definition for that one, assumed 1 where it overlaps no other, or none where the
-/// observation was not used (its footprint on the region and photometric fraction given).
+/// observation was not used (`usage`).
 pub(super) fn gain_source(
     k: usize,
     reference: Option<usize>,
-    (footprint, photometric): (usize, f64),
+    usage: Usage,
     labels: &[String],
 ) -> String {
-    match reference {
-        _ if footprint == 0 => {
+    match (usage, reference) {
+        (Usage::OffRegion, _) => {
             "none: the observation does not reach the region and was not used".into()
         }
-        _ if photometric == 0.0 => "none: the observation covers the region but was used nowhere".into(),
+        (Usage::Unused, _) => "none: the observation covers the region but was used nowhere".into(),
         _ if k == 0 => "1 by definition: the first observation listed is the reference".into(),
-        None => "assumed 1: the observation overlaps no other on the region".into(),
-        Some(r) if r == k => "1 by definition: the first of a group of observations that overlaps none listed before it (its gain is not tied to the first observation's)".into(),
-        Some(r) => format!(
+        (Usage::Used, None) => "assumed 1: the observation overlaps no other on the region".into(),
+        (Usage::Used, Some(r)) if r == k => "1 by definition: the first of a group of observations that overlaps none listed before it (its gain is not tied to the first observation's)".into(),
+        (Usage::Used, Some(r)) => format!(
             "estimated where the observations overlap, relative to observation {} ({})",
             r + 1,
             labels.get(r).map_or("?", String::as_str)
@@ -565,12 +565,8 @@ pub(super) fn mosaic(
         .map(|o| o.label_path.display().to_string())
         .collect();
     let mut sanity = Sanity::from_sums(&sums, &labels);
-    let coverage: Vec<(usize, f64)> = sanity
-        .observations
-        .iter()
-        .map(|o| (o.footprint_pixels, o.photometric_fraction))
-        .collect();
-    let used: Vec<bool> = coverage.iter().map(|&(n, f)| n > 0 && f > 0.0).collect();
+    let usage: Vec<Usage> = sanity.observations.iter().map(|o| o.usage()).collect();
+    let used: Vec<bool> = usage.iter().map(|&u| u == Usage::Used).collect();
     sanity
         .warnings
         .extend(gain_groups_warning(&labels, &used, &plan.gain_reference));
@@ -607,7 +603,7 @@ pub(super) fn mosaic(
                 gain_source: gain_source(
                     k,
                     plan.gain_reference.get(k).copied().flatten(),
-                    coverage.get(k).copied().unwrap_or((0, 0.0)),
+                    usage.get(k).copied().unwrap_or(Usage::OffRegion),
                     &labels,
                 ),
                 noise_weight: plan.noise_weights.get(k).copied().unwrap_or(1.0),
