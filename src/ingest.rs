@@ -409,7 +409,10 @@ pub fn survey(
 
 /// Resample observation `obs` at `nm` onto `grid` (`bearing` the grid bearing of north at
 /// each pixel, [`Geographic::bearing`] of `grid.geographic(pr)`), reading only the lines
-/// `index` says can reach the grid (or scanning LOC for them without one).
+/// `index` says can reach the grid (or scanning LOC for them without one). `shift` is the
+/// observation's displacement on the grid, metres along the projection's x and y
+/// ([`crate::registration`]): each swath pixel is placed that far back from where LOC puts it.
+#[allow(clippy::too_many_arguments)]
 pub fn m3_on_grid(
     obs: &Observation,
     solar: &SolarSpectrum,
@@ -418,12 +421,27 @@ pub fn m3_on_grid(
     pr: &Projector,
     bearing: ArrayView2<f64>,
     index: Option<&SwathIndex>,
+    shift: [f64; 2],
 ) -> Result<ImageOnGrid> {
     let label = &obs.label_path;
     let (loc, obsr) = parts(obs)?;
+    // In grid pixels (rows run south); the lines and samples are looked for on the grid grown
+    // by as much, since LOC puts the pixels that land on it that far away.
+    let (d_rows, d_cols) = (-shift[1] / grid.spacing, shift[0] / grid.spacing);
+    let grow = d_rows.abs().max(d_cols.abs()).ceil() as usize;
+    let search = if grow > 0 {
+        grid.window(
+            -(grow as isize),
+            -(grow as isize),
+            grid.rows + 2 * grow,
+            grid.cols + 2 * grow,
+        )
+    } else {
+        *grid
+    };
     let range = match index {
-        Some(ix) => ix.lines_for(grid),
-        None => scan_lines(&loc, grid, pr)?,
+        Some(ix) => ix.lines_for(&search),
+        None => scan_lines(&loc, &search, pr)?,
     };
     let Some((first, end)) = range else {
         return Err(Error::Usage(format!(
@@ -438,10 +456,15 @@ pub fn m3_on_grid(
     let (gr, gc, c0) = {
         let lon = read2(&loc, 0, first, n)?;
         let lat = read2(&loc, 1, first, n)?;
-        let (c0, c1) = grid::swath_sample_superset(grid, pr, lon.view(), lat.view())
+        let (c0, c1) = grid::swath_sample_superset(&search, pr, lon.view(), lat.view())
             .unwrap_or((0, lon.ncols()));
         let cols = s![.., c0..c1];
-        let (gr, gc) = grid::swath_grid_positions(grid, pr, lon.slice(cols), lat.slice(cols));
+        let (mut gr, mut gc) =
+            grid::swath_grid_positions(grid, pr, lon.slice(cols), lat.slice(cols));
+        if grow > 0 {
+            gr -= d_rows;
+            gc -= d_cols;
+        }
         (gr, gc, c0)
     };
     let (s0, s1) = grid::swath_samples(grid, gr.view(), gc.view())

@@ -17,6 +17,7 @@ pub mod pipeline;
 pub mod progress;
 pub mod quicklook;
 pub mod raster;
+pub mod registration;
 pub mod rng;
 pub mod sanity;
 pub mod spectral;

@@ -112,6 +112,32 @@ pub struct OrbitalInputs {
     /// weights fade over the 10° before it.
     #[serde(default)]
     pub max_incidence_deg: Option<f64>,
+    /// Register each observation to the DEM ([`crate::registration`]): estimate its
+    /// displacement in the plan and move it back where that reaches `register_min_px`
+    /// (default true; false: neither estimated nor applied).
+    #[serde(default = "default_true")]
+    pub register: bool,
+    /// The displacement, grid pixels, from which the plan applies it, when the correlation
+    /// at its peak reaches [`crate::registration::APPLY_CORRELATION`] (default 3: the
+    /// estimate's own bias against a DEM 4× coarser than the grid reaches 2 px under a Sun
+    /// 10° high on the synthetic scenes, docs/science.md "Registration").
+    #[serde(default = "default_register_min_px")]
+    pub register_min_px: f64,
+    /// How far the displacement is searched, grid pixels in each axis (default 16).
+    #[serde(default = "default_register_search_px")]
+    pub register_search_px: usize,
+}
+
+fn default_true() -> bool {
+    true
+}
+
+fn default_register_min_px() -> f64 {
+    3.0
+}
+
+fn default_register_search_px() -> usize {
+    16
 }
 
 impl OrbitalInputs {
@@ -500,6 +526,19 @@ impl Workflow {
                             "[inputs] dem_resolution_m = {r} must be a positive number of metres"
                         )));
                     }
+                }
+                let r = &o.inputs;
+                if !(r.register_min_px.is_finite() && r.register_min_px >= 0.0) {
+                    return Err(fail(format!(
+                        "[inputs] register_min_px = {} must be a number of pixels ≥ 0",
+                        r.register_min_px
+                    )));
+                }
+                if !(1..=256).contains(&r.register_search_px) {
+                    return Err(fail(format!(
+                        "[inputs] register_search_px = {} must be 1 to 256 pixels",
+                        r.register_search_px
+                    )));
                 }
                 let sel = o.inputs.selection();
                 let ok = (0.0..90.0).contains(&sel.min_incidence_deg)

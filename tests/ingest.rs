@@ -130,7 +130,17 @@ fn m3_global_crop_on_a_local_grid() {
     let pr = crs.projector().unwrap();
     let geo = g.geographic(&pr);
     // 500.92 nm is global band 1, held by the crop (which keeps only the first 3 bands).
-    let img = m3_on_grid(&obs, &solar, 500.92, &g, &pr, geo.bearing.view(), None).unwrap();
+    let img = m3_on_grid(
+        &obs,
+        &solar,
+        500.92,
+        &g,
+        &pr,
+        geo.bearing.view(),
+        None,
+        [0.0; 2],
+    )
+    .unwrap();
     assert_eq!(img.bands, (1, 1));
     assert_eq!(img.lines, (0, n));
     let filled: Vec<_> = img
@@ -227,6 +237,7 @@ fn a_grid_outside_the_product_is_refused_with_its_name() {
         &pr,
         g.geographic(&pr).bearing.view(),
         None,
+        [0.0; 2],
     )
     .unwrap_err()
     .to_string();
@@ -259,6 +270,7 @@ fn a_grid_outside_the_product_is_refused_with_its_name() {
         &pr2,
         g2.geographic(&pr2).bearing.view(),
         None,
+        [0.0; 2],
     )
     .unwrap_err()
     .to_string();
@@ -448,6 +460,7 @@ fn m3_on_a_window_is_the_window_of_m3_on_the_whole_grid() {
             &pr,
             g.geographic(&pr).bearing.view(),
             Some(&index),
+            [0.0; 2],
         )
     };
     let whole = on(&p.grid).unwrap();

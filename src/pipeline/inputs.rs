@@ -226,20 +226,29 @@ impl Dem {
 /// one (E_DEM then deconvolves: docs/science.md, "The DEM's resolution").
 pub const LOLA_TRACK_GAP_M: f64 = 600.0;
 
-/// Every observation whose swath reaches `grid`, on it (`index` of [`Plan::swaths`]), in input
-/// order with its index: reflectance NaN where the geometry is not finite; observations
-/// without a finite pixel are left out.
+/// Every observation whose swath reaches `grid`, on it (`index` of [`Plan::swaths`], moved by
+/// its registration shift of [`Plan::shifts`]; none where `shifts` is shorter), in input order
+/// with its index: reflectance NaN where the geometry is not finite; observations without a
+/// finite pixel are left out.
 pub(super) fn observations_on(
     o: &Orbital,
     inputs: &Inputs,
-    swaths: &[SwathIndex],
+    (swaths, shifts): (&[SwathIndex], &[[f64; 2]]),
     grid: &Grid,
     pr: &Projector,
     bearing: ndarray::ArrayView2<f64>,
 ) -> Result<Vec<(usize, ingest::ImageOnGrid)>> {
     let mut shots = Vec::new();
     for (k, (obs, index)) in inputs.obs.iter().zip(swaths).enumerate() {
-        if index.lines_for(grid).is_none() {
+        let shift = shifts.get(k).copied().unwrap_or([0.0; 2]);
+        let grow = (shift[0].abs().max(shift[1].abs()) / grid.spacing).ceil() as isize;
+        let reach = grid.window(
+            -grow,
+            -grow,
+            grid.rows + 2 * grow as usize,
+            grid.cols + 2 * grow as usize,
+        );
+        if index.lines_for(&reach).is_none() {
             continue;
         }
         let mut img = ingest::m3_on_grid(
@@ -250,6 +259,7 @@ pub(super) fn observations_on(
             pr,
             bearing,
             Some(index),
+            shift,
         )?;
         Zip::from(&mut img.reflectance)
             .and(&img.sun)
@@ -277,7 +287,7 @@ pub(super) struct Ingested {
 pub(super) fn ingest_window(
     o: &Orbital,
     inputs: &Inputs,
-    swaths: &[SwathIndex],
+    swaths: (&[SwathIndex], &[[f64; 2]]),
     window: &Grid,
 ) -> Result<Ingested> {
     let pr = projector(&window.crs)?;

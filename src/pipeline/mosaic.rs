@@ -246,6 +246,8 @@ pub(super) struct ObservationRecord {
     pub(super) footprint_pixels: usize,
     /// The share of its footprint where it carried photometric information.
     pub(super) photometric_fraction: f64,
+    /// Its registration to the DEM ([`super::plan::register`]).
+    pub(super) registration: Option<super::plan::Registration>,
 }
 
 /// How observation `k`'s gain was fixed, in words: estimated relative to the first observation
@@ -612,6 +614,7 @@ pub(super) fn mosaic(
                     .observations
                     .get(k)
                     .map_or(0.0, |o| o.photometric_fraction),
+                registration: plan.registration.get(k).cloned(),
             })
             .collect(),
         outputs: outputs.clone(),

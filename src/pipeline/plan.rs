@@ -55,6 +55,167 @@ pub struct Plan {
     /// tiles solve every stage themselves (`pipeline::reference`).
     #[serde(default)]
     pub reference: Option<ReferenceInfo>,
+    /// Each observation's registration to the DEM, in input order ([`register`]).
+    #[serde(default)]
+    pub registration: Vec<Registration>,
+    /// The displacement each observation is moved back by, metres along the grid's x and y
+    /// (0 where none is applied): every ingest of the run uses it.
+    #[serde(default)]
+    pub shifts: Vec<[f64; 2]>,
+}
+
+/// One observation's registration to the DEM ([`crate::registration`]).
+#[derive(Debug, Clone, Serialize, Deserialize)]
+pub struct Registration {
+    /// The displacement found, grid pixels (`None`: not estimated, or no clear peak).
+    pub shift: Option<crate::registration::Shift>,
+    /// The same along the grid's x and y, metres.
+    pub shift_m: Option<[f64; 2]>,
+    /// Whether the run moves the observation back by it.
+    pub applied: bool,
+    /// What was done and why, in words.
+    pub note: String,
+}
+
+/// The largest window, pixels on a side, an observation is registered on.
+pub const REGISTER_WINDOW: usize = 512;
+
+/// The widest DEM point spread σ_B, grid pixels, against which an observation is registered:
+/// beyond it the DEM's shading holds too little to place an image to a pixel.
+pub const REGISTER_MAX_PSF: f64 = 8.0;
+
+/// Register every observation to the DEM ([`Registration`]): on a window of at most
+/// [`REGISTER_WINDOW`]² pixels at the middle of its footprint on the grid, the image against the
+/// DEM rendered under its own Sun and view ([`crate::registration::estimate`], searched over
+/// `[inputs] register_search_px`), applied from `[inputs] register_min_px` where the peak's
+/// correlation reaches [`crate::registration::APPLY_CORRELATION`].
+pub(super) fn register(
+    o: &Orbital,
+    inputs: &Inputs,
+    grid: &Grid,
+    swaths: &[SwathIndex],
+    psf: f64,
+) -> Result<Vec<Registration>> {
+    let not = |note: String| Registration {
+        shift: None,
+        shift_m: None,
+        applied: false,
+        note,
+    };
+    let mut out = Vec::with_capacity(inputs.obs.len());
+    for (obs, index) in inputs.obs.iter().zip(swaths) {
+        if !o.inputs.register {
+            out.push(not("not registered: [inputs] register = false".into()));
+            continue;
+        }
+        if psf > REGISTER_MAX_PSF {
+            out.push(not(format!(
+                "not registered: the DEM's point spread σ_B = {psf:.1} px is wider than {REGISTER_MAX_PSF} px, too wide to place the image to a pixel"
+            )));
+            continue;
+        }
+        let Some(win) = footprint_window(grid, index) else {
+            out.push(not(
+                "not registered: the observation does not reach the region".into(),
+            ));
+            continue;
+        };
+        let pr = projector(&win.crs)?;
+        let geo = win.geographic(&pr);
+        let dem = dem_on(o, inputs, &geo);
+        let img = ingest::m3_on_grid(
+            obs,
+            &inputs.solar,
+            o.inputs.wavelength_nm,
+            &win,
+            &pr,
+            geo.bearing.view(),
+            Some(index),
+            [0.0; 2],
+        )?;
+        let (sun, view) = (
+            Directions::PerPixel(img.sun.view().into()),
+            Directions::PerPixel(img.view.view().into()),
+        );
+        let rendered = crate::registration::render(
+            dem.view(),
+            grid.spacing,
+            inputs.model.as_ref(),
+            &sun,
+            &view,
+        );
+        let search = o.inputs.register_search_px;
+        let est =
+            crate::registration::estimate(img.reflectance.view(), rendered.view(), psf, search);
+        out.push(match est {
+            None => not(format!(
+                "not registered: no clear peak of the image's correlation with the DEM's shading within {search} px on {} × {} px (a peak under {} or on the search's edge, or under {} px in common)",
+                win.rows,
+                win.cols,
+                crate::registration::MIN_CORRELATION,
+                crate::registration::MIN_PIXELS
+            )),
+            Some(s) => {
+                let strong = s.correlation >= crate::registration::APPLY_CORRELATION;
+                let applied = strong && s.length() >= o.inputs.register_min_px;
+                Registration {
+                    shift: Some(s),
+                    shift_m: Some([s.cols * grid.spacing, -s.rows * grid.spacing]),
+                    applied,
+                    note: format!(
+                        "displaced {:.2} px ({:.0} m) from the DEM's shading (correlation {:.3}, {:.3} in place): {}",
+                        s.length(),
+                        s.length() * grid.spacing,
+                        s.correlation,
+                        s.correlation_in_place,
+                        if applied {
+                            "moved back".to_string()
+                        } else if !strong {
+                            format!(
+                                "left in place (a correlation under {} leaves the estimate too uncertain to act on)",
+                                crate::registration::APPLY_CORRELATION
+                            )
+                        } else {
+                            format!(
+                                "left in place (under [inputs] register_min_px = {}: within what the estimate's own bias reaches)",
+                                o.inputs.register_min_px
+                            )
+                        }
+                    ),
+                }
+            }
+        });
+    }
+    Ok(out)
+}
+
+/// A window of at most [`REGISTER_WINDOW`]² pixels of `grid` centred on the middle of the
+/// bounding box of the swath's blocks that reach it (`None`: none does).
+fn footprint_window(grid: &Grid, index: &SwathIndex) -> Option<Grid> {
+    let (mut r0, mut r1, mut c0, mut c1) = (f64::MAX, f64::MIN, f64::MAX, f64::MIN);
+    for b in index.boxes.iter().flatten() {
+        let (ra, ca) = grid.pixel(b[0], b[3]);
+        let (rb, cb) = grid.pixel(b[1], b[2]);
+        let (ra, rb) = (ra.max(0.0), rb.min(grid.rows as f64 - 1.0));
+        let (ca, cb) = (ca.max(0.0), cb.min(grid.cols as f64 - 1.0));
+        if ra <= rb && ca <= cb {
+            (r0, r1, c0, c1) = (r0.min(ra), r1.max(rb), c0.min(ca), c1.max(cb));
+        }
+    }
+    if r0 > r1 {
+        return None;
+    }
+    let place = |lo: f64, hi: f64, n: usize| {
+        let size = REGISTER_WINDOW.min(n);
+        let mid = 0.5 * (lo + hi);
+        let start = (mid - 0.5 * size as f64)
+            .round()
+            .clamp(0.0, (n - size) as f64) as usize;
+        (start, size)
+    };
+    let (rs, rn) = place(r0, r1, grid.rows);
+    let (cs, cn) = place(c0, c1, grid.cols);
+    Some(grid.window(rs as isize, cs as isize, rn, cn))
 }
 
 impl Plan {
@@ -204,7 +365,7 @@ pub(super) fn run_gains(
     o: &Orbital,
     inputs: &Inputs,
     grid: &Grid,
-    swaths: &[SwathIndex],
+    swaths: (&[SwathIndex], &[[f64; 2]]),
     scale: f64,
 ) -> Result<(Vec<f64>, Vec<Option<usize>>)> {
     let f = ((grid.rows * grid.cols) as f64 / GAIN_PIXELS as f64)
@@ -504,9 +665,18 @@ pub(super) fn plan(
     let tiles = tiling::layout(grid.rows, grid.cols, o.tiling.tile_size, halo);
     let blend = o.tiling.blend.unwrap_or(halo / 4).min(halo);
     let intensity_scale = sum / count as f64;
+    progress.stage("planning: registration of the observations to the DEM");
+    let registration = register(o, inputs, &grid, &swaths, dem_psf_sigma)?;
+    let shifts: Vec<[f64; 2]> = registration
+        .iter()
+        .map(|r| match (r.applied, r.shift_m) {
+            (true, Some(m)) => m,
+            _ => [0.0; 2],
+        })
+        .collect();
     let (gains, gain_reference) = if inputs.obs.len() > 1 {
         progress.stage("planning: radiometric gains where observations overlap");
-        run_gains(o, inputs, &grid, &swaths, intensity_scale)?
+        run_gains(o, inputs, &grid, (&swaths, &shifts), intensity_scale)?
     } else {
         (vec![1.0], vec![Some(0)])
     };
@@ -527,6 +697,7 @@ pub(super) fn plan(
             progress.stage("planning: the coarse reference over the whole region");
             let run = RunWide {
                 swaths: &swaths,
+                shifts: &shifts,
                 scale: intensity_scale,
                 gains: &gains,
                 noise_weights: &noise_weights,
@@ -559,6 +730,8 @@ pub(super) fn plan(
         membrane,
         swaths,
         reference: built.as_ref().map(|b| b.info.clone()),
+        registration,
+        shifts,
     };
     write_atomic(
         &path,
@@ -590,6 +763,13 @@ pub(super) fn plan(
         p.dem_track_weight, p.dem_track_source
     ));
     progress.note(&format!("plan: membrane {}", p.membrane));
+    for (obs, r) in inputs.obs.iter().zip(&p.registration) {
+        progress.note(&format!(
+            "plan: registration of {}: {}",
+            obs.label_path.display(),
+            r.note
+        ));
+    }
     if let Some(r) = &p.reference {
         progress.note(&format!(
             "plan: coarse reference on {} × {} px of {} × {} grid pixels ({} Gauss–Newton steps, {:.1} s)",

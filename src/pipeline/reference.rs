@@ -48,6 +48,8 @@ pub(super) fn factor(grid: &Grid, params: &FusionParams) -> Option<usize> {
 /// The run-wide quantities a reference is solved with.
 pub(super) struct RunWide<'a> {
     pub swaths: &'a [SwathIndex],
+    /// Each observation's registration shift ([`Plan::shifts`]).
+    pub shifts: &'a [[f64; 2]],
     pub scale: f64,
     pub gains: &'a [f64],
     pub noise_weights: &'a [f64],
@@ -116,7 +118,7 @@ pub(super) fn build(
         let i1 = (i0 + band).min(cr);
         let (r0, r1) = (i0 * f, (i1 * f).min(grid.rows));
         let win = grid.window(r0 as isize, 0, r1 - r0, grid.cols);
-        let ingested = ingest_window(o, inputs, run.swaths, &win)?;
+        let ingested = ingest_window(o, inputs, (run.swaths, run.shifts), &win)?;
         // A region the DEM does not cover fails here, before the reference is solved, as
         // every tile over the gap would.
         super::tile::dem_covers(&win, (r0, 0), &ingested.dem).map_err(|e| match e {

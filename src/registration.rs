@@ -1,0 +1,281 @@
+//! Registration of an observation to the input DEM: the translation that best aligns the image
+//! with the DEM's own shading under the observation's geometry.
+//!
+//! M3's selenolocation (the LOC backplane of an L1B product) is uncertain by about 200 m
+//! between observations and 450 m absolute (RMS), and some observations are off by
+//! kilometres: one to several grid pixels at 140 m. LOLA's geolocation is good to tens of
+//! metres. An image fused where it is displaced puts its craters' shading beside the DEM's
+//! craters, and two observations displaced differently disagree about every slope; so each
+//! observation is aligned to the DEM before it is fused (docs/science.md, "Registration").
+//!
+//! The estimate compares, over a window, the image blurred to the DEM's resolution (σ_B) with
+//! the DEM rendered under the image's own Sun and view (constant albedo), both band-passed (the
+//! difference of Gaussians σ_B − 4σ_B, masked), by their normalised cross-correlation
+//! c(d) = Σ a(x)·b(x − d) / √(Σ a(x)² · Σ b(x − d)²) over the pixels valid in both, for every
+//! whole-pixel displacement d within the search radius; the peak is refined by a parabola in
+//! each axis.
+
+use crate::fusion::ops;
+use crate::fusion::Directions;
+use crate::photometry::ReflectanceModel;
+use crate::spectral::{self, Dct2d};
+use ndarray::{Array2, ArrayView2, Zip};
+use rayon::prelude::*;
+use serde::{Deserialize, Serialize};
+
+/// The fewest pixels valid in both band-passed fields at the peak for a displacement to count.
+pub const MIN_PIXELS: usize = 16384;
+
+/// The lowest normalised correlation at the peak for a displacement to count: below it the
+/// image and the DEM's shading share too little structure (a flat region, an image mostly in
+/// shadow, a DEM much coarser than the features) to say where the image lies. An image of
+/// other relief reaches 0.04 over a 256² window (test below).
+pub const MIN_CORRELATION: f64 = 0.2;
+
+/// How many times the best correlation beyond the peak's own width the peak must reach.
+pub const PEAK_RATIO: f64 = 1.5;
+
+/// The lowest correlation at the peak for a run to move an observation by its estimate. Under
+/// a high Sun the shading is faint and the estimate's bias grows (Sun 75° high: 1.4–2.6 px at
+/// correlations 0.21–0.31 on the synthetic scenes; docs/science.md "Registration").
+pub const APPLY_CORRELATION: f64 = 0.5;
+
+/// Albedo the DEM is rendered with: the correlation does not depend on the image's scale, and
+/// this is a typical lunar single-scattering albedo at 1.2 µm for the Hapke model.
+const RENDER_ALBEDO: f64 = 0.4;
+
+/// The displacement of an image relative to the DEM's shading, grid pixels: its content lies
+/// at `rows` (southward) and `cols` (eastward) from where the DEM puts the same relief.
+#[derive(Debug, Clone, Copy, PartialEq, Serialize, Deserialize)]
+pub struct Shift {
+    pub rows: f64,
+    pub cols: f64,
+    /// Normalised cross-correlation at the peak, and where the image lies (d = 0).
+    pub correlation: f64,
+    pub correlation_in_place: f64,
+    /// Pixels valid in both fields at the peak.
+    pub pixels: usize,
+}
+
+impl Shift {
+    /// Its length, grid pixels.
+    pub fn length(&self) -> f64 {
+        self.rows.hypot(self.cols)
+    }
+}
+
+/// The DEM `dem` (grid `spacing` metres) rendered under `sun` and `view` by `model` at a
+/// constant albedo: R at the central-difference slopes; NaN where the DEM is not finite or the
+/// surface is unlit or unseen.
+pub fn render(
+    dem: ArrayView2<f64>,
+    spacing: f64,
+    model: &dyn ReflectanceModel,
+    sun: &Directions,
+    view: &Directions,
+) -> Array2<f64> {
+    let (p, q) = ops::gradient(dem, spacing);
+    let mut out = Array2::from_elem(dem.dim(), f64::NAN);
+    Zip::indexed(&mut out)
+        .and(&p)
+        .and(&q)
+        .par_for_each(|(i, j), r, &p, &q| {
+            let (s, v) = (sun.at(i, j), view.at(i, j));
+            if !(p.is_finite() && q.is_finite() && s.iter().chain(&v).all(|c| c.is_finite())) {
+                return;
+            }
+            let sh = model.shade_observed(p, q, RENDER_ALBEDO, &s, &v);
+            if sh.lit && sh.r > 0.0 {
+                *r = sh.r;
+            }
+        });
+    out
+}
+
+/// The band-pass of `a` where it is finite: G_lo·a − G_hi·a with the Gaussians normalised over
+/// the finite pixels (σ_lo = `lo`, σ_hi = `hi` pixels); NaN where `a` is not finite. `None`
+/// when no pixel is finite.
+pub fn band_pass(a: ArrayView2<f64>, lo: f64, hi: f64) -> Option<Array2<f64>> {
+    let (ny, nx) = a.dim();
+    let dct = Dct2d::new(ny, nx);
+    let valid = a.mapv(f64::is_finite);
+    let filled = a.mapv(|v| if v.is_finite() { v } else { 0.0 });
+    let low = spectral::masked_gaussian(&dct, &filled, &valid, lo)?;
+    let wide = spectral::masked_gaussian(&dct, &filled, &valid, hi)?;
+    let mut out = low - wide;
+    Zip::from(&mut out).and(&valid).for_each(|o, &v| {
+        if !v {
+            *o = f64::NAN;
+        }
+    });
+    Some(out)
+}
+
+/// The displacement of `image` relative to `rendered` (the DEM's shading on the same grid),
+/// searched over whole pixels within `search` in each axis and refined to a fraction of a pixel;
+/// `psf` is the DEM's point spread σ_B in pixels (the image is blurred to it). `None` when the
+/// peak lies on the search's edge (the displacement may be larger), or falls short of
+/// [`MIN_CORRELATION`] or [`MIN_PIXELS`].
+pub fn estimate(
+    image: ArrayView2<f64>,
+    rendered: ArrayView2<f64>,
+    psf: f64,
+    search: usize,
+) -> Option<Shift> {
+    let lo = psf.max(1.0);
+    let hi = 4.0 * lo;
+    let a = band_pass(image, lo, hi)?;
+    // The rendering of a DEM blurred by σ_B is already that blurred: only its long
+    // wavelengths (albedo-free, but the image's are not) are taken out.
+    let b = band_pass(rendered, 0.0, hi)?;
+    let r = search as isize;
+    let shifts: Vec<(isize, isize)> = (-r..=r)
+        .flat_map(|dy| (-r..=r).map(move |dx| (dy, dx)))
+        .collect();
+    let scores: Vec<(f64, usize)> = shifts
+        .par_iter()
+        .map(|&(dy, dx)| correlation(a.view(), b.view(), dy, dx))
+        .collect();
+    let side = 2 * search + 1;
+    let at = |dy: isize, dx: isize| scores[((dy + r) as usize) * side + (dx + r) as usize].0;
+    // The first of equal maxima in row-major order: deterministic.
+    let (best, &(c, n)) =
+        scores
+            .iter()
+            .enumerate()
+            .fold(
+                None,
+                |acc: Option<(usize, &(f64, usize))>, (k, s)| match acc {
+                    Some((_, b)) if b.0 >= s.0 => acc,
+                    _ => Some((k, s)),
+                },
+            )?;
+    let (dy, dx) = shifts[best];
+    // The best correlation away from the peak (beyond its own width): a peak must stand out
+    // of what relief unrelated to the image reaches over the search.
+    let apart = (2.0 * lo).ceil() as isize + 1;
+    let second = shifts
+        .iter()
+        .zip(&scores)
+        .filter(|((y, x), _)| (y - dy).abs().max((x - dx).abs()) > apart)
+        .map(|(_, s)| s.0)
+        .fold(0.0, f64::max);
+    if dy.abs() == r
+        || dx.abs() == r
+        || !(c >= MIN_CORRELATION && c >= PEAK_RATIO * second)
+        || n < MIN_PIXELS
+    {
+        return None;
+    }
+    let vertex = |m: f64, z: f64, p: f64| {
+        let den = m - 2.0 * z + p;
+        if den < 0.0 {
+            (0.5 * (m - p) / den).clamp(-0.5, 0.5)
+        } else {
+            0.0
+        }
+    };
+    Some(Shift {
+        rows: dy as f64 + vertex(at(dy - 1, dx), c, at(dy + 1, dx)),
+        cols: dx as f64 + vertex(at(dy, dx - 1), c, at(dy, dx + 1)),
+        correlation: c,
+        correlation_in_place: at(0, 0),
+        pixels: n,
+    })
+}
+
+/// c(d) of the module documentation for d = (`dy`, `dx`), with the pixel count; sums in row
+/// order (deterministic).
+fn correlation(a: ArrayView2<f64>, b: ArrayView2<f64>, dy: isize, dx: isize) -> (f64, usize) {
+    let (ny, nx) = a.dim();
+    let (mut ab, mut aa, mut bb, mut n) = (0.0, 0.0, 0.0, 0usize);
+    let rows = (dy.max(0) as usize)..((ny as isize + dy.min(0)) as usize);
+    let cols = (dx.max(0) as usize)..((nx as isize + dx.min(0)) as usize);
+    for i in rows {
+        let bi = (i as isize - dy) as usize;
+        for j in cols.clone() {
+            let (u, v) = (a[(i, j)], b[(bi, (j as isize - dx) as usize)]);
+            if u.is_finite() && v.is_finite() {
+                ab += u * v;
+                aa += u * u;
+                bb += v * v;
+                n += 1;
+            }
+        }
+    }
+    let den = (aa * bb).sqrt();
+    (if den > 0.0 { ab / den } else { 0.0 }, n)
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use crate::grid::{interpolate, Interpolation};
+    use crate::synth::{generate, SceneSpec};
+
+    /// `a` displaced by (`rows`, `cols`) pixels: out(x) = a(x − d), bicubic; NaN off `a`.
+    fn displaced(a: &Array2<f64>, rows: f64, cols: f64) -> Array2<f64> {
+        Array2::from_shape_fn(a.dim(), |(i, j)| {
+            interpolate(
+                a.view(),
+                i as f64 - rows,
+                j as f64 - cols,
+                Interpolation::Bicubic,
+                false,
+            )
+        })
+    }
+
+    #[test]
+    fn a_displaced_image_is_found_where_it_was_put() {
+        let sc = generate(&SceneSpec {
+            size: 256,
+            seed: 10,
+            ..SceneSpec::default()
+        });
+        let pr = sc.problem();
+        let o = &pr.observations[0];
+        let rendered = render(pr.dem, pr.spacing, pr.model, &o.sun, &o.view);
+        // In place: the estimate is biased by the shading of relief sharper than the DEM's and
+        // by cast shadows (0.42 px here; up to 2.0 px under a Sun 10° high over the scenes
+        // measured, docs/science.md "Registration") — under the 3 px from which a run applies
+        // it.
+        let s = estimate(sc.image.view(), rendered.view(), pr.dem_psf_sigma, 8).unwrap();
+        assert!(s.length() < 0.8, "{s:?}");
+        assert!(s.correlation > 0.5, "{s:?}");
+        // Displaced by whole and fractional pixels, in either direction.
+        for (r, c) in [(3.0, -2.0), (-1.4, 2.6), (0.0, 5.5)] {
+            let moved = displaced(&sc.image, r, c);
+            let e = estimate(moved.view(), rendered.view(), pr.dem_psf_sigma, 8).unwrap();
+            let err = (e.rows - r - s.rows).hypot(e.cols - c - s.cols);
+            assert!(
+                err < 0.35,
+                "put at ({r}, {c}), found {e:?} (in place {s:?})"
+            );
+        }
+        // Beyond the search radius there is no answer, rather than a wrong one.
+        let far = displaced(&sc.image, 0.0, 12.0);
+        assert!(estimate(far.view(), rendered.view(), pr.dem_psf_sigma, 8).is_none());
+    }
+
+    #[test]
+    fn an_image_of_other_relief_is_not_placed() {
+        let a = generate(&SceneSpec {
+            size: 256,
+            seed: 10,
+            ..SceneSpec::default()
+        });
+        let b = generate(&SceneSpec {
+            size: 256,
+            seed: 11,
+            ..SceneSpec::default()
+        });
+        let pr = a.problem();
+        let o = &pr.observations[0];
+        let rendered = render(pr.dem, pr.spacing, pr.model, &o.sun, &o.view);
+        assert_eq!(
+            estimate(b.image.view(), rendered.view(), pr.dem_psf_sigma, 8),
+            None
+        );
+    }
+}
