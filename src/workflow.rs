@@ -118,9 +118,9 @@ pub struct OrbitalInputs {
     #[serde(default = "default_true")]
     pub register: bool,
     /// The displacement, grid pixels, from which the plan applies it, when the correlation
-    /// at its peak reaches [`crate::registration::APPLY_CORRELATION`] (default 3: the
-    /// estimate's own bias against a DEM 4× coarser than the grid reaches 2 px under a Sun
-    /// 10° high on the synthetic scenes, docs/science.md "Registration").
+    /// at its peak reaches [`crate::registration::APPLY_CORRELATION`] (default 2.5: the
+    /// estimate's own bias against a DEM 4× coarser than the grid reaches 1.3 px on the
+    /// synthetic scenes, docs/science.md "Registration").
     #[serde(default = "default_register_min_px")]
     pub register_min_px: f64,
     /// How far the displacement is searched, grid pixels in each axis (default 16).
@@ -133,7 +133,7 @@ fn default_true() -> bool {
 }
 
 fn default_register_min_px() -> f64 {
-    3.0
+    2.5
 }
 
 fn default_register_search_px() -> usize {

@@ -1632,7 +1632,7 @@ fn a_displaced_observation_is_registered_to_the_dem() {
     let (e_off, r_off) = run("unregistered", &q, false);
     assert_eq!(r_off["applied"], false, "{r_off}");
     eprintln!(
-        "in place {e_base:.2} m; moved 3 px: registered {e_reg:.2} m, not {e_off:.2} m; {r_reg}"
+        "in place {e_base:.2} m; moved 5 px: registered {e_reg:.2} m, not {e_off:.2} m; {r_reg}"
     );
     // In place: the estimate's own bias (under a pixel here) is left alone.
     assert_eq!(r_base["applied"], false, "{r_base}");
