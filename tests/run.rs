@@ -7,8 +7,8 @@ use std::path::Path;
 
 mod support;
 use support::{
-    largest_difference, observation_products, rmse, run_ok, scene_products, scratch, sfsfuse,
-    strip_products, workflow, write_workflow,
+    displaced_products, largest_difference, observation_products, rmse, run_ok, scene_products,
+    scratch, sfsfuse, strip_products, workflow, write_workflow,
 };
 
 /// The science-core bar (tests/science.rs) met through the whole pipeline: PDS3 products in,
@@ -1575,6 +1575,43 @@ fn a_full_disk_is_reported_by_file_and_a_rerun_completes() {
     let _ = std::fs::remove_dir_all(&dir);
 }
 
+/// Fuse `products` through `run` into `dir/name` with `[inputs] register` set: the DEM's RMSE
+/// against `truth` and run.json's registration records, one per observation.
+fn registered_run(
+    dir: &Path,
+    name: &str,
+    products: &sfsfuse::synth::products::Products,
+    register: bool,
+    truth: &ndarray::Array2<f64>,
+) -> (f64, Vec<serde_json::Value>) {
+    let out = dir.join(name);
+    let text = workflow(products, &out, 512, "").replace(
+        "dem_psf_sigma_px = 3.0",
+        &format!("dem_psf_sigma_px = 3.0\nregister = {register}"),
+    );
+    let wf = dir.join(format!("{name}.toml"));
+    std::fs::write(&wf, text).unwrap();
+    run_ok(&["run", "--progress", "quiet"], &wf);
+    let rec: serde_json::Value =
+        serde_json::from_slice(&std::fs::read(out.join("run.json")).unwrap()).unwrap();
+    let e = rmse(&read_tiff(&out.join("dem.tif")).unwrap().data, truth);
+    let regs = rec["observations"]
+        .as_array()
+        .unwrap()
+        .iter()
+        .map(|o| o["registration"].clone())
+        .collect();
+    (e, regs)
+}
+
+/// The registration's estimate, grid pixels (rows south, columns east).
+fn shift_of(r: &serde_json::Value) -> (f64, f64) {
+    (
+        r["shift"]["rows"].as_f64().unwrap(),
+        r["shift"]["cols"].as_f64().unwrap(),
+    )
+}
+
 /// An observation whose LOC puts it 5 grid pixels (700 m) east of where it lies — M3's
 /// selenolocation is uncertain by hundreds of metres, some observations by kilometres: the plan
 /// finds the displacement against the DEM's shading and moves the observation back, and the
@@ -1583,68 +1620,21 @@ fn a_full_disk_is_reported_by_file_and_a_rerun_completes() {
 fn a_displaced_observation_is_registered_to_the_dem() {
     let p = scene_products(256, 10);
     let dir = scratch("registration");
-    // The products again, with every LOC longitude moved east by 5 × 140 m.
-    let moved = dir.join("moved");
-    std::fs::create_dir_all(&moved).unwrap();
-    for e in std::fs::read_dir(p.m3_label.parent().unwrap()).unwrap() {
-        let e = e.unwrap().path();
-        std::fs::copy(&e, moved.join(e.file_name().unwrap())).unwrap();
-    }
-    let loc = moved.join(format!("{}_V03_LOC.IMG", sfsfuse::synth::products::M3_ID));
-    let bytes = std::fs::read(&loc).unwrap();
-    let (samples, east_m) = (p.grid.cols, 5.0 * p.grid.spacing);
-    let mut v: Vec<f64> = bytes
-        .chunks_exact(8)
-        .map(|c| f64::from_le_bytes(c.try_into().unwrap()))
-        .collect();
-    // Line-interleaved longitude, latitude, radius: each line's longitudes, then latitudes.
-    for line in v.chunks_exact_mut(3 * samples) {
-        let (lon, rest) = line.split_at_mut(samples);
-        for (lo, la) in lon.iter_mut().zip(&rest[..samples]) {
-            *lo += (east_m / (1_737_400.0 * la.to_radians().cos())).to_degrees();
-        }
-    }
-    let out: Vec<u8> = v.iter().flat_map(|x| x.to_le_bytes()).collect();
-    std::fs::write(&loc, out).unwrap();
-    let mut q = p.clone();
-    let at = |f: &Path| moved.join(f.file_name().unwrap());
-    q.m3_label = at(&p.m3_label);
-    q.m3_labels = p.m3_labels.iter().map(|l| at(l)).collect();
-    q.lola_label = at(&p.lola_label);
-    q.solar_table = at(&p.solar_table);
+    let q = displaced_products(p, 0, [5.0 * p.grid.spacing, 0.0], &dir.join("moved"));
     let truth = read_tiff(&p.truth_dem).unwrap().data;
-    let run = |name: &str, products: &sfsfuse::synth::products::Products, register: bool| {
-        let out = dir.join(name);
-        let text = workflow(products, &out, 512, "").replace(
-            "dem_psf_sigma_px = 3.0",
-            &format!("dem_psf_sigma_px = 3.0\nregister = {register}"),
-        );
-        let wf = dir.join(format!("{name}.toml"));
-        std::fs::write(&wf, text).unwrap();
-        run_ok(&["run", "--progress", "quiet"], &wf);
-        let rec: serde_json::Value =
-            serde_json::from_slice(&std::fs::read(out.join("run.json")).unwrap()).unwrap();
-        let e = rmse(&read_tiff(&out.join("dem.tif")).unwrap().data, &truth);
-        (e, rec["observations"][0]["registration"].clone())
-    };
-    let (e_base, r_base) = run("base", p, true);
-    let (e_reg, r_reg) = run("registered", &q, true);
-    let (e_off, r_off) = run("unregistered", &q, false);
-    assert_eq!(r_off["applied"], false, "{r_off}");
+    let (e_base, r_base) = registered_run(&dir, "base", p, true, &truth);
+    let (e_reg, r_reg) = registered_run(&dir, "registered", &q, true, &truth);
+    let (e_off, r_off) = registered_run(&dir, "unregistered", &q, false, &truth);
+    let (r_base, r_reg, r_off) = (&r_base[0], &r_reg[0], &r_off[0]);
     eprintln!(
         "in place {e_base:.2} m; moved 5 px: registered {e_reg:.2} m, not {e_off:.2} m; {r_reg}"
     );
+    assert_eq!(r_off["applied"], false, "{r_off}");
     // In place: the estimate's own bias (under a pixel here) is left alone.
     assert_eq!(r_base["applied"], false, "{r_base}");
-    assert!(
-        r_base["shift"]["cols"].as_f64().unwrap().abs() < 0.8,
-        "{r_base}"
-    );
+    assert!(shift_of(r_base).1.abs() < 0.8, "{r_base}");
     // Moved: found within the bias and moved back.
-    let (rows, cols) = (
-        r_reg["shift"]["rows"].as_f64().unwrap(),
-        r_reg["shift"]["cols"].as_f64().unwrap(),
-    );
+    let (rows, cols) = shift_of(r_reg);
     assert!(
         r_reg["applied"] == true && (cols - 5.0).abs() < 0.8 && rows.abs() < 0.8,
         "{r_reg}"
@@ -1655,6 +1645,46 @@ fn a_displaced_observation_is_registered_to_the_dem() {
     );
     assert!(
         e_off >= 1.5 * e_base,
+        "unregistered {e_off:.2} m against {e_base:.2} m in place"
+    );
+    std::fs::remove_dir_all(&dir).unwrap();
+}
+
+/// Two Suns, the second observation's LOC 4 px (560 m) north of where it lies: only it is moved
+/// back, the gains and the fusion then see two images that agree, and the pair comes close to
+/// the undisplaced pair; left displaced, the second image contradicts the first at every
+/// crater.
+#[test]
+fn of_two_observations_the_displaced_one_is_moved_back() {
+    let (dir, p) = observation_products(
+        256,
+        10,
+        (&sfsfuse::synth::DEMO_SUNS[..2], &[1.0, 1.05], false),
+        "registration-two",
+    );
+    let q = displaced_products(&p, 1, [0.0, 4.0 * p.grid.spacing], &dir.join("moved"));
+    let truth = read_tiff(&p.truth_dem).unwrap().data;
+    let (e_base, r_base) = registered_run(&dir, "base", &p, true, &truth);
+    let (e_reg, r_reg) = registered_run(&dir, "registered", &q, true, &truth);
+    let (e_off, _) = registered_run(&dir, "unregistered", &q, false, &truth);
+    eprintln!(
+        "in place {e_base:.2} m; second moved 4 px north: registered {e_reg:.2} m, not {e_off:.2} m; {r_reg:?}"
+    );
+    assert!(r_base.iter().all(|r| r["applied"] == false), "{r_base:?}");
+    assert_eq!(r_reg[0]["applied"], false, "{:?}", r_reg[0]);
+    // North is up the rows: −4 rows.
+    let (rows, cols) = shift_of(&r_reg[1]);
+    assert!(
+        r_reg[1]["applied"] == true && (rows + 4.0).abs() < 0.8 && cols.abs() < 0.8,
+        "{:?}",
+        r_reg[1]
+    );
+    assert!(
+        e_reg <= 1.15 * e_base,
+        "registered {e_reg:.2} m against {e_base:.2} m in place"
+    );
+    assert!(
+        e_off >= 1.3 * e_base,
         "unregistered {e_off:.2} m against {e_base:.2} m in place"
     );
     std::fs::remove_dir_all(&dir).unwrap();

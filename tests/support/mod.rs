@@ -194,3 +194,51 @@ pub fn largest_difference(a: &ndarray::Array2<f64>, b: &ndarray::Array2<f64>) ->
         .map(|(x, y)| (x - y).abs())
         .fold(0.0, f64::max)
 }
+
+/// A copy of `p`'s product set in `dest` in which observation `k`'s LOC backplane puts every
+/// pixel `shift_m` = [east, north] metres from where it lies (as a selenolocation error would),
+/// with the products' paths pointing there.
+pub fn displaced_products(
+    p: &products::Products,
+    k: usize,
+    shift_m: [f64; 2],
+    dest: &Path,
+) -> products::Products {
+    std::fs::create_dir_all(dest).unwrap();
+    for e in std::fs::read_dir(p.m3_label.parent().unwrap()).unwrap() {
+        let e = e.unwrap().path();
+        if e.is_file() {
+            std::fs::copy(&e, dest.join(e.file_name().unwrap())).unwrap();
+        }
+    }
+    let at = |f: &Path| dest.join(f.file_name().unwrap());
+    let obs = pds::m3::Observation::open(&at(&p.m3_labels[k])).unwrap();
+    let loc = obs.part("LOC").unwrap();
+    assert_eq!(loc.bands, 3);
+    let bytes = std::fs::read(&loc.path).unwrap();
+    let start = loc.offset as usize;
+    let mut v: Vec<f64> = bytes[start..]
+        .chunks_exact(8)
+        .map(|c| f64::from_le_bytes(c.try_into().unwrap()))
+        .collect();
+    // Line-interleaved longitude, latitude, radius (PC_REAL 64): each line's longitudes, then
+    // its latitudes. Metres on the 1737.4 km sphere.
+    let r = 1_737_400.0;
+    let n = loc.samples;
+    for line in v.chunks_exact_mut(3 * n) {
+        let (lon, rest) = line.split_at_mut(n);
+        for (lo, la) in lon.iter_mut().zip(rest[..n].iter_mut()) {
+            *lo += (shift_m[0] / (r * la.to_radians().cos())).to_degrees();
+            *la += (shift_m[1] / r).to_degrees();
+        }
+    }
+    let mut out = bytes[..start].to_vec();
+    out.extend(v.iter().flat_map(|x| x.to_le_bytes()));
+    std::fs::write(&loc.path, out).unwrap();
+    let mut q = p.clone();
+    q.m3_label = at(&p.m3_label);
+    q.m3_labels = p.m3_labels.iter().map(|l| at(l)).collect();
+    q.lola_label = at(&p.lola_label);
+    q.solar_table = at(&p.solar_table);
+    q
+}
