@@ -71,6 +71,9 @@ pub struct Registration {
     pub shift: Option<crate::registration::Shift>,
     /// The same along the grid's x and y, metres.
     pub shift_m: Option<[f64; 2]>,
+    /// The observation (input index) it was placed relative to; `None`: against the DEM.
+    #[serde(default)]
+    pub relative_to: Option<usize>,
     /// Whether the run moves the observation back by it.
     pub applied: bool,
     /// What was done and why, in words.
@@ -84,26 +87,39 @@ pub const REGISTER_WINDOW: usize = 512;
 /// beyond it the DEM's shading holds too little to place an image to a pixel.
 pub const REGISTER_MAX_PSF: f64 = 8.0;
 
-/// Register every observation to the DEM ([`Registration`]): on a window of at most
-/// [`REGISTER_WINDOW`]² pixels at the middle of its footprint on the grid, the image against the
-/// DEM rendered under its own Sun and view ([`crate::registration::estimate`], searched over
-/// `[inputs] register_search_px`), applied from `[inputs] register_min_px` where the peak's
-/// correlation reaches [`crate::registration::APPLY_CORRELATION`].
+/// Register every observation ([`Registration`]), in input order, on a window of at most
+/// [`REGISTER_WINDOW`]² pixels ([`crate::registration::estimate`], searched over
+/// `[inputs] register_search_px`):
+/// - one that overlaps an observation listed before it (the one it overlaps most) is placed
+///   relative to that one: against the single-image fusion of the earlier observation (moved
+///   by its own shift) on their common window, rendered under the later one's Sun and view.
+///   The fused relief is as sharp as the image, so the estimate's bias is a few tenths of a
+///   pixel; applied from [`REGISTER_RELATIVE_MIN_PX`];
+/// - any other (the first listed, or one overlapping none before it) is placed against the DEM
+///   rendered under its own Sun and view, applied from `[inputs] register_min_px`.
+///
+/// Either is applied only where the peak's correlation reaches
+/// [`crate::registration::APPLY_CORRELATION`].
+#[allow(clippy::too_many_arguments)]
 pub(super) fn register(
     o: &Orbital,
     inputs: &Inputs,
     grid: &Grid,
     swaths: &[SwathIndex],
     psf: f64,
+    params: &FusionParams,
+    scale: f64,
 ) -> Result<Vec<Registration>> {
     let not = |note: String| Registration {
         shift: None,
         shift_m: None,
+        relative_to: None,
         applied: false,
         note,
     };
-    let mut out = Vec::with_capacity(inputs.obs.len());
-    for (obs, index) in inputs.obs.iter().zip(swaths) {
+    let mut out: Vec<Registration> = Vec::with_capacity(inputs.obs.len());
+    let boxes: Vec<Option<[f64; 4]>> = swaths.iter().map(|ix| footprint_box(grid, ix)).collect();
+    for k in 0..inputs.obs.len() {
         if !o.inputs.register {
             out.push(not("not registered: [inputs] register = false".into()));
             continue;
@@ -114,56 +130,123 @@ pub(super) fn register(
             )));
             continue;
         }
-        let Some(win) = footprint_window(grid, index) else {
+        let Some(own) = boxes[k] else {
             out.push(not(
                 "not registered: the observation does not reach the region".into(),
             ));
             continue;
         };
+        // The earlier observation it overlaps most, on a window of at least 64 px a side.
+        let partner = (0..k)
+            .filter_map(|j| {
+                let b = intersect(own, boxes[j]?)?;
+                let (h, w) = (b[1] - b[0] + 1.0, b[3] - b[2] + 1.0);
+                (h >= RELATIVE_MIN_SIDE && w >= RELATIVE_MIN_SIDE).then_some((j, b, h * w))
+            })
+            .fold(None, |best: Option<(usize, [f64; 4], f64)>, c| match best {
+                Some(b) if b.2 >= c.2 => Some(b),
+                _ => Some(c),
+            });
+        let search = o.inputs.register_search_px;
+        let (win, relative_to) = match partner {
+            Some((j, b, _)) => (window_on(grid, b), Some(j)),
+            None => (window_on(grid, own), None),
+        };
         let pr = projector(&win.crs)?;
         let geo = win.geographic(&pr);
         let dem = dem_on(o, inputs, &geo);
-        let img = ingest::m3_on_grid(
-            obs,
-            &inputs.solar,
-            o.inputs.wavelength_nm,
-            &win,
-            &pr,
-            geo.bearing.view(),
-            Some(index),
-            [0.0; 2],
-        )?;
+        let ingest = |k: usize, shift: [f64; 2]| {
+            ingest::m3_on_grid(
+                &inputs.obs[k],
+                &inputs.solar,
+                o.inputs.wavelength_nm,
+                &win,
+                &pr,
+                geo.bearing.view(),
+                Some(&swaths[k]),
+                shift,
+            )
+        };
+        let img = ingest(k, [0.0; 2])?;
         let (sun, view) = (
             Directions::PerPixel(img.sun.view().into()),
             Directions::PerPixel(img.view.view().into()),
         );
+        let (surface, against_psf) = match relative_to {
+            Some(j) => {
+                let shift = match (out[j].applied, out[j].shift_m) {
+                    (true, Some(m)) => m,
+                    _ => [0.0; 2],
+                };
+                let other = [(j, ingest(j, shift)?)];
+                let mut filled = dem.clone();
+                crate::pipeline::lab::fill_holes(&mut filled);
+                let problem = Problem {
+                    observations: fusion_observations(&other),
+                    dem: filled.view(),
+                    spacing: grid.spacing,
+                    dem_psf_sigma: psf,
+                    model: inputs.model.as_ref(),
+                    intensity_scale: Some(scale),
+                    gains: None,
+                    noise_weights: None,
+                    selection: o.inputs.selection(),
+                };
+                match fusion::fuse(&problem, params) {
+                    Ok(f) => (f.height, 0.0),
+                    Err(_) => (dem.clone(), psf),
+                }
+            }
+            None => (dem.clone(), psf),
+        };
         let rendered = crate::registration::render(
-            dem.view(),
+            surface.view(),
             grid.spacing,
             inputs.model.as_ref(),
             &sun,
             &view,
         );
-        let search = o.inputs.register_search_px;
-        let est =
-            crate::registration::estimate(img.reflectance.view(), rendered.view(), psf, search);
+        let est = crate::registration::estimate(
+            img.reflectance.view(),
+            rendered.view(),
+            against_psf,
+            search,
+        );
+        let (what, min_px) = match relative_to {
+            Some(j) => (
+                format!(
+                    "relative to observation {} ({}), fused alone",
+                    j + 1,
+                    inputs.obs[j].label_path.display()
+                ),
+                REGISTER_RELATIVE_MIN_PX,
+            ),
+            None => (
+                "against the DEM's shading".to_string(),
+                o.inputs.register_min_px,
+            ),
+        };
         out.push(match est {
-            None => not(format!(
-                "not registered: no clear peak of the image's correlation with the DEM's shading within {search} px on {} × {} px (a peak under {} or on the search's edge, or under {} px in common)",
-                win.rows,
-                win.cols,
-                crate::registration::MIN_CORRELATION,
-                crate::registration::MIN_PIXELS
-            )),
+            None => Registration {
+                relative_to,
+                ..not(format!(
+                    "not registered: no clear peak of the image's correlation {what} within {search} px on {} × {} px (a peak under {} or on the search's edge, or under {} px in common)",
+                    win.rows,
+                    win.cols,
+                    crate::registration::MIN_CORRELATION,
+                    crate::registration::MIN_PIXELS
+                ))
+            },
             Some(s) => {
                 let strong = s.correlation >= crate::registration::APPLY_CORRELATION;
-                let applied = strong && s.length() >= o.inputs.register_min_px;
+                let applied = strong && s.length() >= min_px;
                 Registration {
                     shift: Some(s),
                     shift_m: Some([s.cols * grid.spacing, -s.rows * grid.spacing]),
+                    relative_to,
                     applied,
                     note: format!(
-                        "displaced {:.2} px ({:.0} m) from the DEM's shading (correlation {:.3}, {:.3} in place): {}",
+                        "displaced {:.2} px ({:.0} m) {what} (correlation {:.3}, {:.3} in place): {}",
                         s.length(),
                         s.length() * grid.spacing,
                         s.correlation,
@@ -177,8 +260,7 @@ pub(super) fn register(
                             )
                         } else {
                             format!(
-                                "left in place (under [inputs] register_min_px = {}: within what the estimate's own bias reaches)",
-                                o.inputs.register_min_px
+                                "left in place (under {min_px} px: within what the estimate's own bias reaches)"
                             )
                         }
                     ),
@@ -189,9 +271,17 @@ pub(super) fn register(
     Ok(out)
 }
 
-/// A window of at most [`REGISTER_WINDOW`]² pixels of `grid` centred on the middle of the
-/// bounding box of the swath's blocks that reach it (`None`: none does).
-fn footprint_window(grid: &Grid, index: &SwathIndex) -> Option<Grid> {
+/// The displacement, grid pixels, from which an observation placed relative to another one is
+/// moved back (docs/science.md, "Registration": that estimate's bias reached 0.6 px).
+pub const REGISTER_RELATIVE_MIN_PX: f64 = 1.0;
+
+/// The smallest side, grid pixels, of two observations' common window for one to be placed
+/// relative to the other.
+const RELATIVE_MIN_SIDE: f64 = 64.0;
+
+/// The bounding box [row₀, row₁, col₀, col₁] (grid pixels, inclusive, clipped to the grid) of
+/// the swath's blocks that reach `grid`; `None`: none does.
+fn footprint_box(grid: &Grid, index: &SwathIndex) -> Option<[f64; 4]> {
     let (mut r0, mut r1, mut c0, mut c1) = (f64::MAX, f64::MIN, f64::MAX, f64::MIN);
     for b in index.boxes.iter().flatten() {
         let (ra, ca) = grid.pixel(b[0], b[3]);
@@ -202,20 +292,36 @@ fn footprint_window(grid: &Grid, index: &SwathIndex) -> Option<Grid> {
             (r0, r1, c0, c1) = (r0.min(ra), r1.max(rb), c0.min(ca), c1.max(cb));
         }
     }
-    if r0 > r1 {
-        return None;
-    }
+    (r0 <= r1).then_some([r0, r1, c0, c1])
+}
+
+/// The common part of two boxes of [`footprint_box`].
+fn intersect(a: [f64; 4], b: [f64; 4]) -> Option<[f64; 4]> {
+    let r = [
+        a[0].max(b[0]),
+        a[1].min(b[1]),
+        a[2].max(b[2]),
+        a[3].min(b[3]),
+    ];
+    (r[0] <= r[1] && r[2] <= r[3]).then_some(r)
+}
+
+/// A window of at most [`REGISTER_WINDOW`]² pixels of `grid` centred on the middle of box `b`
+/// (of [`footprint_box`]), as large as the box.
+fn window_on(grid: &Grid, b: [f64; 4]) -> Grid {
     let place = |lo: f64, hi: f64, n: usize| {
-        let size = REGISTER_WINDOW.min(n);
+        let size = REGISTER_WINDOW
+            .min((hi - lo + 1.0).ceil() as usize)
+            .clamp(1, n);
         let mid = 0.5 * (lo + hi);
-        let start = (mid - 0.5 * size as f64)
+        let start = (mid - 0.5 * size as f64 + 0.5)
             .round()
             .clamp(0.0, (n - size) as f64) as usize;
         (start, size)
     };
-    let (rs, rn) = place(r0, r1, grid.rows);
-    let (cs, cn) = place(c0, c1, grid.cols);
-    Some(grid.window(rs as isize, cs as isize, rn, cn))
+    let (rs, rn) = place(b[0], b[1], grid.rows);
+    let (cs, cn) = place(b[2], b[3], grid.cols);
+    grid.window(rs as isize, cs as isize, rn, cn)
 }
 
 impl Plan {
@@ -665,8 +771,16 @@ pub(super) fn plan(
     let tiles = tiling::layout(grid.rows, grid.cols, o.tiling.tile_size, halo);
     let blend = o.tiling.blend.unwrap_or(halo / 4).min(halo);
     let intensity_scale = sum / count as f64;
-    progress.stage("planning: registration of the observations to the DEM");
-    let registration = register(o, inputs, &grid, &swaths, dem_psf_sigma)?;
+    progress.stage("planning: registration of the observations");
+    let registration = register(
+        o,
+        inputs,
+        &grid,
+        &swaths,
+        dem_psf_sigma,
+        &params,
+        intensity_scale,
+    )?;
     let shifts: Vec<[f64; 2]> = registration
         .iter()
         .map(|r| match (r.applied, r.shift_m) {
