@@ -148,7 +148,7 @@ pub(super) fn register(
                 _ => Some(c),
             });
         let search = o.inputs.register_search_px;
-        let (win, relative_to) = match partner {
+        let (win, mut relative_to) = match partner {
             Some((j, b, _)) => (window_on(grid, b), Some(j)),
             None => (window_on(grid, own), None),
         };
@@ -194,7 +194,12 @@ pub(super) fn register(
                 };
                 match fusion::fuse(&problem, params) {
                     Ok(f) => (f.height, 0.0),
-                    Err(_) => (dem.clone(), psf),
+                    // Nothing of the earlier observation usable there (all in shadow, say):
+                    // against the DEM on the same window.
+                    Err(_) => {
+                        relative_to = None;
+                        (dem.clone(), psf)
+                    }
                 }
             }
             None => (dem.clone(), psf),
