@@ -177,6 +177,12 @@ enum Command {
         /// by half a strip.
         #[arg(long)]
         strips: bool,
+        /// A selenolocation error of each observation as EAST/NORTH metres (in `--sun` order;
+        /// missing ones are 0/0): its LOC backplane puts every pixel that far from where it
+        /// lies, e.g. `--loc-offset 0/0 --loc-offset 150/150`. `run` registers it back
+        /// (docs/science.md, "Registration").
+        #[arg(long = "loc-offset", allow_hyphen_values = true, value_parser = sfsfuse::synth::parse_offset)]
+        loc_offsets: Vec<[f64; 2]>,
         /// Centre of the scene's stereographic grid as LAT/LON in degrees (default: crater
         /// Alphonsus, -13.4/357.2). Scenes wider than ≈ 1100 px at 140 m reach longitude 0°
         /// from Alphonsus, which the LOLA-like writer does not handle: centre them further east.
@@ -397,9 +403,17 @@ fn run(cli: Cli) -> Result<(), sfsfuse::Error> {
             suns,
             gains,
             strips,
+            loc_offsets,
             center,
             json,
         } => {
+            if loc_offsets.len() > suns.len().max(1) {
+                return Err(sfsfuse::Error::Usage(format!(
+                    "{} --loc-offset values for {} observation(s): give at most one per --sun",
+                    loc_offsets.len(),
+                    suns.len().max(1)
+                )));
+            }
             if let Some(g) = gains.iter().find(|g| !(g.is_finite() && **g > 0.0)) {
                 return Err(sfsfuse::Error::Usage(format!(
                     "--gain {g}: a gain must be a positive number"
@@ -434,7 +448,7 @@ fn run(cli: Cli) -> Result<(), sfsfuse::Error> {
                 Some((lat, lon)) => sfsfuse::demo::grid_at(&spec, lat, lon)?,
                 None => sfsfuse::demo::demo_grid(&spec)?,
             };
-            let p = sfsfuse::synth::products::write(&scene, &grid, &out)?;
+            let p = sfsfuse::synth::products::write_displaced(&scene, &grid, &out, &loc_offsets)?;
             let labels: Vec<String> = p
                 .m3_labels
                 .iter()

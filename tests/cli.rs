@@ -454,3 +454,77 @@ fn a_closed_pipe_is_neither_a_panic_nor_a_failure() {
     let r: serde_json::Value = serde_json::from_slice(&o.stdout).unwrap();
     assert!(r["fusion_seconds"].as_f64().is_some_and(|s| s > 0.0), "{r}");
 }
+
+/// `synth --loc-offset EAST/NORTH` writes an observation whose LOC backplane misplaces every
+/// pixel by that many metres on the 1737.4 km sphere (checked against the same scene written
+/// without it), leaves the others alone, and refuses what is not an offset.
+#[test]
+fn synth_writes_a_selenolocation_error_where_asked() {
+    let base = scratch("loc-offset");
+    let write = |name: &str, extra: &[&str]| {
+        let out = base.join(name);
+        let o = sfsfuse()
+            .args([
+                "synth", "--size", "32", "--sun", "105/30", "--sun", "225/35", "--out",
+            ])
+            .arg(&out)
+            .args(extra)
+            .output()
+            .unwrap();
+        assert!(o.status.success(), "{}", String::from_utf8_lossy(&o.stderr));
+        out
+    };
+    let plain = write("plain", &[]);
+    let moved = write(
+        "moved",
+        &["--loc-offset", "0/0", "--loc-offset", "300/-200"],
+    );
+    let loc = |dir: &std::path::Path, id: &str| -> Vec<f64> {
+        std::fs::read(dir.join(format!("{id}_V03_LOC.IMG")))
+            .unwrap()
+            .chunks_exact(8)
+            .map(|c| f64::from_le_bytes(c.try_into().unwrap()))
+            .collect()
+    };
+    let first = "M3G20991231T000000";
+    assert_eq!(loc(&plain, first), loc(&moved, first));
+    let second = "M3G20991231T010000";
+    let (a, b) = (loc(&plain, second), loc(&moved, second));
+    // Line-interleaved longitude, latitude, radius over 32 samples.
+    let r = 1_737_400.0;
+    for (la, lb) in a.chunks_exact(96).zip(b.chunks_exact(96)) {
+        for s in 0..32 {
+            let east = (lb[s] - la[s]).to_radians() * r * la[32 + s].to_radians().cos();
+            let north = (lb[32 + s] - la[32 + s]).to_radians() * r;
+            assert!((east - 300.0).abs() < 1e-3 && (north + 200.0).abs() < 1e-3);
+            assert_eq!(la[64 + s], lb[64 + s]);
+        }
+    }
+    for (bad, says) in [
+        (vec!["--loc-offset", "300"], "EAST/NORTH"),
+        (vec!["--loc-offset", "1e9/0"], "within 100 km"),
+        (
+            vec![
+                "--loc-offset",
+                "0/0",
+                "--loc-offset",
+                "1/1",
+                "--loc-offset",
+                "2/2",
+            ],
+            "at most one per --sun",
+        ),
+    ] {
+        let o = sfsfuse()
+            .args([
+                "synth", "--size", "32", "--sun", "105/30", "--sun", "225/35", "--out",
+            ])
+            .arg(base.join("bad"))
+            .args(&bad)
+            .output()
+            .unwrap();
+        let e = String::from_utf8_lossy(&o.stderr);
+        assert!(!o.status.success() && e.contains(says), "{bad:?}: {e}");
+    }
+    std::fs::remove_dir_all(&base).unwrap();
+}

@@ -132,6 +132,20 @@ pub fn parse_sun(text: &str) -> Result<(f64, f64), String> {
     Ok((a, e))
 }
 
+/// `--loc-offset EAST/NORTH`: a selenolocation error in metres, each finite and within
+/// 100 km.
+pub fn parse_offset(text: &str) -> Result<[f64; 2], String> {
+    let (e, n) = parse_pair(text).ok_or_else(|| {
+        format!("--loc-offset {text}: expected EAST/NORTH in metres, e.g. 150/-150")
+    })?;
+    if !(e.is_finite() && n.is_finite() && e.abs() <= 1e5 && n.abs() <= 1e5) {
+        return Err(format!(
+            "--loc-offset {text}: each of east and north must be a number of metres within 100 km"
+        ));
+    }
+    Ok([e, n])
+}
+
 /// `A/B`: two numbers separated by a slash (spaces around them allowed); `None` otherwise.
 pub fn parse_pair(text: &str) -> Option<(f64, f64)> {
     let (a, b) = text.split_once('/')?;

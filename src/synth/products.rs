@@ -66,6 +66,26 @@ fn f32_bytes(out: &mut Vec<u8>, v: f64) {
 
 /// Write the scene's products into `dir`.
 pub fn write(scene: &Scene, grid: &Grid, dir: &Path) -> Result<Products> {
+    write_displaced(scene, grid, dir, &[])
+}
+
+/// [`write`], with observation k's LOC backplane putting every pixel `loc_offsets_m[k]` =
+/// [east, north] metres (on the 1737.4 km sphere) from where it lies, as an error of its
+/// selenolocation would (missing entries: none). The images, OBS and the truth are those of
+/// [`write`]; `sfsfuse run`'s registration should find and undo the offsets
+/// (docs/science.md, "Registration").
+pub fn write_displaced(
+    scene: &Scene,
+    grid: &Grid,
+    dir: &Path,
+    loc_offsets_m: &[[f64; 2]],
+) -> Result<Products> {
+    if let Some(o) = loc_offsets_m.iter().flatten().find(|v| !v.is_finite()) {
+        return Err(Error::Usage(format!(
+            "a LOC offset of {o} m is not a number of metres"
+        )));
+    }
+    let offset = |k: usize| loc_offsets_m.get(k).copied().unwrap_or([0.0; 2]);
     std::fs::create_dir_all(dir).map_err(|e| Error::io(dir, e))?;
     let (rows, cols) = scene.image.dim();
     if (rows, cols) != (grid.rows, grid.cols) {
@@ -88,6 +108,7 @@ pub fn write(scene: &Scene, grid: &Grid, dir: &Path) -> Result<Products> {
             image: scene.image.view(),
             sun: scene.sun,
             columns: scene.spec.columns,
+            loc_offset_m: offset(0),
         },
         scene,
         grid,
@@ -102,6 +123,7 @@ pub fn write(scene: &Scene, grid: &Grid, dir: &Path) -> Result<Products> {
                 image: m.image.view(),
                 sun: m.sun,
                 columns: m.spec.columns,
+                loc_offset_m: offset(k + 1),
             },
             scene,
             grid,
@@ -161,6 +183,8 @@ struct Shot<'a> {
     image: ndarray::ArrayView2<'a, f64>,
     sun: crate::photometry::Vec3,
     columns: Option<[usize; 2]>,
+    /// [east, north] metres that LOC misplaces every pixel by.
+    loc_offset_m: [f64; 2],
 }
 
 /// One M3-like L1B product set (label, RDN + ENVI header, LOC, OBS) named `id`: swath sample
@@ -210,9 +234,13 @@ fn write_m3(
             line.clear();
             for band in 0..3 {
                 for j in c0..c1 {
+                    let [east, north] = shot.loc_offset_m;
+                    let lat = geo.lat[(i, j)];
                     let v = match band {
-                        0 => geo.lon[(i, j)].rem_euclid(360.0),
-                        1 => geo.lat[(i, j)],
+                        0 => (geo.lon[(i, j)]
+                            + (east / (MOON_RADIUS_M * lat.to_radians().cos())).to_degrees())
+                        .rem_euclid(360.0),
+                        1 => lat + (north / MOON_RADIUS_M).to_degrees(),
                         _ => MOON_RADIUS_M + scene.truth_height[(i, j)],
                     };
                     line.extend_from_slice(&v.to_le_bytes());
