@@ -276,13 +276,18 @@ mod tests {
         })
     }
 
+    /// The 256² synthetic scene of `seed` (one Sun, 105/30).
+    fn scene(seed: u64) -> crate::synth::Scene {
+        generate(&SceneSpec {
+            size: 256,
+            seed,
+            ..SceneSpec::default()
+        })
+    }
+
     #[test]
     fn a_displaced_image_is_found_where_it_was_put() {
-        let sc = generate(&SceneSpec {
-            size: 256,
-            seed: 10,
-            ..SceneSpec::default()
-        });
+        let sc = scene(10);
         let pr = sc.problem();
         let o = &pr.observations[0];
         let rendered = render(pr.dem, pr.spacing, pr.model, &o.sun, &o.view);
@@ -309,16 +314,7 @@ mod tests {
 
     #[test]
     fn an_image_of_other_relief_is_not_placed() {
-        let a = generate(&SceneSpec {
-            size: 256,
-            seed: 10,
-            ..SceneSpec::default()
-        });
-        let b = generate(&SceneSpec {
-            size: 256,
-            seed: 11,
-            ..SceneSpec::default()
-        });
+        let (a, b) = (scene(10), scene(11));
         let pr = a.problem();
         let o = &pr.observations[0];
         let rendered = render(pr.dem, pr.spacing, pr.model, &o.sun, &o.view);
