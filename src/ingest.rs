@@ -407,6 +407,19 @@ pub fn survey(
     })
 }
 
+/// Where LOC may put the pixels of an observation displaced by `shift` (metres along the
+/// projection's x and y, [`m3_on_grid`]) that land on `grid`: the grid grown on every side by
+/// the shift's larger component, rounded up to whole pixels (`grid` itself for no shift).
+pub fn reach(grid: &Grid, shift: [f64; 2]) -> Grid {
+    let grow = (shift[0].abs().max(shift[1].abs()) / grid.spacing).ceil() as usize;
+    grid.window(
+        -(grow as isize),
+        -(grow as isize),
+        grid.rows + 2 * grow,
+        grid.cols + 2 * grow,
+    )
+}
+
 /// Resample observation `obs` at `nm` onto `grid` (`bearing` the grid bearing of north at
 /// each pixel, [`Geographic::bearing`] of `grid.geographic(pr)`), reading only the lines
 /// `index` says can reach the grid (or scanning LOC for them without one). `shift` is the
@@ -425,20 +438,10 @@ pub fn m3_on_grid(
 ) -> Result<ImageOnGrid> {
     let label = &obs.label_path;
     let (loc, obsr) = parts(obs)?;
-    // In grid pixels (rows run south); the lines and samples are looked for on the grid grown
-    // by as much, since LOC puts the pixels that land on it that far away.
+    // In grid pixels (rows run south); the lines and samples are looked for on the grid's
+    // reach, since LOC puts the pixels that land on it that far away.
     let (d_rows, d_cols) = (-shift[1] / grid.spacing, shift[0] / grid.spacing);
-    let grow = d_rows.abs().max(d_cols.abs()).ceil() as usize;
-    let search = if grow > 0 {
-        grid.window(
-            -(grow as isize),
-            -(grow as isize),
-            grid.rows + 2 * grow,
-            grid.cols + 2 * grow,
-        )
-    } else {
-        *grid
-    };
+    let search = reach(grid, shift);
     let range = match index {
         Some(ix) => ix.lines_for(&search),
         None => scan_lines(&loc, &search, pr)?,
@@ -461,7 +464,7 @@ pub fn m3_on_grid(
         let cols = s![.., c0..c1];
         let (mut gr, mut gc) =
             grid::swath_grid_positions(grid, pr, lon.slice(cols), lat.slice(cols));
-        if grow > 0 {
+        if shift != [0.0; 2] {
             gr -= d_rows;
             gc -= d_cols;
         }

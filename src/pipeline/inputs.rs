@@ -227,7 +227,7 @@ impl Dem {
 pub const LOLA_TRACK_GAP_M: f64 = 600.0;
 
 /// Every observation whose swath reaches `grid`, on it (`index` of [`Plan::swaths`], moved by
-/// its registration shift of [`Plan::shifts`]; none where `shifts` is shorter), in input order
+/// its registration shift of [`super::plan::shifts`]; none where `shifts` is shorter), in input order
 /// with its index: reflectance NaN where the geometry is not finite; observations without a
 /// finite pixel are left out.
 pub(super) fn observations_on(
@@ -241,14 +241,7 @@ pub(super) fn observations_on(
     let mut shots = Vec::new();
     for (k, (obs, index)) in inputs.obs.iter().zip(swaths).enumerate() {
         let shift = shifts.get(k).copied().unwrap_or([0.0; 2]);
-        let grow = (shift[0].abs().max(shift[1].abs()) / grid.spacing).ceil() as isize;
-        let reach = grid.window(
-            -grow,
-            -grow,
-            grid.rows + 2 * grow as usize,
-            grid.cols + 2 * grow as usize,
-        );
-        if index.lines_for(&reach).is_none() {
+        if index.lines_for(&ingest::reach(grid, shift)).is_none() {
             continue;
         }
         let mut img = ingest::m3_on_grid(

@@ -55,13 +55,29 @@ pub struct Plan {
     /// tiles solve every stage themselves (`pipeline::reference`).
     #[serde(default)]
     pub reference: Option<ReferenceInfo>,
-    /// Each observation's registration to the DEM, in input order ([`register`]).
+    /// Each observation's registration, in input order ([`register`]).
     #[serde(default)]
     pub registration: Vec<Registration>,
-    /// The displacement each observation is moved back by, metres along the grid's x and y
-    /// (0 where none is applied): every ingest of the run uses it.
-    #[serde(default)]
-    pub shifts: Vec<[f64; 2]>,
+}
+
+/// The displacement each observation is moved back by, metres along the grid's x and y: its
+/// registration's where applied, 0 elsewhere. Every ingest of the run uses it.
+pub(super) fn shifts(registration: &[Registration]) -> Vec<[f64; 2]> {
+    registration
+        .iter()
+        .map(Registration::applied_shift)
+        .collect()
+}
+
+impl Registration {
+    /// The displacement the run moves the observation back by, metres along the grid's x and
+    /// y: `shift_m` where applied, 0 otherwise.
+    pub fn applied_shift(&self) -> [f64; 2] {
+        match (self.applied, self.shift_m) {
+            (true, Some(m)) => m,
+            _ => [0.0; 2],
+        }
+    }
 }
 
 /// One observation's registration to the DEM ([`crate::registration`]).
@@ -172,13 +188,11 @@ pub(super) fn register(
             Directions::PerPixel(img.sun.view().into()),
             Directions::PerPixel(img.view.view().into()),
         );
-        let (surface, against_psf) = match relative_to {
+        // The earlier observation fused alone on the common window; `None`: place against
+        // the DEM.
+        let fused = match relative_to {
             Some(j) => {
-                let shift = match (out[j].applied, out[j].shift_m) {
-                    (true, Some(m)) => m,
-                    _ => [0.0; 2],
-                };
-                let other = [(j, ingest(j, shift)?)];
+                let other = [(j, ingest(j, out[j].applied_shift())?)];
                 let mut filled = dem.clone();
                 crate::pipeline::lab::fill_holes(&mut filled);
                 let problem = Problem {
@@ -192,25 +206,24 @@ pub(super) fn register(
                     noise_weights: None,
                     selection: o.inputs.selection(),
                 };
-                match fusion::fuse(&problem, params) {
-                    Ok(f) => (f.height, 0.0),
-                    // Nothing of the earlier observation usable there (all in shadow, say):
-                    // against the DEM on the same window.
-                    Err(_) => {
-                        relative_to = None;
-                        (dem.clone(), psf)
-                    }
-                }
+                // Nothing of the earlier observation usable there (all in shadow, say):
+                // against the DEM on the same window.
+                fusion::fuse(&problem, params).ok().map(|f| f.height)
             }
-            None => (dem.clone(), psf),
+            None => None,
         };
+        if fused.is_none() {
+            relative_to = None;
+        }
         let rendered = crate::registration::render(
-            surface.view(),
+            fused.as_ref().map_or(dem.view(), |f| f.view()),
             grid.spacing,
             inputs.model.as_ref(),
             &sun,
             &view,
         );
+        // The fused relief is as sharp as the image; the DEM's is blurred by σ_B.
+        let against_psf = if fused.is_some() { 0.0 } else { psf };
         let est = crate::registration::estimate(
             img.reflectance.view(),
             rendered.view(),
@@ -787,13 +800,7 @@ pub(super) fn plan(
         &params,
         intensity_scale,
     )?;
-    let shifts: Vec<[f64; 2]> = registration
-        .iter()
-        .map(|r| match (r.applied, r.shift_m) {
-            (true, Some(m)) => m,
-            _ => [0.0; 2],
-        })
-        .collect();
+    let shifts = shifts(&registration);
     let (gains, gain_reference) = if inputs.obs.len() > 1 {
         progress.stage("planning: radiometric gains where observations overlap");
         run_gains(o, inputs, &grid, (&swaths, &shifts), intensity_scale)?
@@ -851,7 +858,6 @@ pub(super) fn plan(
         swaths,
         reference: built.as_ref().map(|b| b.info.clone()),
         registration,
-        shifts,
     };
     write_atomic(
         &path,

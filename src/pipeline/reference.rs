@@ -48,7 +48,7 @@ pub(super) fn factor(grid: &Grid, params: &FusionParams) -> Option<usize> {
 /// The run-wide quantities a reference is solved with.
 pub(super) struct RunWide<'a> {
     pub swaths: &'a [SwathIndex],
-    /// Each observation's registration shift ([`Plan::shifts`]).
+    /// Each observation's registration shift ([`super::plan::shifts`]).
     pub shifts: &'a [[f64; 2]],
     pub scale: f64,
     pub gains: &'a [f64],

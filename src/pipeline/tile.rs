@@ -177,7 +177,12 @@ pub(super) fn run_tile(
     // observation that covers a pixel.
     let Ingested { shots, dem } = match ingested {
         Some(i) => i,
-        None => ingest_window(o, inputs, (&plan.swaths, &plan.shifts), &grid)?,
+        None => ingest_window(
+            o,
+            inputs,
+            (&plan.swaths, &super::plan::shifts(&plan.registration)),
+            &grid,
+        )?,
     };
     dem_covers(&grid, (e.r0, e.c0), &dem).map_err(|e| match e {
         Error::Usage(m) => Error::Usage(format!("tile {}: {m}", tile.id)),
