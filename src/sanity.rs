@@ -92,11 +92,14 @@ const RENDER_ROWS: usize = 64;
 pub struct TileSums {
     pub all: Sums,
     pub observations: Vec<Sums>,
-    /// Core pixels where two or more observations were used, and of those the ones where the
-    /// observations' Suns measure east–west slopes hardly at all free of albedo
-    /// ([`fusion::observations::east_west_share`] below sin²(20°)).
+    /// Core pixels where two or more observations were used; of those the ones where their
+    /// Suns are alike, within 5° of one another ([`fusion::observations::suns_alike`]), and
+    /// of the others the ones where they measure east–west slopes hardly at all free of
+    /// albedo ([`fusion::observations::east_west_share`] below sin²(20°)).
     #[serde(default)]
     pub overlap: usize,
+    #[serde(default)]
+    pub overlap_alike_suns: usize,
     #[serde(default)]
     pub overlap_east_west_blind: usize,
 }
@@ -158,6 +161,10 @@ impl TileSums {
                     }
                 }
                 out.overlap += 1;
+                if fusion::observations::suns_alike(&suns) {
+                    out.overlap_alike_suns += 1;
+                    continue;
+                }
                 let share = fusion::observations::east_west_share(&suns);
                 out.overlap_east_west_blind += share.is_none_or(|s| s < blind) as usize;
             }
@@ -218,6 +225,7 @@ impl TileSums {
     pub fn add(&mut self, o: &TileSums) {
         self.all.add(&o.all);
         self.overlap += o.overlap;
+        self.overlap_alike_suns += o.overlap_alike_suns;
         self.overlap_east_west_blind += o.overlap_east_west_blind;
         if self.observations.len() < o.observations.len() {
             self.observations
@@ -282,9 +290,11 @@ pub struct Sanity {
     pub change_beyond_rms_m: f64,
     pub change_beyond_max_m: f64,
     pub observations: Vec<ObservationSanity>,
-    /// Pixels where two or more observations were used, and the share of them where their
-    /// Suns measure east–west slopes hardly at all free of albedo ([`TileSums::overlap`]).
+    /// Pixels where two or more observations were used, and the shares of them where their
+    /// Suns are alike and where, not alike, they measure east–west slopes hardly at all free
+    /// of albedo ([`TileSums::overlap`]).
     pub overlap_pixels: usize,
+    pub overlap_alike_suns_fraction: f64,
     pub overlap_east_west_blind_fraction: f64,
     pub warnings: Vec<String>,
 }
@@ -351,6 +361,15 @@ impl Sanity {
                 Usage::Used => {}
             }
         }
+        let alike = s.overlap_alike_suns as f64 / s.overlap.max(1) as f64;
+        if s.overlap > 0 && alike > 0.5 {
+            warnings.push(format!(
+                "on {:.0} % of the {} px where observations overlap, their Suns lie within {}° of one another: there the images brighten and darken alike under any slope, as under an albedo change, so they measure no slope free of albedo and the overlap gains only by averaging their noise (docs/science.md, \"Where two Suns fall short of 0.65×\"); an observation under a Sun from another direction would measure the slopes",
+                100.0 * alike,
+                s.overlap,
+                fusion::observations::ALIKE_SUNS_DEG
+            ));
+        }
         let blind = s.overlap_east_west_blind as f64 / s.overlap.max(1) as f64;
         if s.overlap > 0 && blind > 0.5 {
             warnings.push(format!(
@@ -377,6 +396,7 @@ impl Sanity {
             change_beyond_max_m: o_max,
             observations,
             overlap_pixels: s.overlap,
+            overlap_alike_suns_fraction: alike,
             overlap_east_west_blind_fraction: blind,
             warnings,
         }
@@ -488,6 +508,29 @@ mod tests {
                 "{:?}",
                 out.warnings
             );
+        }
+        // Likewise the share of the overlap under Suns alike, on its own warning.
+        let alike = |n: usize| TileSums {
+            overlap: 10,
+            overlap_alike_suns: n,
+            ..TileSums::default()
+        };
+        for (a, b, warns) in [(5, 5, false), (5, 6, true)] {
+            let mut t2 = t.clone();
+            t2.add(&alike(a));
+            t2.add(&alike(b));
+            let out = Sanity::from_sums(&t2, &["A".into()]);
+            assert!((out.overlap_alike_suns_fraction - (a + b) as f64 / 20.0).abs() < 1e-15);
+            assert_eq!(out.overlap_east_west_blind_fraction, 0.0);
+            assert_eq!(
+                out.warnings
+                    .iter()
+                    .any(|w| w.contains("within 5° of one another")),
+                warns,
+                "{:?}",
+                out.warnings
+            );
+            assert!(!out.warnings.iter().any(|w| w.contains("north–south")));
         }
     }
 }

@@ -1240,28 +1240,57 @@ fn two_overlapping_strips_are_fused_with_a_run_wide_gain() {
 /// Two Suns whose azimuths' bisector points east (45°/30° and 135°/30°) measure east–west
 /// slopes only together with the albedo: the run says so, with the share of the overlap where
 /// that holds (all of it here), and records it; the demo's pair (105°/30° and 225°/35°, the
-/// strips test above) gets no such warning.
+/// strips test above) gets no such warning. Two observations under one Sun (105°/30° twice,
+/// independent noise) measure no slope free of albedo at all: the run says that instead.
 #[test]
-fn suns_mirrored_about_the_east_west_line_are_named_in_a_warning() {
-    let suns = [(45.0, 30.0), (135.0, 30.0)];
-    let (dir, p) = observation_products(128, 10, (&suns, &[], false), "mirrored");
-    let out = dir.join("out");
-    let wf = write_workflow(&dir, &workflow(&p, &out, 512, ""));
-    run_ok(&["run", "--progress", "lines"], &wf);
-    let rec: serde_json::Value =
-        serde_json::from_slice(&std::fs::read(out.join("run.json")).unwrap()).unwrap();
-    let sanity = &rec["sanity"];
-    assert!(sanity["overlap_pixels"].as_u64().unwrap() > 128 * 128 * 9 / 10);
-    assert!(sanity["overlap_east_west_blind_fraction"].as_f64().unwrap() > 0.99);
-    let warnings = sanity["warnings"].as_array().unwrap();
-    assert_eq!(warnings.len(), 1, "{warnings:?}");
-    let w = warnings[0].as_str().unwrap();
-    assert!(
-        w.contains("only within 20° of north–south")
-            && w.contains("east–west slopes come from the DEM"),
-        "{w}"
-    );
-    std::fs::remove_dir_all(&dir).unwrap();
+fn suns_mirrored_about_the_east_west_line_or_alike_are_named_in_a_warning() {
+    let mirrored = [(45.0, 30.0), (135.0, 30.0)];
+    let alike = [(105.0, 30.0), (105.0, 30.0)];
+    for (suns, name, blind, alike, says) in [
+        (
+            &mirrored,
+            "mirrored",
+            1.0,
+            0.0,
+            [
+                "only within 20° of north–south",
+                "east–west slopes come from the DEM",
+            ],
+        ),
+        (
+            &alike,
+            "alike",
+            0.0,
+            1.0,
+            [
+                "within 5° of one another",
+                "measure no slope free of albedo",
+            ],
+        ),
+    ] {
+        let (dir, p) = observation_products(128, 10, (suns, &[], false), name);
+        let out = dir.join("out");
+        let wf = write_workflow(&dir, &workflow(&p, &out, 512, ""));
+        run_ok(&["run", "--progress", "lines"], &wf);
+        let rec: serde_json::Value =
+            serde_json::from_slice(&std::fs::read(out.join("run.json")).unwrap()).unwrap();
+        let sanity = &rec["sanity"];
+        assert!(sanity["overlap_pixels"].as_u64().unwrap() > 128 * 128 * 9 / 10);
+        let share = |key: &str| sanity[key].as_f64().unwrap();
+        assert!(
+            (share("overlap_east_west_blind_fraction") - blind).abs() < 0.01,
+            "{sanity}"
+        );
+        assert!(
+            (share("overlap_alike_suns_fraction") - alike).abs() < 0.01,
+            "{sanity}"
+        );
+        let warnings = sanity["warnings"].as_array().unwrap();
+        assert_eq!(warnings.len(), 1, "{warnings:?}");
+        let w = warnings[0].as_str().unwrap();
+        assert!(says.iter().all(|s| w.contains(s)), "{w}");
+        std::fs::remove_dir_all(&dir).unwrap();
+    }
 }
 
 /// The record says how each gain was fixed, and the run warns where it could not be. Five

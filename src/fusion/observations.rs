@@ -93,6 +93,24 @@ impl Weights {
     }
 }
 
+/// Suns all within this many degrees of one another (every pair, angle between the vectors)
+/// count as alike ([`suns_alike`]): the images then differ under a slope by no more than
+/// their noise and measure no slope free of albedo (two images under one Sun give 0.94× one
+/// image's error on the 256² scene, by averaging their noise; docs/science.md, "Where two Suns
+/// fall short of 0.65×").
+pub const ALIKE_SUNS_DEG: f64 = 5.0;
+
+/// Whether every pair of the Sun vectors `suns` (unit, grid frame) lies within
+/// [`ALIKE_SUNS_DEG`] of each other: cos θ = s_j·s_k ≥ cos 5°. True for one Sun or none.
+pub fn suns_alike(suns: &[Vec3]) -> bool {
+    let min_cos = ALIKE_SUNS_DEG.to_radians().cos();
+    suns.iter().enumerate().all(|(j, a)| {
+        suns[j + 1..]
+            .iter()
+            .all(|b| a[0] * b[0] + a[1] * b[1] + a[2] * b[2] >= min_cos)
+    })
+}
+
 /// Sun directions within this many degrees of a mirror image about the east–west line count
 /// as measuring east–west slopes only together with the albedo ([`east_west_share`]).
 pub const EAST_WEST_BLIND_DEG: f64 = 20.0;
@@ -638,6 +656,22 @@ mod tests {
         assert!(share(&[(105.0, 30.0), (225.0, 35.0)]) > 0.9);
         assert!(east_west_share(&[sun(90.0, 30.0)]).is_none());
         assert!(east_west_share(&[sun(90.0, 30.0), sun(90.0, 30.0)]).is_none());
+    }
+
+    /// Suns alike: within 5° of one another, every pair (analytic angles: 4° and 6° apart in
+    /// azimuth on the horizon's 0° elevation are 4° and 6° apart).
+    #[test]
+    fn suns_within_five_degrees_are_alike() {
+        let v = |s: &[(f64, f64)]| s.iter().map(|&(a, e)| sun(a, e)).collect::<Vec<_>>();
+        assert!(suns_alike(&v(&[(90.0, 30.0)])));
+        assert!(suns_alike(&v(&[(90.0, 30.0), (90.0, 30.0)])));
+        assert!(suns_alike(&v(&[(90.0, 0.0), (94.0, 0.0)])));
+        assert!(!suns_alike(&v(&[(90.0, 0.0), (96.0, 0.0)])));
+        // Each neighbour within 5°, the outer two 8° apart: not alike.
+        assert!(!suns_alike(&v(&[(90.0, 0.0), (94.0, 0.0), (98.0, 0.0)])));
+        // 105/30 and 110/32: 4.7° apart.
+        assert!(suns_alike(&v(&[(105.0, 30.0), (110.0, 32.0)])));
+        assert!(!suns_alike(&v(&[(105.0, 30.0), (120.0, 30.0)])));
     }
 
     #[test]
