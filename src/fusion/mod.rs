@@ -270,6 +270,12 @@ pub struct FusionParams {
     /// Where several observations carry a pixel, δ is lowered to δ × this (blended by the
     /// multi-coverage c(x); [`objective::Objective::with_multi_delta`]); 1 keeps δ everywhere.
     pub multi_delta_factor: f64,
+    /// Where the observations at a pixel measure slope free of albedo in every direction
+    /// (three or more Suns spread in azimuth), δ is lowered further, towards δ × this: the
+    /// factor becomes f − (f − f_all)·φ(x), f = `multi_delta_factor`, φ the share of that
+    /// information in its least-measured direction ([`observations::every_direction`]; 0 for
+    /// two observations, whose images never measure a second direction).
+    pub multi_delta_factor_all: f64,
     /// k of the edge-aware membrane (a slope, dimensionless): from the second albedo stage on,
     /// the membrane weight at a pixel where one observation carries it is η/√(1 + |∇(z −
     /// z_DEM)|²/k²) of the surface the stage starts from
@@ -343,6 +349,7 @@ impl Default for FusionParams {
             multi_final_albedo_sigma: 0.7,
             multi_albedo_passes: 2,
             multi_delta_factor: 0.2,
+            multi_delta_factor_all: 0.1,
             edge_membrane_slope: 0.0,
             multi_eta_factor: 6.0,
             multi_edge_membrane_slope: 0.02,
@@ -634,7 +641,7 @@ pub fn validate_params(params: &FusionParams) -> Result<(), FusionError> {
             });
         }
     }
-    let checks: [(&'static str, f64, bool, &'static str); 23] = [
+    let checks: [(&'static str, f64, bool, &'static str); 24] = [
         (
             "cg_tolerance",
             params.cg_tolerance,
@@ -652,6 +659,13 @@ pub fn validate_params(params: &FusionParams) -> Result<(), FusionError> {
             params.multi_delta_factor,
             params.multi_delta_factor > 0.0 && params.multi_delta_factor <= 1.0,
             "must be in (0, 1]",
+        ),
+        (
+            "multi_delta_factor_all",
+            params.multi_delta_factor_all,
+            params.multi_delta_factor_all > 0.0
+                && params.multi_delta_factor_all <= params.multi_delta_factor,
+            "must be in (0, multi_delta_factor]",
         ),
         (
             "multi_albedo_sigma",
@@ -940,7 +954,7 @@ pub(crate) fn objective<'a, 'p>(
         scale,
         w,
     )
-    .with_multi_delta(params.multi_delta_factor)
+    .with_multi_delta(params.multi_delta_factor, params.multi_delta_factor_all)
     .with_dem_height_length(params.dem_height_length_px * pr.spacing)
     .with_dem_tracks(
         track_weight(

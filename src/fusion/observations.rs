@@ -142,6 +142,77 @@ pub fn east_west_share(suns: &[Vec3]) -> Option<f64> {
     (xx + yy > 1e-12).then(|| xx / (xx + yy))
 }
 
+/// m₀ of [`every_direction`]: its factor λ_min/(λ_min + m₀). Three Suns 120° apart in azimuth
+/// at one elevation e give λ_min = 1.5·cot² e (u_k = 1): 4.5 at 30°, 0.74 at 55°, where the
+/// factor is 0.99 and 0.94.
+pub const EVERY_DIRECTION_M0: f64 = 0.05;
+
+/// [r₀, r₁] of [`every_direction`]: its factor rises from 0 to 1 as λ_min/λ_max goes from r₀ to
+/// r₁. Three Suns spread evenly in azimuth give 0.6–0.8 (60/60 + 180/50 + 300/55: 0.65;
+/// 105/30 + 225/35 + 345/25: 0.62); two Suns mirrored about a line and a third along it that
+/// measures the other direction weakly, or three within 120° of azimuth, 0.1 (45/30 + 135/30 +
+/// 90/60, 20/25 + 80/30 + 140/35): there lowering δ lets the DEM's errors in the weak
+/// direction through (docs/science.md, "Several observations").
+pub const EVERY_DIRECTION_RATIO: [f64; 2] = [0.2, 0.6];
+
+/// φ(x) ∈ [0, 1): how fully the images at a pixel measure slope free of albedo in every
+/// direction. M = Σ_k u_k g_k g_kᵀ − (Σ_k u_k g_k)(Σ_k u_k g_k)ᵀ/Σ_k u_k over the observations
+/// k that carry the pixel (u_k = w_k/ν_k > 0: edge ramp, incidence taper, shadow-edge factor),
+/// g_k = −(s_x, s_y)/s_z the gradient of ln R in the slopes on a level surface for a Lambert
+/// surface ([`east_west_share`]); φ = clamp((λ_min/λ_max − r₀)/(r₁ − r₀), 0, 1)·λ_min/(λ_min +
+/// m₀), λ_min ≤ λ_max M's eigenvalues, [r₀, r₁] = [`EVERY_DIRECTION_RATIO`], m₀ =
+/// [`EVERY_DIRECTION_M0`]: the least-measured direction must be measured both comparably to
+/// the best one and in absolute terms. A change of albedo moves every ln R_k alike, so only the
+/// g_k's spread measures slope free of it: two observations spread along one direction only
+/// (M has rank one, φ = 0, taken as exactly 0), three or more Suns apart in azimuth along
+/// every one. 0 where c(x) = 0.
+pub fn every_direction(pr: &Problem, w: &Weights, c: &Array2<f64>) -> Array2<f64> {
+    Zip::indexed(c).par_map_collect(|(i, j), &c| {
+        if c <= 0.0 {
+            return 0.0;
+        }
+        every_direction_at(
+            pr.observations
+                .iter()
+                .zip(&w.weight)
+                .zip(&w.noise)
+                .map(|((o, wk), &nu)| (f64::from(wk[(i, j)]) / nu, o.sun.at(i, j))),
+        )
+    })
+}
+
+/// φ of [`every_direction`] at one pixel, from each observation's (u_k, Sun vector); those with
+/// u_k ≤ 0 or the Sun at or below the horizon do not count.
+pub fn every_direction_at(observations: impl Iterator<Item = (f64, Vec3)>) -> f64 {
+    let (mut n, mut su, mut sx, mut sy) = (0, 0.0, 0.0, 0.0);
+    let (mut mxx, mut mxy, mut myy) = (0.0, 0.0, 0.0);
+    for (u, s) in observations {
+        if u <= 0.0 || s[2] <= 1e-6 {
+            continue;
+        }
+        let (gx, gy) = (-s[0] / s[2], -s[1] / s[2]);
+        n += 1;
+        su += u;
+        sx += u * gx;
+        sy += u * gy;
+        mxx += u * gx * gx;
+        mxy += u * gx * gy;
+        myy += u * gy * gy;
+    }
+    if n < 3 {
+        return 0.0;
+    }
+    let (a, b, d) = (mxx - sx * sx / su, mxy - sx * sy / su, myy - sy * sy / su);
+    let root = (0.25 * (a - d) * (a - d) + b * b).sqrt();
+    let (lo, hi) = ((0.5 * (a + d) - root).max(0.0), 0.5 * (a + d) + root);
+    if hi <= 0.0 {
+        return 0.0;
+    }
+    let [r0, r1] = EVERY_DIRECTION_RATIO;
+    let spread = ((lo / hi - r0) / (r1 - r0)).clamp(0.0, 1.0);
+    spread * lo / (lo + EVERY_DIRECTION_M0)
+}
+
 /// Incidence angle, degrees, of a Sun vector in the grid frame (z up).
 pub fn incidence_deg(sun: &[f64; 3]) -> f64 {
     sun[2].clamp(-1.0, 1.0).acos().to_degrees()
@@ -656,6 +727,38 @@ mod tests {
         assert!(share(&[(105.0, 30.0), (225.0, 35.0)]) > 0.9);
         assert!(east_west_share(&[sun(90.0, 30.0)]).is_none());
         assert!(east_west_share(&[sun(90.0, 30.0), sun(90.0, 30.0)]).is_none());
+    }
+
+    /// φ against hand-computed eigenvalues of M: three Suns 120° apart at 30° (λ = 1.5·cot² 30°
+    /// = 4.5 twice: φ = 4.5/4.55); two Suns, or three with one shadowed (u = 0) or below the
+    /// horizon: 0; 45/30 + 135/30 + 90/60 (λ_min/λ_max = 0.093): 0; 0/40 + 90/40 + 180/40
+    /// (M = cot² 40°·diag(2/3, 2), ratio 1/3: (1/3 − 0.2)/0.4 = 1/3 of λ_min/(λ_min + m₀)).
+    #[test]
+    fn every_direction_needs_suns_spread_in_azimuth() {
+        let phi =
+            |s: &[(f64, f64, f64)]| every_direction_at(s.iter().map(|&(u, a, e)| (u, sun(a, e))));
+        let even = phi(&[(1.0, 0.0, 30.0), (1.0, 120.0, 30.0), (1.0, 240.0, 30.0)]);
+        assert!((even - 4.5 / 4.55).abs() < 1e-12, "{even}");
+        // u scales M: halving every u halves λ.
+        let half = phi(&[(0.5, 0.0, 30.0), (0.5, 120.0, 30.0), (0.5, 240.0, 30.0)]);
+        assert!((half - 2.25 / 2.3).abs() < 1e-12, "{half}");
+        assert_eq!(phi(&[(1.0, 0.0, 30.0), (1.0, 120.0, 30.0)]), 0.0);
+        assert_eq!(
+            phi(&[(1.0, 0.0, 30.0), (1.0, 120.0, 30.0), (0.0, 240.0, 30.0)]),
+            0.0
+        );
+        assert_eq!(
+            phi(&[(1.0, 0.0, 30.0), (1.0, 120.0, 30.0), (1.0, 240.0, -5.0)]),
+            0.0
+        );
+        assert_eq!(
+            phi(&[(1.0, 45.0, 30.0), (1.0, 135.0, 30.0), (1.0, 90.0, 60.0)]),
+            0.0
+        );
+        let k = (40f64.to_radians().tan()).powi(-2);
+        let lo = 2.0 / 3.0 * k;
+        let quarter = phi(&[(1.0, 0.0, 40.0), (1.0, 90.0, 40.0), (1.0, 180.0, 40.0)]);
+        assert!((quarter - (1.0 / 3.0) * lo / (lo + EVERY_DIRECTION_M0)).abs() < 1e-12);
     }
 
     /// Suns alike: within 5° of one another, every pair (analytic angles: 4° and 6° apart in
