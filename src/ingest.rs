@@ -14,7 +14,7 @@ use crate::error::{Error, Result};
 use crate::grid::{self, enu_to_grid, Geographic, Grid, Interpolation, Projector};
 use crate::photometry::{narrow, Vec3, Vec3f};
 use crate::synth::direction;
-use ndarray::{s, Array2, ArrayView2, Zip};
+use ndarray::{s, Array2, ArrayView2, Axis, Zip};
 use pds::lola::{LolaDem, Projection};
 use pds::m3::Observation;
 use pds::solar::{reflectance, SolarSpectrum};
@@ -474,9 +474,18 @@ pub fn m3_on_grid(
         .map_or((c0, c0 + gr.ncols()), |(a, b)| (c0 + a, c0 + b));
     let within = s![.., s0 - c0..s1 - c0];
     let (line, sample) = grid::swath_positions_from(grid, gr.slice(within), gc.slice(within), s0);
+    let per_pixel = swath_pixels_per_grid_pixel(gr.slice(within), gc.slice(within));
     drop((gr, gc));
     let cols = s![.., s0..s1];
-    let (refl, (lo, up), e, _) = reflectance_lines(obs, &obsr, solar, nm, (first, n), s0..s1)?;
+    let (mut refl, (lo, up), e, _) = reflectance_lines(obs, &obsr, solar, nm, (first, n), s0..s1)?;
+    // A swath finer than the grid is averaged over each grid pixel's extent first: sampled
+    // at a point, it would alias relief finer than a grid pixel into the image the fusion
+    // explains (and keep all of its noise).
+    for (axis, &f) in per_pixel.iter().enumerate() {
+        if f >= AREA_MEAN_FROM {
+            refl = box_mean(&refl, f, axis);
+        }
+    }
     // East, north and up components, each filled in the one pass that computes the vector.
     let enu = |az: &Array2<f64>, zen: &Array2<f64>| -> [Array2<f64>; 3] {
         let dim = (az.nrows(), s1 - s0);
@@ -559,6 +568,75 @@ fn scan_lines(
         }
     }
     Ok((first != usize::MAX).then(|| (first.saturating_sub(1), (last + 2).min(loc.lines))))
+}
+
+/// Swath pixels per grid pixel from which [`m3_on_grid`] averages the swath over each grid
+/// pixel's extent before sampling it, along the lines or the samples (the default grid takes
+/// the first observation's own pixel size, ≈ 1 swath pixel per grid pixel; M3's global mode
+/// samples 140 m from the 100 km orbit, ≈ 280 m from 200 km, target mode 70 m).
+pub const AREA_MEAN_FROM: f64 = 1.25;
+
+/// Swath pixels per grid pixel [along a sample's column of lines, along a line's samples]:
+/// the inverse of the median distance, in grid pixels, between neighbouring swath pixels'
+/// grid positions `gr`, `gc` (every 4th line and sample; 1 where none is finite).
+fn swath_pixels_per_grid_pixel(gr: ArrayView2<f64>, gc: ArrayView2<f64>) -> [f64; 2] {
+    let (nl, ns) = gr.dim();
+    let step = |dl: usize, ds: usize| -> f64 {
+        let mut d: Vec<f64> = (0..nl.saturating_sub(dl))
+            .step_by(4)
+            .flat_map(|l| (0..ns.saturating_sub(ds)).step_by(4).map(move |m| (l, m)))
+            .map(|(l, m)| {
+                let (a, b) = (
+                    gr[(l + dl, m + ds)] - gr[(l, m)],
+                    gc[(l + dl, m + ds)] - gc[(l, m)],
+                );
+                (a * a + b * b).sqrt()
+            })
+            .filter(|d| d.is_finite() && *d > 0.0)
+            .collect();
+        if d.is_empty() {
+            return 1.0;
+        }
+        let mid = d.len() / 2;
+        let (_, m, _) = d.select_nth_unstable_by(mid, f64::total_cmp);
+        1.0 / *m
+    };
+    [step(1, 0), step(0, 1)]
+}
+
+/// The mean of `image` over a box `width` pixels wide along `axis` (0: down the rows, 1: along
+/// them) centred on each pixel: pixel k away weighs its overlap with [−width/2, width/2],
+/// clamp(width/2 + ½ − |k|, 0, 1), so the weights sum to `width`; over the finite values only,
+/// NaN where there are none.
+pub fn box_mean(image: &Array2<f64>, width: f64, axis: usize) -> Array2<f64> {
+    let half = 0.5 * width;
+    let reach = (half - 0.5).ceil().max(0.0) as isize;
+    let weights: Vec<f64> = (-reach..=reach)
+        .map(|k| (half + 0.5 - (k as f64).abs()).clamp(0.0, 1.0))
+        .collect();
+    let n = image.len_of(Axis(axis)) as isize;
+    let mut out = Array2::from_elem(image.dim(), f64::NAN);
+    Zip::from(out.lanes_mut(Axis(axis)))
+        .and(image.lanes(Axis(axis)))
+        .par_for_each(|mut o, lane| {
+            for i in 0..n {
+                let (mut s, mut w) = (0.0, 0.0);
+                for (k, &wk) in (-reach..=reach).zip(&weights) {
+                    let j = i + k;
+                    if (0..n).contains(&j) {
+                        let v = lane[j as usize];
+                        if v.is_finite() {
+                            s += wk * v;
+                            w += wk;
+                        }
+                    }
+                }
+                if w > 0.0 {
+                    o[i as usize] = s / w;
+                }
+            }
+        });
+    out
 }
 
 /// Bilinear blend of unit vectors at (line, sample), renormalised.
@@ -808,4 +886,58 @@ pub fn geotiff_on_grid(
     Ok(Zip::from(&pos_r).and(&pos_c).par_map_collect(|&r, &c| {
         grid::interpolate(window.view(), r - r0 as f64, c - c0 as f64, method, false)
     }))
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    /// The box's weights by hand: width 1 is the identity; width 2 weighs the neighbours ½
+    /// (a unit spike spreads as ¼, ½, ¼); width 3 weighs three pixels alike; a constant stays
+    /// itself, also at the ends (the weights renormalise) and beside a NaN, which is skipped.
+    #[test]
+    fn box_mean_weighs_each_pixel_by_its_overlap_with_the_box() {
+        let spike = Array2::from_shape_fn((1, 7), |(_, j)| if j == 3 { 1.0 } else { 0.0 });
+        assert_eq!(box_mean(&spike, 1.0, 1), spike);
+        let two = box_mean(&spike, 2.0, 1);
+        assert_eq!(two.row(0).to_vec(), [0.0, 0.0, 0.25, 0.5, 0.25, 0.0, 0.0]);
+        let three = box_mean(&spike, 3.0, 1);
+        for (j, v) in three.row(0).iter().enumerate() {
+            let want = if (2..=4).contains(&j) { 1.0 / 3.0 } else { 0.0 };
+            assert!((v - want).abs() < 1e-15, "{j}: {v}");
+        }
+        // Down the rows: the same weights along axis 0.
+        assert_eq!(
+            box_mean(&spike.t().to_owned(), 2.0, 0).column(0).to_vec(),
+            two.row(0).to_vec()
+        );
+        let mut flat = Array2::from_elem((3, 5), 2.5);
+        flat[(1, 2)] = f64::NAN;
+        for axis in [0, 1] {
+            let m = box_mean(&flat, 2.6, axis);
+            assert!(m.iter().all(|&v| (v - 2.5).abs() < 1e-15), "{m:?}");
+        }
+        // A lone NaN with no finite neighbour within the box stays NaN.
+        let lone = Array2::from_shape_vec((1, 3), vec![1.0, f64::NAN, 1.0]).unwrap();
+        assert!(box_mean(&lone, 1.0, 1)[(0, 1)].is_nan());
+    }
+
+    /// Swath pixels per grid pixel from positions with known steps: lines 0.5 grid px apart,
+    /// samples 0.25 apart (a swath 2× finer down the lines and 4× along them), rotated.
+    #[test]
+    fn swath_pixels_per_grid_pixel_inverts_the_neighbour_distance() {
+        let (c, s) = (0.6f64, 0.8f64);
+        let gr = Array2::from_shape_fn((40, 60), |(l, m)| 0.5 * l as f64 * c - 0.25 * m as f64 * s);
+        let gc = Array2::from_shape_fn((40, 60), |(l, m)| 0.5 * l as f64 * s + 0.25 * m as f64 * c);
+        let [a, b] = swath_pixels_per_grid_pixel(gr.view(), gc.view());
+        assert!(
+            (a - 2.0).abs() < 1e-12 && (b - 4.0).abs() < 1e-12,
+            "{a} {b}"
+        );
+        let nan = Array2::from_elem((4, 4), f64::NAN);
+        assert_eq!(
+            swath_pixels_per_grid_pixel(nan.view(), nan.view()),
+            [1.0, 1.0]
+        );
+    }
 }

@@ -1721,3 +1721,46 @@ fn of_two_observations_the_displaced_one_is_moved_back() {
     registration_pays((e_base, e_reg, e_off), 1.1, 1.3);
     std::fs::remove_dir_all(&dir).unwrap();
 }
+
+/// A grid coarser than the image's pixels gets the image averaged over each grid pixel
+/// (`ingest::m3_on_grid`, `ingest::box_mean`): sampled at one point, the image would carry
+/// relief finer than a grid pixel (and all its noise) into a surface that explains it. The
+/// 256² scene of seed 10 (140 m pixels, Sun 105/30) run on grids of 140, 280 and 560 m, each
+/// against the truth's block means: the 280 m result is no worse than the 140 m one (a block
+/// mean of the 140 m error would be smaller still), the 560 m one better than the input DEM.
+/// Point-sampled (before), they were 9.38 m against 8.48 m, and 25.24 m against the input's
+/// 15.83 m: worse than the DEM the run was given.
+#[test]
+fn a_grid_coarser_than_the_image_averages_it_over_each_grid_pixel() {
+    let (dir, p) = observation_products(256, 10, (&[(105.0, 30.0)], &[], false), "coarse-grid");
+    let truth = read_tiff(&p.truth_dem).unwrap().data;
+    let mut errors = Vec::new();
+    for f in [1usize, 2, 4] {
+        let out = dir.join(format!("out{f}"));
+        let text = workflow(&p, &out, 512, "")
+            .replace(
+                "resolution_m = 140.0",
+                &format!("resolution_m = {:.1}", 140.0 * f as f64),
+            )
+            .replace(
+                "dem_psf_sigma_px = 3.0",
+                &format!("dem_psf_sigma_px = {}", 3.0 / f as f64),
+            );
+        let wf = dir.join(format!("workflow{f}.toml"));
+        std::fs::write(&wf, text).unwrap();
+        run_ok(&["run", "--progress", "lines"], &wf);
+        let dem = read_tiff(&out.join("dem.tif")).unwrap().data;
+        let input = read_tiff(&out.join("input_dem.tif")).unwrap().data;
+        let block = ndarray::Array2::from_shape_fn(dem.dim(), |(i, j)| {
+            truth
+                .slice(ndarray::s![i * f..(i + 1) * f, j * f..(j + 1) * f])
+                .mean()
+                .unwrap()
+        });
+        errors.push((rmse(&dem, &block), rmse(&input, &block)));
+    }
+    eprintln!("fused / input against the truth's block means, 140 / 280 / 560 m: {errors:.2?}");
+    assert!(errors[1].0 <= errors[0].0, "{errors:?}");
+    assert!(errors[2].0 < 0.95 * errors[2].1, "{errors:?}");
+    std::fs::remove_dir_all(&dir).unwrap();
+}
