@@ -1764,3 +1764,53 @@ fn a_grid_coarser_than_the_image_averages_it_over_each_grid_pixel() {
     assert!(errors[2].0 < 0.95 * errors[2].1, "{errors:?}");
     std::fs::remove_dir_all(&dir).unwrap();
 }
+
+/// A grid finer than an observation's pixels takes each grid pixel's brightness as its own
+/// detector pixel's, so the run names every such observation in a warning with its pixel size
+/// (docs/science.md, "Images coarser than the grid") and records the pixel size of each; at
+/// the observation's own pixel size (the other runs here) nothing is said.
+#[test]
+fn observations_coarser_than_the_grid_are_named_in_a_warning() {
+    let suns = [(105.0, 30.0), (225.0, 35.0)];
+    let (dir, p) = observation_products(128, 10, (&suns, &[], false), "coarse-pixels");
+    for (res, warns) in [(140.0, false), (70.0, true)] {
+        let out = dir.join(format!("out{res}"));
+        let text = workflow(&p, &out, 512, "")
+            .replace("resolution_m = 140.0", &format!("resolution_m = {res:.1}"))
+            .replace(
+                "dem_psf_sigma_px = 3.0",
+                &format!("dem_psf_sigma_px = {}", 3.0 * 140.0 / res),
+            );
+        let wf = dir.join(format!("workflow{res}.toml"));
+        std::fs::write(&wf, text).unwrap();
+        run_ok(&["run", "--progress", "lines"], &wf);
+        let rec: serde_json::Value =
+            serde_json::from_slice(&std::fs::read(out.join("run.json")).unwrap()).unwrap();
+        for o in rec["observations"].as_array().unwrap() {
+            let size = o["pixel_size_m"].as_f64().unwrap();
+            assert!((size - 140.0).abs() < 1.0, "{o}");
+        }
+        let warnings: Vec<&str> = rec["sanity"]["warnings"]
+            .as_array()
+            .unwrap()
+            .iter()
+            .map(|w| w.as_str().unwrap())
+            .collect();
+        let coarse: Vec<&&str> = warnings
+            .iter()
+            .filter(|w| w.contains("coarser than the grid"))
+            .collect();
+        assert_eq!(coarse.len(), usize::from(warns), "{warnings:?}");
+        if warns {
+            for label in &p.m3_labels {
+                let name = label.display().to_string();
+                assert!(
+                    coarse[0].contains(&format!("{name} (140 m, 2.0×)")),
+                    "{}",
+                    coarse[0]
+                );
+            }
+        }
+    }
+    std::fs::remove_dir_all(&dir).unwrap();
+}

@@ -248,6 +248,40 @@ pub(super) struct ObservationRecord {
     pub(super) photometric_fraction: f64,
     /// Its registration to the DEM ([`super::plan::register`]).
     pub(super) registration: Option<super::plan::Registration>,
+    /// Its pixel size, metres ([`crate::ingest::ground_sample_distance`]).
+    pub(super) pixel_size_m: Option<f64>,
+}
+
+/// Pixels of an observation this many times the grid's or more count as coarser than it
+/// ([`coarse_pixels_warning`]).
+pub const COARSE_PIXELS_FROM: f64 = 1.25;
+
+/// The warning for observations used on the region whose pixels (`pixel_size`, metres) are
+/// [`COARSE_PIXELS_FROM`] × the grid's `spacing` or more: the fusion takes each grid pixel's
+/// brightness as a detector pixel of the grid's size would see it, so an image blurred over
+/// wider pixels reads as flatter fine relief (docs/science.md, "Images coarser than the
+/// grid").
+pub(super) fn coarse_pixels_warning(
+    labels: &[String],
+    used: &[bool],
+    pixel_size: &[Option<f64>],
+    spacing: f64,
+) -> Option<String> {
+    let coarse: Vec<String> = labels
+        .iter()
+        .zip(used)
+        .zip(pixel_size)
+        .filter_map(|((label, &used), &size)| {
+            let size = size.filter(|s| used && *s >= COARSE_PIXELS_FROM * spacing)?;
+            Some(format!("{label} ({size:.0} m, {:.1}×)", size / spacing))
+        })
+        .collect();
+    (!coarse.is_empty()).then(|| {
+        format!(
+            "pixels coarser than the grid's {spacing:.0} m: {}. The fusion takes each grid pixel's brightness as a pixel of the grid's size would see it, so an image blurred over wider pixels reads as flatter fine relief, against any finer observation (docs/science.md, \"Images coarser than the grid\": a pair with one image 2× coarser gives 5.97 m where both at the grid's pixel size give 4.52 m and the finer image alone 8.06 m). Use observations at the grid's pixel size where they cover the region, or a grid as coarse as the coarsest ([grid] resolution_m)",
+            coarse.join(", ")
+        )
+    })
 }
 
 /// How observation `k`'s gain was fixed, in words: estimated relative to the first observation
@@ -572,6 +606,12 @@ pub(super) fn mosaic(
     sanity
         .warnings
         .extend(gain_groups_warning(&labels, &used, &plan.gain_reference));
+    sanity.warnings.extend(coarse_pixels_warning(
+        &labels,
+        &used,
+        &plan.pixel_size_m,
+        plan.grid.spacing,
+    ));
     let record = RunRecord {
         tool: "sfsfuse",
         version: env!("CARGO_PKG_VERSION"),
@@ -615,6 +655,7 @@ pub(super) fn mosaic(
                     .get(k)
                     .map_or(0.0, |o| o.photometric_fraction),
                 registration: plan.registration.get(k).cloned(),
+                pixel_size_m: plan.pixel_size_m.get(k).copied().flatten(),
             })
             .collect(),
         outputs: outputs.clone(),

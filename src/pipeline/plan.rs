@@ -58,6 +58,10 @@ pub struct Plan {
     /// Each observation's registration, in input order ([`register`]).
     #[serde(default)]
     pub registration: Vec<Registration>,
+    /// Each observation's pixel size, metres ([`ingest::ground_sample_distance`]; `None` where
+    /// LOC gives none), in input order.
+    #[serde(default)]
+    pub pixel_size_m: Vec<Option<f64>>,
 }
 
 /// The displacement each observation is moved back by, metres along the grid's x and y: its
@@ -858,6 +862,11 @@ pub(super) fn plan(
         swaths,
         reference: built.as_ref().map(|b| b.info.clone()),
         registration,
+        pixel_size_m: inputs
+            .obs
+            .iter()
+            .map(|obs| ingest::ground_sample_distance(obs).ok())
+            .collect(),
     };
     write_atomic(
         &path,
