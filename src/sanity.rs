@@ -361,23 +361,35 @@ impl Sanity {
                 Usage::Used => {}
             }
         }
-        let alike = s.overlap_alike_suns as f64 / s.overlap.max(1) as f64;
-        if s.overlap > 0 && alike > 0.5 {
-            warnings.push(format!(
-                "on {:.0} % of the {} px where observations overlap, their Suns lie within {}° of one another: there the images brighten and darken alike under any slope, as under an albedo change, so they measure no slope free of albedo and the overlap gains only by averaging their noise (docs/science.md, \"Where two Suns fall short of 0.65×\"); an observation under a Sun from another direction would measure the slopes",
-                100.0 * alike,
-                s.overlap,
-                fusion::observations::ALIKE_SUNS_DEG
-            ));
-        }
-        let blind = s.overlap_east_west_blind as f64 / s.overlap.max(1) as f64;
-        if s.overlap > 0 && blind > 0.5 {
-            warnings.push(format!(
-                "on {:.0} % of the {} px where observations overlap, the images measure slope free of albedo only within {}° of north–south (as two Suns do whose azimuths' bisector lies that close to east or west): an east–west slope brightens or darkens them alike, as an albedo change does, so there east–west slopes come from the DEM rather than the images and the overlap gains less than under other Suns (docs/science.md, \"Where two Suns fall short of 0.65×\"); a further observation under a Sun from another quarter would measure them",
-                100.0 * blind,
-                s.overlap,
-                fusion::observations::EAST_WEST_BLIND_DEG
-            ));
+        let share = |n: usize| n as f64 / s.overlap.max(1) as f64;
+        let (alike, blind) = (
+            share(s.overlap_alike_suns),
+            share(s.overlap_east_west_blind),
+        );
+        let overlap_warnings = [
+            (
+                alike,
+                format!(
+                    "their Suns lie within {}° of one another: there the images brighten and darken alike under any slope, as under an albedo change, so they measure no slope free of albedo and the overlap gains only by averaging their noise (docs/science.md, \"Where two Suns fall short of 0.65×\"); an observation under a Sun from another direction would measure the slopes",
+                    fusion::observations::ALIKE_SUNS_DEG
+                ),
+            ),
+            (
+                blind,
+                format!(
+                    "the images measure slope free of albedo only within {}° of north–south (as two Suns do whose azimuths' bisector lies that close to east or west): an east–west slope brightens or darkens them alike, as an albedo change does, so there east–west slopes come from the DEM rather than the images and the overlap gains less than under other Suns (docs/science.md, \"Where two Suns fall short of 0.65×\"); a further observation under a Sun from another quarter would measure them",
+                    fusion::observations::EAST_WEST_BLIND_DEG
+                ),
+            ),
+        ];
+        for (fraction, what) in overlap_warnings {
+            if s.overlap > 0 && fraction > 0.5 {
+                warnings.push(format!(
+                    "on {:.0} % of the {} px where observations overlap, {what}",
+                    100.0 * fraction,
+                    s.overlap
+                ));
+            }
         }
         if a.change[2].0 > 0 && o_max > 1e-3 {
             warnings.push(format!(
@@ -489,48 +501,46 @@ mod tests {
         assert!((a.photometric_fraction - 2.0 / 3.0).abs() < 1e-15);
         // Two points correlate perfectly either way: only the run-wide −1 warns.
         assert_eq!(out.warnings.len(), 1, "{:?}", out.warnings);
-        // The overlap's east–west blind share warns above one half, summed over tiles.
-        let half = |blind: usize| TileSums {
-            overlap: 10,
-            overlap_east_west_blind: blind,
-            ..TileSums::default()
-        };
-        for (a, b, warns) in [(4, 5, false), (6, 5, true)] {
-            let mut t2 = t.clone();
-            t2.add(&half(a));
-            t2.add(&half(b));
-            let out = Sanity::from_sums(&t2, &["A".into()]);
-            assert_eq!(out.overlap_pixels, 20);
-            assert!((out.overlap_east_west_blind_fraction - (a + b) as f64 / 20.0).abs() < 1e-15);
-            assert_eq!(
-                out.warnings.iter().any(|w| w.contains("north–south")),
-                warns,
-                "{:?}",
-                out.warnings
-            );
-        }
-        // Likewise the share of the overlap under Suns alike, on its own warning.
-        let alike = |n: usize| TileSums {
-            overlap: 10,
-            overlap_alike_suns: n,
-            ..TileSums::default()
-        };
-        for (a, b, warns) in [(5, 5, false), (5, 6, true)] {
-            let mut t2 = t.clone();
-            t2.add(&alike(a));
-            t2.add(&alike(b));
-            let out = Sanity::from_sums(&t2, &["A".into()]);
-            assert!((out.overlap_alike_suns_fraction - (a + b) as f64 / 20.0).abs() < 1e-15);
-            assert_eq!(out.overlap_east_west_blind_fraction, 0.0);
-            assert_eq!(
-                out.warnings
-                    .iter()
-                    .any(|w| w.contains("within 5° of one another")),
-                warns,
-                "{:?}",
-                out.warnings
-            );
-            assert!(!out.warnings.iter().any(|w| w.contains("north–south")));
+        // The overlap's shares under Suns alike and east–west blind each warn above one half,
+        // summed over tiles, each with its own warning only.
+        type Share = (
+            fn(&mut TileSums, usize),
+            fn(&Sanity) -> f64,
+            &'static str,
+            &'static str,
+        );
+        let shares: [Share; 2] = [
+            (
+                |t, n| t.overlap_east_west_blind = n,
+                |s| s.overlap_east_west_blind_fraction,
+                "north–south",
+                "within 5° of one another",
+            ),
+            (
+                |t, n| t.overlap_alike_suns = n,
+                |s| s.overlap_alike_suns_fraction,
+                "within 5° of one another",
+                "north–south",
+            ),
+        ];
+        for (set, share, says, not) in shares {
+            for (a, b, warns) in [(4, 5, false), (5, 5, false), (6, 5, true)] {
+                let mut t2 = t.clone();
+                for n in [a, b] {
+                    let mut tile = TileSums {
+                        overlap: 10,
+                        ..TileSums::default()
+                    };
+                    set(&mut tile, n);
+                    t2.add(&tile);
+                }
+                let out = Sanity::from_sums(&t2, &["A".into()]);
+                assert_eq!(out.overlap_pixels, 20);
+                assert!((share(&out) - (a + b) as f64 / 20.0).abs() < 1e-15);
+                let warned = |text: &str| out.warnings.iter().any(|w| w.contains(text));
+                assert_eq!(warned(says), warns, "{:?}", out.warnings);
+                assert!(!warned(not), "{:?}", out.warnings);
+            }
         }
     }
 }
