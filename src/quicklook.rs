@@ -183,6 +183,18 @@ pub fn diverging_ramp(t: f64) -> [u8; 3] {
     diverging_colour(2.0 * t - 1.0)
 }
 
+/// The text scale of the colour bars' labels on panels `pw` pixels wide: 2 (16 px a character)
+/// where every bar's low and high label fit side by side with a character's room between
+/// them, else 1.
+fn bar_label_scale<'a>(labels: impl Iterator<Item = (&'a str, &'a str)>, pw: usize) -> usize {
+    let mut labels = labels;
+    if labels.all(|(lo, hi)| (lo.chars().count() + hi.chars().count() + 1) * 16 <= pw) {
+        2
+    } else {
+        1
+    }
+}
+
 /// Draw a scale bar of `metres` (a round length near a fifth of the width) in the lower left of
 /// a picture whose pixels are `pixel_m` metres, labelled in km or m.
 pub fn scale_bar(img: &mut Rgb, pixel_m: f64) {
@@ -243,6 +255,15 @@ pub fn write_sheet(path: &Path, panels: &[Panel], columns: usize) -> Result<()> 
     } else {
         1
     };
+    // Colour-bar labels likewise: double size where every bar's two fit with a character's
+    // room between them, else single (a narrow region's panels).
+    let label_scale = bar_label_scale(
+        panels
+            .iter()
+            .filter_map(|p| p.bar.as_ref())
+            .map(|b| (b.low.as_str(), b.high.as_str())),
+        pw,
+    );
     for (k, p) in panels.iter().enumerate() {
         let (y0, x0) = (
             gap + (k / cols) * (cell_h + gap),
@@ -266,9 +287,9 @@ pub fn write_sheet(path: &Path, panels: &[Panel], columns: usize) -> Result<()> 
                     img[(yb + i, x0 + j)] = c;
                 }
             }
-            draw_text(&mut img, yb + 14, x0, lo, 2, [0, 0, 0]);
-            let right = x0 + pw.saturating_sub(hi.chars().count() * 16);
-            draw_text(&mut img, yb + 14, right, hi, 2, [0, 0, 0]);
+            draw_text(&mut img, yb + 14, x0, lo, label_scale, [0, 0, 0]);
+            let right = x0 + pw.saturating_sub(hi.chars().count() * 8 * label_scale);
+            draw_text(&mut img, yb + 14, right, hi, label_scale, [0, 0, 0]);
         }
     }
     let flat: Vec<u8> = img.iter().flat_map(|p| p.iter().copied()).collect();
@@ -353,6 +374,20 @@ mod sheet_tests {
         assert_eq!(m[(0, 0)], 5.0);
         // Block (2, 3): row 4, column 6 alone.
         assert_eq!(m[(2, 3)], 34.0);
+    }
+
+    /// A narrow panel's colour-bar labels drop to single size rather than run into each other
+    /// (a real crop on a 300 m grid: 162-px panels, "0.0109" and "0.0310" at 16 px a
+    /// character need 208 px).
+    #[test]
+    fn colour_bar_labels_shrink_on_narrow_panels() {
+        assert_eq!(bar_label_scale([("0.0109", "0.0310")].into_iter(), 208), 2);
+        assert_eq!(bar_label_scale([("0.0109", "0.0310")].into_iter(), 162), 1);
+        assert_eq!(
+            bar_label_scale([("-2.4", "+2.4"), ("0.0109", "0.0310")].into_iter(), 162),
+            1
+        );
+        assert_eq!(bar_label_scale(std::iter::empty(), 10), 2);
     }
 
     #[test]
