@@ -44,6 +44,9 @@ pub enum Inspection {
         latitude_deg: Option<Range>,
         /// Why LOC could not be read, if it could not.
         loc_problem: Option<String>,
+        /// Pixel size on the ground from LOC, metres ([`crate::ingest::ground_sample_distance`]):
+        /// what `run` compares with the grid's.
+        pixel_size_m: Option<f64>,
         /// Radiance range of the first band, W/(m² µm sr).
         radiance_band0: Option<Range>,
         /// Illumination from OBS, degrees, when the OBS file is present: incidence (to-Sun
@@ -218,11 +221,12 @@ pub fn inspect(path: &Path) -> Result<Inspection> {
     let label_s = path.display().to_string();
     if label.child("RDN_FILE").is_some() {
         let o = Observation::open(path)?;
-        let (mut lon, mut lat, mut problem) = (None, None, None);
+        let (mut lon, mut lat, mut problem, mut pixel_size_m) = (None, None, None, None);
         match o.part("LOC") {
             Ok(loc) => {
                 lon = scan(loc.lines, |f, n| loc.read_band(0, f, n))?;
                 lat = scan(loc.lines, |f, n| loc.read_band(1, f, n))?;
+                pixel_size_m = crate::ingest::ground_sample_distance(&o).ok();
             }
             Err(e) => problem = Some(e.to_string()),
         }
@@ -254,6 +258,7 @@ pub fn inspect(path: &Path) -> Result<Inspection> {
             longitude_deg: lon,
             latitude_deg: lat,
             loc_problem: problem,
+            pixel_size_m,
             radiance_band0: rad,
             incidence_deg,
             emission_deg,
@@ -332,7 +337,7 @@ impl Inspection {
                 .unwrap_or_else(|| "—".into())
         };
         match self {
-            Inspection::M3 { label, mode, lines, samples, bands, wavelengths_nm, wavelength_source, solar_distance_au, longitude_deg, latitude_deg, loc_problem, radiance_band0, incidence_deg, emission_deg, phase_deg, sun_azimuth_deg, obs_problem } => {
+            Inspection::M3 { label, mode, lines, samples, bands, wavelengths_nm, wavelength_source, solar_distance_au, longitude_deg, latitude_deg, loc_problem, pixel_size_m, radiance_band0, incidence_deg, emission_deg, phase_deg, sun_azimuth_deg, obs_problem } => {
                 let mut s = format!("{label}\n  kind           M3 Level 1B, {mode} mode\n  size           {lines} lines × {samples} samples × {bands} bands\n");
                 let wl = if wavelengths_nm.len() > 6 {
                     format!("{:.2} … {:.2} nm", wavelengths_nm[0], wavelengths_nm[wavelengths_nm.len() - 1])
@@ -343,6 +348,9 @@ impl Inspection {
                 s += &format!("  longitude      {}°E\n  latitude       {}°\n", r(longitude_deg), r(latitude_deg));
                 if let Some(p) = loc_problem {
                     s += &format!("  LOC            {p}\n");
+                }
+                if let Some(d) = pixel_size_m {
+                    s += &format!("  pixel size     {d:.1} m (LOC: geometric mean of the median across- and along-track spacings)\n");
                 }
                 s += &format!("  radiance b0    {} W/(m² µm sr)\n", r(radiance_band0));
                 s += &format!(

@@ -213,6 +213,11 @@ fn inspect_describes_real_products() {
         (lon0 - 173.7).abs() < 0.2 && (lon1 - 175.3).abs() < 0.2,
         "{lon0} {lon1}"
     );
+    // M3 global mode from the 100 km orbit images ≈ 140 m pixels; across the track here,
+    // MANIFEST.md's 173.7–175.3°E at 29.1°S over 304 samples: 1.6° × cos 29.1° × 30.32 km/° /
+    // 304 ≈ 139 m. LOC's (across · along)^½ must be near that.
+    let px = r["pixel_size_m"].as_f64().unwrap();
+    assert!((130.0..165.0).contains(&px), "{px}");
 
     let o = sfsfuse()
         .arg("inspect")
