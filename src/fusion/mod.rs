@@ -276,6 +276,11 @@ pub struct FusionParams {
     /// information in its least-measured direction ([`observations::every_direction`]; 0 for
     /// two observations, whose images never measure a second direction).
     pub multi_delta_factor_all: f64,
+    /// Where the Suns of the observations at a pixel stand high (mean cot² of their
+    /// elevations under 1.2, fully under 0.6: ≈ 42° and 52°), δ is lowered further, towards
+    /// δ × this ([`observations::high_sun`]); the smaller of this rule's factor and
+    /// `multi_delta_factor_all`'s is used.
+    pub multi_delta_factor_high_sun: f64,
     /// k of the edge-aware membrane (a slope, dimensionless): from the second albedo stage on,
     /// the membrane weight at a pixel where one observation carries it is η/√(1 + |∇(z −
     /// z_DEM)|²/k²) of the surface the stage starts from
@@ -350,6 +355,7 @@ impl Default for FusionParams {
             multi_albedo_passes: 2,
             multi_delta_factor: 0.2,
             multi_delta_factor_all: 0.1,
+            multi_delta_factor_high_sun: 0.1,
             edge_membrane_slope: 0.0,
             multi_eta_factor: 6.0,
             multi_edge_membrane_slope: 0.02,
@@ -641,7 +647,7 @@ pub fn validate_params(params: &FusionParams) -> Result<(), FusionError> {
             });
         }
     }
-    let checks: [(&'static str, f64, bool, &'static str); 24] = [
+    let checks: [(&'static str, f64, bool, &'static str); 25] = [
         (
             "cg_tolerance",
             params.cg_tolerance,
@@ -665,6 +671,13 @@ pub fn validate_params(params: &FusionParams) -> Result<(), FusionError> {
             params.multi_delta_factor_all,
             params.multi_delta_factor_all > 0.0
                 && params.multi_delta_factor_all <= params.multi_delta_factor,
+            "must be in (0, multi_delta_factor]",
+        ),
+        (
+            "multi_delta_factor_high_sun",
+            params.multi_delta_factor_high_sun,
+            params.multi_delta_factor_high_sun > 0.0
+                && params.multi_delta_factor_high_sun <= params.multi_delta_factor,
             "must be in (0, multi_delta_factor]",
         ),
         (
@@ -954,7 +967,11 @@ pub(crate) fn objective<'a, 'p>(
         scale,
         w,
     )
-    .with_multi_delta(params.multi_delta_factor, params.multi_delta_factor_all)
+    .with_multi_delta(
+        params.multi_delta_factor,
+        params.multi_delta_factor_all,
+        params.multi_delta_factor_high_sun,
+    )
     .with_dem_height_length(params.dem_height_length_px * pr.spacing)
     .with_dem_tracks(
         track_weight(

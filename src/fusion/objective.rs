@@ -416,24 +416,36 @@ impl<'a, 'p> Objective<'a, 'p> {
     }
 
     /// Lower the DEM term's weight to δ·f(x) where several observations carry a pixel,
-    /// blended by their multi-coverage c(x): δ(x) = δ·(1 − (1 − f(x))·c(x)), f(x) =
-    /// `factor` − (`factor` − `factor_all`)·φ(x), φ the share of the images' albedo-free slope
-    /// information in its least-measured direction ([`observations::every_direction`]; 0 for
-    /// two observations). With two or more Suns the images fix most slopes, with three spread
-    /// in azimuth every one, and the DEM's own errors inside the σ_DEM passband (track
-    /// offsets, noise) are then the largest left (docs/science.md, "Several observations").
-    /// No effect where one observation carries a pixel.
-    pub fn with_multi_delta(mut self, factor: f64, factor_all: f64) -> Self {
+    /// blended by their multi-coverage c(x): δ(x) = δ·(1 − (1 − f(x))·c(x)), f(x) = the
+    /// smaller of `factor` − (`factor` − `factor_all`)·φ(x) and `factor` − (`factor` −
+    /// `factor_high_sun`)·η(x): φ the share of the images' albedo-free slope information in its
+    /// least-measured direction ([`observations::every_direction`]; 0 for two observations), η
+    /// how high their Suns stand ([`observations::high_sun`]). With two or more Suns the images
+    /// fix most slopes, with three spread in azimuth every one, and the DEM's own errors inside
+    /// the σ_DEM passband (track offsets, noise) are then the largest left; under high Suns,
+    /// which cast few shadows, more so (docs/science.md, "Several observations"). No effect
+    /// where one observation carries a pixel.
+    pub fn with_multi_delta(mut self, factor: f64, factor_all: f64, factor_high_sun: f64) -> Self {
         let c = self.weights.multiplicity();
         if factor < 1.0 && c.iter().any(|&c| c > 0.0) {
             let phi = (factor_all < factor && self.weights.weight.len() > 2)
                 .then(|| observations::every_direction(self.problem, &self.weights, &c));
-            self.dem_relief = Some(match phi {
+            let mut r = match phi {
                 Some(phi) => Zip::from(&c)
                     .and(&phi)
                     .map_collect(|&c, &phi| (1.0 - (factor - (factor - factor_all) * phi)) * c),
                 None => c.mapv(|c| (1.0 - factor) * c),
-            });
+            };
+            if factor_high_sun < factor {
+                let eta = observations::high_sun(self.problem, &self.weights, &c);
+                Zip::from(&mut r).and(&c).and(&eta).for_each(|r, &c, &eta| {
+                    if c > 0.0 && eta > 0.0 {
+                        let f = (1.0 - *r / c).min(factor - (factor - factor_high_sun) * eta);
+                        *r = (1.0 - f) * c;
+                    }
+                });
+            }
+            self.dem_relief = Some(r);
         }
         self
     }
@@ -1074,7 +1086,7 @@ mod tests {
         let pr = two_observations(&a, &b, &dem, &model);
         let w = two_strip_weights(&pr);
         assert!(w.weight[1][(3, 9)] > 0.0 && w.weight[1][(3, 9)] < 0.7);
-        let obj = Objective::new(&pr, 3.0, 0.2, 1.2, 1.5, 0.03, w).with_multi_delta(0.3, 0.3);
+        let obj = Objective::new(&pr, 3.0, 0.2, 1.2, 1.5, 0.03, w).with_multi_delta(0.3, 0.3, 0.3);
         assert!(obj.dem_relief.as_ref().unwrap()[(5, 15)] > 0.5);
         assert_gradient_matches(&obj, &z, &[(3, 4), (6, 9), (5, 15), (11, 25), (0, 29)]);
     }
@@ -1089,9 +1101,10 @@ mod tests {
         let model = Hapke::moon();
         let pr = two_observations(&a, &b, &dem, &model);
         let w = || two_strip_weights(&pr);
-        let plain = Objective::new(&pr, 3.0, 0.2, 1.2, 1.5, 0.03, w()).with_multi_delta(0.3, 0.3);
+        let plain =
+            Objective::new(&pr, 3.0, 0.2, 1.2, 1.5, 0.03, w()).with_multi_delta(0.3, 0.3, 0.3);
         let obj = Objective::new(&pr, 3.0, 0.2, 1.2, 1.5, 0.03, w())
-            .with_multi_delta(0.3, 0.3)
+            .with_multi_delta(0.3, 0.3, 0.3)
             .with_dem_height_length(300.0);
         assert_eq!(obj.dem_height, 1.0 / (300.0 * 300.0));
         let zh = obj.dct.forward(&z);
@@ -1141,7 +1154,7 @@ mod tests {
         let (a, b) = two_strips(1.1);
         let pr = two_observations(&a, &b, &dem, &model);
         let obj = Objective::new(&pr, 3.0, 0.2, 1.2, 1.5, 0.03, two_strip_weights(&pr))
-            .with_multi_delta(0.3, 0.3)
+            .with_multi_delta(0.3, 0.3, 0.3)
             .with_dem_height_length(300.0)
             .with_dem_tracks(0.1, 2.0);
         assert_gradient_matches(

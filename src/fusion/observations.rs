@@ -213,6 +213,50 @@ pub fn every_direction_at(observations: impl Iterator<Item = (f64, Vec3)>) -> f6
     spread * lo / (lo + EVERY_DIRECTION_M0)
 }
 
+/// [m₀, m₁] of [`high_sun`]: η rises from 0 to 1 as the mean cot² of the Suns' elevations
+/// falls from m₁ to m₀ (cot² e = 1.2 at 42.4°, 0.6 at 52.2°): two Suns 55–60° high get η = 1,
+/// 45° (cot² = 1) η = 1/3, 30–40° none.
+pub const HIGH_SUN_COT2: [f64; 2] = [0.6, 1.2];
+
+/// η(x) ∈ [0, 1]: how high the Suns of the observations that carry a pixel stand, from the
+/// u_k-weighted mean of cot² e_k = (s_x² + s_y²)/s_z² (u_k as in [`every_direction`]):
+/// clamp((m₁ − mean)/(m₁ − m₀), 0, 1), [m₀, m₁] = [`HIGH_SUN_COT2`]. cot² e is |g_k|², the
+/// squared slope sensitivity of ln R for a Lambert surface: under high Suns the shading says
+/// little per unit slope and casts few shadows, and the DEM's own errors inside its passband
+/// weigh most. 0 where c(x) = 0.
+pub fn high_sun(pr: &Problem, w: &Weights, c: &Array2<f64>) -> Array2<f64> {
+    Zip::indexed(c).par_map_collect(|(i, j), &c| {
+        if c <= 0.0 {
+            return 0.0;
+        }
+        high_sun_at(
+            pr.observations
+                .iter()
+                .zip(&w.weight)
+                .zip(&w.noise)
+                .map(|((o, wk), &nu)| (f64::from(wk[(i, j)]) / nu, o.sun.at(i, j))),
+        )
+    })
+}
+
+/// η of [`high_sun`] at one pixel, from each observation's (u_k, Sun vector); those with
+/// u_k ≤ 0 or the Sun at or below the horizon do not count (η = 0 without any).
+pub fn high_sun_at(observations: impl Iterator<Item = (f64, Vec3)>) -> f64 {
+    let (mut su, mut s2) = (0.0, 0.0);
+    for (u, s) in observations {
+        if u <= 0.0 || s[2] <= 1e-6 {
+            continue;
+        }
+        su += u;
+        s2 += u * (s[0] * s[0] + s[1] * s[1]) / (s[2] * s[2]);
+    }
+    if su <= 0.0 {
+        return 0.0;
+    }
+    let [m0, m1] = HIGH_SUN_COT2;
+    ((m1 - s2 / su) / (m1 - m0)).clamp(0.0, 1.0)
+}
+
 /// Incidence angle, degrees, of a Sun vector in the grid frame (z up).
 pub fn incidence_deg(sun: &[f64; 3]) -> f64 {
     sun[2].clamp(-1.0, 1.0).acos().to_degrees()
@@ -759,6 +803,21 @@ mod tests {
         let lo = 2.0 / 3.0 * k;
         let quarter = phi(&[(1.0, 0.0, 40.0), (1.0, 90.0, 40.0), (1.0, 180.0, 40.0)]);
         assert!((quarter - (1.0 / 3.0) * lo / (lo + EVERY_DIRECTION_M0)).abs() < 1e-12);
+    }
+
+    /// η by hand: two Suns at 60° and 55° (cot² = 1/3, 0.49): 1; at 45° (cot² = 1): (1.2 −
+    /// 1)/0.6 = 1/3; at 30° and 35°: 0; a Sun at 30° with u = 1 and one at 60° with u = 3:
+    /// mean cot² (3 + 1)/4 = 1: 1/3; a shadowed (u = 0) or set Sun does not count.
+    #[test]
+    fn high_sun_follows_the_mean_cot2_of_the_elevations() {
+        let eta = |s: &[(f64, f64, f64)]| high_sun_at(s.iter().map(|&(u, a, e)| (u, sun(a, e))));
+        assert_eq!(eta(&[(1.0, 110.0, 55.0), (1.0, 250.0, 60.0)]), 1.0);
+        assert!((eta(&[(1.0, 0.0, 45.0), (1.0, 120.0, 45.0)]) - 1.0 / 3.0).abs() < 1e-12);
+        assert_eq!(eta(&[(1.0, 105.0, 30.0), (1.0, 225.0, 35.0)]), 0.0);
+        assert!((eta(&[(1.0, 105.0, 30.0), (3.0, 225.0, 60.0)]) - 1.0 / 3.0).abs() < 1e-12);
+        assert_eq!(eta(&[(1.0, 0.0, 60.0), (0.0, 120.0, 10.0)]), 1.0);
+        assert_eq!(eta(&[(1.0, 0.0, 60.0), (1.0, 120.0, -5.0)]), 1.0);
+        assert_eq!(eta(&[(0.0, 0.0, 60.0)]), 0.0);
     }
 
     /// Suns alike: within 5° of one another, every pair (analytic angles: 4° and 6° apart in
