@@ -167,23 +167,31 @@ pub const EVERY_DIRECTION_RATIO: [f64; 2] = [0.2, 0.6];
 /// (M has rank one, φ = 0, taken as exactly 0), three or more Suns apart in azimuth along
 /// every one. 0 where c(x) = 0.
 pub fn every_direction(pr: &Problem, w: &Weights, c: &Array2<f64>) -> Array2<f64> {
+    where_overlapping(pr, w, c, every_direction_at)
+}
+
+/// `at` of each pixel's observations as (u_k = w_k/ν_k, Sun vector) where c(x) > 0, 0
+/// elsewhere.
+fn where_overlapping<F>(pr: &Problem, w: &Weights, c: &Array2<f64>, at: F) -> Array2<f64>
+where
+    F: Fn(&mut dyn Iterator<Item = (f64, Vec3)>) -> f64 + Sync,
+{
     Zip::indexed(c).par_map_collect(|(i, j), &c| {
         if c <= 0.0 {
             return 0.0;
         }
-        every_direction_at(
-            pr.observations
-                .iter()
-                .zip(&w.weight)
-                .zip(&w.noise)
-                .map(|((o, wk), &nu)| (f64::from(wk[(i, j)]) / nu, o.sun.at(i, j))),
-        )
+        at(&mut pr
+            .observations
+            .iter()
+            .zip(&w.weight)
+            .zip(&w.noise)
+            .map(|((o, wk), &nu)| (f64::from(wk[(i, j)]) / nu, o.sun.at(i, j))))
     })
 }
 
 /// φ of [`every_direction`] at one pixel, from each observation's (u_k, Sun vector); those with
 /// u_k ≤ 0 or the Sun at or below the horizon do not count.
-pub fn every_direction_at(observations: impl Iterator<Item = (f64, Vec3)>) -> f64 {
+pub fn every_direction_at(observations: &mut dyn Iterator<Item = (f64, Vec3)>) -> f64 {
     let (mut n, mut su, mut sx, mut sy) = (0, 0.0, 0.0, 0.0);
     let (mut mxx, mut mxy, mut myy) = (0.0, 0.0, 0.0);
     for (u, s) in observations {
@@ -225,23 +233,12 @@ pub const HIGH_SUN_COT2: [f64; 2] = [0.6, 1.2];
 /// little per unit slope and casts few shadows, and the DEM's own errors inside its passband
 /// weigh most. 0 where c(x) = 0.
 pub fn high_sun(pr: &Problem, w: &Weights, c: &Array2<f64>) -> Array2<f64> {
-    Zip::indexed(c).par_map_collect(|(i, j), &c| {
-        if c <= 0.0 {
-            return 0.0;
-        }
-        high_sun_at(
-            pr.observations
-                .iter()
-                .zip(&w.weight)
-                .zip(&w.noise)
-                .map(|((o, wk), &nu)| (f64::from(wk[(i, j)]) / nu, o.sun.at(i, j))),
-        )
-    })
+    where_overlapping(pr, w, c, high_sun_at)
 }
 
 /// η of [`high_sun`] at one pixel, from each observation's (u_k, Sun vector); those with
 /// u_k ≤ 0 or the Sun at or below the horizon do not count (η = 0 without any).
-pub fn high_sun_at(observations: impl Iterator<Item = (f64, Vec3)>) -> f64 {
+pub fn high_sun_at(observations: &mut dyn Iterator<Item = (f64, Vec3)>) -> f64 {
     let (mut su, mut s2) = (0.0, 0.0);
     for (u, s) in observations {
         if u <= 0.0 || s[2] <= 1e-6 {
@@ -779,8 +776,9 @@ mod tests {
     /// (M = cot² 40°·diag(2/3, 2), ratio 1/3: (1/3 − 0.2)/0.4 = 1/3 of λ_min/(λ_min + m₀)).
     #[test]
     fn every_direction_needs_suns_spread_in_azimuth() {
-        let phi =
-            |s: &[(f64, f64, f64)]| every_direction_at(s.iter().map(|&(u, a, e)| (u, sun(a, e))));
+        let phi = |s: &[(f64, f64, f64)]| {
+            every_direction_at(&mut s.iter().map(|&(u, a, e)| (u, sun(a, e))))
+        };
         let even = phi(&[(1.0, 0.0, 30.0), (1.0, 120.0, 30.0), (1.0, 240.0, 30.0)]);
         assert!((even - 4.5 / 4.55).abs() < 1e-12, "{even}");
         // u scales M: halving every u halves λ.
@@ -810,7 +808,8 @@ mod tests {
     /// mean cot² (3 + 1)/4 = 1: 1/3; a shadowed (u = 0) or set Sun does not count.
     #[test]
     fn high_sun_follows_the_mean_cot2_of_the_elevations() {
-        let eta = |s: &[(f64, f64, f64)]| high_sun_at(s.iter().map(|&(u, a, e)| (u, sun(a, e))));
+        let eta =
+            |s: &[(f64, f64, f64)]| high_sun_at(&mut s.iter().map(|&(u, a, e)| (u, sun(a, e))));
         assert_eq!(eta(&[(1.0, 110.0, 55.0), (1.0, 250.0, 60.0)]), 1.0);
         assert!((eta(&[(1.0, 0.0, 45.0), (1.0, 120.0, 45.0)]) - 1.0 / 3.0).abs() < 1e-12);
         assert_eq!(eta(&[(1.0, 105.0, 30.0), (1.0, 225.0, 35.0)]), 0.0);
