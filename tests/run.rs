@@ -8,7 +8,7 @@ use std::path::Path;
 mod support;
 use support::{
     displaced_products, largest_difference, observation_products, rmse, run_ok, scene_products,
-    scratch, sfsfuse, strip_products, workflow, write_workflow,
+    scratch, sfsfuse, strip_products, workflow, workflow_at, write_workflow,
 };
 
 /// The science-core bar (tests/science.rs) met through the whole pipeline: PDS3 products in,
@@ -1737,15 +1737,7 @@ fn a_grid_coarser_than_the_image_averages_it_over_each_grid_pixel() {
     let mut errors = Vec::new();
     for f in [1usize, 2, 4] {
         let out = dir.join(format!("out{f}"));
-        let text = workflow(&p, &out, 512, "")
-            .replace(
-                "resolution_m = 140.0",
-                &format!("resolution_m = {:.1}", 140.0 * f as f64),
-            )
-            .replace(
-                "dem_psf_sigma_px = 3.0",
-                &format!("dem_psf_sigma_px = {}", 3.0 / f as f64),
-            );
+        let text = workflow_at(&p, &out, 140.0 * f as f64);
         let wf = dir.join(format!("workflow{f}.toml"));
         std::fs::write(&wf, text).unwrap();
         run_ok(&["run", "--progress", "lines"], &wf);
@@ -1775,12 +1767,7 @@ fn observations_coarser_than_the_grid_are_named_in_a_warning() {
     let (dir, p) = observation_products(128, 10, (&suns, &[], false), "coarse-pixels");
     for (res, warns) in [(140.0, false), (70.0, true)] {
         let out = dir.join(format!("out{res}"));
-        let text = workflow(&p, &out, 512, "")
-            .replace("resolution_m = 140.0", &format!("resolution_m = {res:.1}"))
-            .replace(
-                "dem_psf_sigma_px = 3.0",
-                &format!("dem_psf_sigma_px = {}", 3.0 * 140.0 / res),
-            );
+        let text = workflow_at(&p, &out, res);
         let wf = dir.join(format!("workflow{res}.toml"));
         std::fs::write(&wf, text).unwrap();
         run_ok(&["run", "--progress", "lines"], &wf);

@@ -430,22 +430,18 @@ impl<'a, 'p> Objective<'a, 'p> {
         if factor < 1.0 && c.iter().any(|&c| c > 0.0) {
             let phi = (factor_all < factor && self.weights.weight.len() > 2)
                 .then(|| observations::every_direction(self.problem, &self.weights, &c));
-            let mut r = match phi {
-                Some(phi) => Zip::from(&c)
-                    .and(&phi)
-                    .map_collect(|&c, &phi| (1.0 - (factor - (factor - factor_all) * phi)) * c),
-                None => c.mapv(|c| (1.0 - factor) * c),
-            };
-            if factor_high_sun < factor {
-                let eta = observations::high_sun(self.problem, &self.weights, &c);
-                Zip::from(&mut r).and(&c).and(&eta).for_each(|r, &c, &eta| {
-                    if c > 0.0 && eta > 0.0 {
-                        let f = (1.0 - *r / c).min(factor - (factor - factor_high_sun) * eta);
-                        *r = (1.0 - f) * c;
-                    }
-                });
-            }
-            self.dem_relief = Some(r);
+            let eta = (factor_high_sun < factor)
+                .then(|| observations::high_sun(self.problem, &self.weights, &c));
+            self.dem_relief = Some(Zip::indexed(&c).map_collect(|ij, &c| {
+                let mut f = factor;
+                if let Some(phi) = &phi {
+                    f = f.min(factor - (factor - factor_all) * phi[ij]);
+                }
+                if let Some(eta) = &eta {
+                    f = f.min(factor - (factor - factor_high_sun) * eta[ij]);
+                }
+                (1.0 - f) * c
+            }));
         }
         self
     }

@@ -114,6 +114,20 @@ layers = ["dem", "albedo", "residual", "mask", "input_dem"]
     )
 }
 
+/// [`workflow`] on a grid of `resolution_m` metres instead of the scene's 140 m, with the
+/// DEM's point spread (3 px at 140 m) rescaled to that grid's pixels.
+pub fn workflow_at(p: &products::Products, out: &Path, resolution_m: f64) -> String {
+    workflow(p, out, 512, "")
+        .replace(
+            "resolution_m = 140.0",
+            &format!("resolution_m = {resolution_m:.1}"),
+        )
+        .replace(
+            "dem_psf_sigma_px = 3.0",
+            &format!("dem_psf_sigma_px = {}", 3.0 * 140.0 / resolution_m),
+        )
+}
+
 pub fn write_workflow(dir: &Path, text: &str) -> PathBuf {
     let p = dir.join("workflow.toml");
     std::fs::write(&p, text).unwrap();
