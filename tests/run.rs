@@ -1757,10 +1757,11 @@ fn a_grid_coarser_than_the_image_averages_it_over_each_grid_pixel() {
     std::fs::remove_dir_all(&dir).unwrap();
 }
 
-/// A grid finer than an observation's pixels takes each grid pixel's brightness as its own
-/// detector pixel's, so the run names every such observation in a warning with its pixel size
-/// (docs/science.md, "Images coarser than the grid") and records the pixel size of each; at
-/// the observation's own pixel size (the other runs here) nothing is said.
+/// On a grid finer than an observation's pixels the run models the observation as its blur,
+/// σ² = (s² − 1)/4 grid pixels² for pixels s times the grid's (docs/science.md, "Images coarser
+/// than the grid"), records the pixel size and σ of each, and names every such observation in
+/// a warning with its pixel size; at the observation's own pixel size (the other runs here)
+/// σ = 0 and nothing is said.
 #[test]
 fn observations_coarser_than_the_grid_are_named_in_a_warning() {
     let suns = [(105.0, 30.0), (225.0, 35.0)];
@@ -1776,6 +1777,15 @@ fn observations_coarser_than_the_grid_are_named_in_a_warning() {
         for o in rec["observations"].as_array().unwrap() {
             let size = o["pixel_size_m"].as_f64().unwrap();
             assert!((size - 140.0).abs() < 1.0, "{o}");
+            let s = size / res;
+            // σ² = (s² − 1)/4; under a quarter pixel, sharp.
+            let sigma = if s > 1.0 {
+                ((s * s - 1.0) / 4.0).sqrt()
+            } else {
+                0.0
+            };
+            let sigma = if sigma < 0.25 { 0.0 } else { sigma };
+            assert!((o["blur_px"].as_f64().unwrap() - sigma).abs() < 1e-9, "{o}");
         }
         let warnings: Vec<&str> = rec["sanity"]["warnings"]
             .as_array()

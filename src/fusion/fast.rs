@@ -5,10 +5,11 @@
 //! `step_tolerance` × ε in a step, or the steps to come are estimated not to ([`remaining`]),
 //! or E stagnates, or after `max_iterations`.
 
-use super::objective::{relief_gradient_into, Energy, Iterate, Objective};
-use super::{ops, FusionParams, IterationRecord};
+use super::objective::{relief_gradient_into, BlurTerm, Energy, Iterate, Objective};
+use super::{blur, ops, FusionParams, IterationRecord};
 use crate::spectral;
-use ndarray::{Array2, ArrayView2, Zip};
+use ndarray::{Array2, ArrayView2, Axis, Zip};
+use rayon::prelude::*;
 
 /// Dᵀ(H + M)D·v (+ 2K·v, the tie) for the photometric term, into `out`: `hm` = H + M per
 /// pixel (xx, xy, yy), H = Σ_k 2w_k(a_k, b_k)ᵀ(a_k, b_k) the Gauss–Newton Hessian in (p, q)
@@ -29,6 +30,45 @@ fn data_normal_into(
             .and(v)
             .par_for_each(|o, &k, &v| *o += k * v);
     }
+}
+
+/// `out` += Dᵀ Aᵀ B (2W) B A D·v, the Gauss–Newton Hessian of the E_I term of an observation
+/// coarser than the grid (A = (a, b) per pixel, B its kernel; [`super::blur`]).
+fn blurred_normal_add(t: &BlurTerm, eps: f64, v: &Array2<f32>, out: &mut Array2<f32>) {
+    let (ny, nx) = v.dim();
+    let mut s = Array2::<f32>::zeros((ny, nx));
+    s.axis_iter_mut(Axis(0))
+        .into_par_iter()
+        .enumerate()
+        .for_each(|(i, mut row)| {
+            let (mut p, mut q) = (vec![0f32; nx], vec![0f32; nx]);
+            ops::gradient_row(v.view(), eps, i, &mut p, &mut q);
+            let (a, b) = (t.a.row(i), t.b.row(i));
+            for j in 0..nx {
+                row[j] = a[j] * p[j] + b[j] * q[j];
+            }
+        });
+    let mut u = blur::convolve(&t.kernel, &s);
+    Zip::from(&mut u).and(&t.w2).par_for_each(|u, &w| *u *= w);
+    let u = blur::convolve(&t.kernel, &u);
+    let fx = &u * &t.a;
+    let fy = &u * &t.b;
+    out.axis_iter_mut(Axis(0))
+        .into_par_iter()
+        .enumerate()
+        .for_each(|(i, mut o)| {
+            let mut d = vec![0f32; nx];
+            ops::adjoint_row(
+                fx.row(i).as_slice().expect("standard layout"),
+                fy.view(),
+                eps,
+                i,
+                &mut d,
+            );
+            for (o, d) in o.iter_mut().zip(d) {
+                *o += d;
+            }
+        });
 }
 
 /// The parts of the Newton systems that stay the same over a stage's steps.
@@ -59,6 +99,8 @@ struct Normal<'o, 'a, 'p> {
     /// H + M per pixel.
     hm: Array2<[f32; 3]>,
     fixed: &'o Fixed,
+    /// The observations coarser than the grid ([`blurred_normal_add`]).
+    blurred: &'o [BlurTerm],
     fixed_mean: bool,
     v: Array2<f32>,
     /// Scratch of the relief fields' parts (empty without them).
@@ -79,6 +121,9 @@ impl Normal<'_, '_, '_> {
             &self.v,
             out,
         );
+        for t in self.blurred {
+            blurred_normal_add(t, obj.problem.spacing, &self.v, out);
+        }
         let e2 = (obj.problem.spacing * obj.problem.spacing) as f32;
         if let Some(r) = &self.fixed.membrane_relief {
             // The edge-aware membrane's spatial part (the opt-in membrane, or η lowered where
@@ -160,15 +205,25 @@ fn newton_step(
     obj: &Objective,
     hm: Array2<[f32; 3]>,
     fixed: &Fixed,
+    blurred: &[BlurTerm],
     g: &Array2<f32>,
     params: &FusionParams,
 ) -> (Array2<f32>, usize) {
     let (ny, nx) = g.dim();
     let e2 = obj.problem.spacing * obj.problem.spacing;
     let n = hm.len() as f64;
-    let (ax, ay) = hm.iter().fold((0.0, 0.0), |(x, y), h| {
+    let (mut ax, mut ay) = hm.iter().fold((0.0, 0.0), |(x, y), h| {
         (x + f64::from(h[0]) / n, y + f64::from(h[2]) / n)
     });
+    // An observation coarser than the grid counts as a sharp one in the preconditioner (too
+    // stiff at the finest scales, which only slows the iteration there).
+    for t in blurred {
+        Zip::from(&t.w2).and(&t.a).and(&t.b).for_each(|&w, &a, &b| {
+            let (w, a, b) = (f64::from(w), f64::from(a), f64::from(b));
+            ax += w * a * a / n;
+            ay += w * b * b / n;
+        });
+    }
     let cx = spectral::difference_symbol(nx, ops::stencil_response);
     let cy = spectral::difference_symbol(ny, ops::stencil_response);
     let tie = obj.tie.as_ref().map(|k| 2.0 * ops::sum(k.view()) / n);
@@ -201,6 +256,7 @@ fn newton_step(
         obj,
         hm,
         fixed,
+        blurred,
         fixed_mean,
         v: Array2::zeros((ny, nx)),
         u: Array2::zeros(if fixed.dem_relief.is_some() {
@@ -300,6 +356,7 @@ pub fn minimise(
         // H + M, in the curvature's storage.
         let mut hm = obj.curvature(z.view(), rho, &photo, params.curvature_residual);
         obj.add_gauss_newton_hessian(&photo, &mut hm);
+        let blurred = obj.blurred_terms(&photo);
         drop(photo);
         // The gradient only enters the Newton system, solved in f32, and the line search's
         // slope: rounded to f32 here (and the f64 one freed), it takes half the memory through
@@ -307,7 +364,8 @@ pub fn minimise(
         let g32 = g.mapv(|x| x as f32);
         drop(g);
         let g = g32;
-        let (step, inner) = newton_step(obj, hm, &fixed, &g, params);
+        let (step, inner) = newton_step(obj, hm, &fixed, &blurred, &g, params);
+        drop(blurred);
         let slope = ops::dot(g.view(), step.view());
         drop(g);
         if slope >= 0.0 {

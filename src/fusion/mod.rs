@@ -6,6 +6,7 @@
 //! [`SolverKind`]. The final albedo is the per-pixel inversion on the final surface, lightly
 //! smoothed.
 
+pub mod blur;
 mod fast;
 pub mod objective;
 pub mod observations;
@@ -83,6 +84,11 @@ pub struct Problem<'a> {
     pub gains: Option<Vec<f64>>,
     /// Noise weights ν_k. `None`: (Ī/Ī_k)² from the images ([`observations`]).
     pub noise_weights: Option<Vec<f64>>,
+    /// σ_k, grid pixels, of each observation's blur relative to the grid: its detector
+    /// averages the reflectance over more than one grid pixel (an image coarser than the grid;
+    /// [`blur::sigma_px`]), and E_I compares it with B_k R ([`blur`]). `None`, or σ_k below
+    /// [`blur::MIN_SIGMA_PX`]: sharp.
+    pub blur: Option<Vec<f64>>,
     /// Which observations each pixel uses.
     pub selection: Selection,
 }
@@ -101,6 +107,14 @@ impl Observation<'_> {
 }
 
 impl<'a> Problem<'a> {
+    /// B_k of observation `k` ([`blur`]); `None`: sharp.
+    pub fn blur_kernel(&self, k: usize) -> Option<blur::Kernel> {
+        self.blur
+            .as_ref()
+            .and_then(|b| b.get(k))
+            .and_then(|&s| blur::Kernel::gaussian(s))
+    }
+
     /// The footprint: where at least one image has a value (cast shadow included: the image
     /// sees the surface there, E_I just has no gradient to give).
     pub fn footprint(&self) -> Array2<bool> {
@@ -132,6 +146,7 @@ impl<'a> Problem<'a> {
             intensity_scale: None,
             gains: None,
             noise_weights: None,
+            blur: None,
             selection: Selection::default(),
         }
     }
@@ -847,7 +862,7 @@ fn albedo_maps(
     z: ArrayView2<f64>,
     sigmas: &[f64],
 ) -> Result<Vec<Array2<f64>>, FusionError> {
-    let (raw, ok, _) = observations::invert_albedo(pr, w, z);
+    let (raw, ok, _) = observations::invert_albedo(pr, w, z, 1.0);
     sigmas
         .iter()
         .map(|&s| spectral::masked_gaussian(dct, &raw, &ok, s).ok_or(FusionError::NoObservations))
@@ -1158,7 +1173,7 @@ fn fine_stages(
         .and(&obj.support())
         .and(pr.dem)
         .par_for_each(|z, &s, &d| *z = d + s * (*z - d));
-    let inverted = observations::invert_albedo(pr, w, z.view());
+    let inverted = observations::invert_albedo(pr, w, z.view(), blur::FINAL_ALBEDO_WEIGHT);
     let mut albedo = final_albedo(&obj.dct, &inverted, params.final_albedo_sigma, params)?;
     if let Some(multi) = &multi {
         let fine = final_albedo(&obj.dct, &inverted, params.multi_final_albedo_sigma, params)?;

@@ -34,6 +34,7 @@
 //! evaluates R at z_x, z_y, which makes γ a step size (docs/science.md): both solvers minimise the
 //! E(z) above, where E_int = 0.
 
+use super::blur;
 use super::observations::{self, Weights};
 use super::ops;
 use super::support;
@@ -174,6 +175,19 @@ pub struct Objective<'a, 'p> {
     /// r_η(x) = 1 − ω(x): the membrane's weight at x is η·ω(x)
     /// ([`Objective::set_membrane_weights`]); `None`: η everywhere.
     pub membrane_relief: Option<Array2<f64>>,
+    /// B_k of each observation coarser than the grid ([`super::blur`]); `None`: sharp.
+    pub kernels: Vec<Option<blur::Kernel>>,
+}
+
+/// What the Newton operator needs of an observation coarser than the grid: its part of E_I's
+/// Gauss–Newton Hessian is Dᵀ Aᵀ B (2W) B A D, A = (a, b) per pixel, not a per-pixel matrix
+/// ([`Objective::blurred_terms`]).
+pub struct BlurTerm {
+    pub kernel: blur::Kernel,
+    pub a: Array2<f32>,
+    pub b: Array2<f32>,
+    /// 2w_k on the pixels used, 0 elsewhere.
+    pub w2: Array2<f32>,
 }
 
 impl<'a, 'p> Objective<'a, 'p> {
@@ -238,6 +252,9 @@ impl<'a, 'p> Objective<'a, 'p> {
             weights,
             band: (r0, r1),
             tie,
+            kernels: (0..problem.observations.len())
+                .map(|k| problem.blur_kernel(k))
+                .collect(),
             dem_relief: None,
             membrane_relief: None,
             dem_height: 0.0,
@@ -535,6 +552,14 @@ impl<'a, 'p> Objective<'a, 'p> {
                 b: Array2::zeros(dim),
                 used: Array2::from_elem(dim, false),
             };
+            if let Some(kernel) = &self.kernels[k] {
+                intensity += self.blurred_photo(k, o, kernel, z.view(), rho, &mut ph);
+                Zip::from(&mut used)
+                    .and(&ph.used)
+                    .par_for_each(|all, &u| *all |= u);
+                obs.push(ph);
+                continue;
+            }
             // Row by row, the slopes of each row formed there (no slope arrays), with Σ w·r²
             // of the row (from the f64 residuals), added in row order (as `ops::dot`) and
             // then in the observations' order.
@@ -581,6 +606,108 @@ impl<'a, 'p> Objective<'a, 'p> {
         }
     }
 
+    /// [`Objective::photo`] of observation `k` coarser than the grid: R and its slope
+    /// derivatives (a, b) at every pixel the image covers, residuals r = (I/g − B R)/Ī on the
+    /// pixels used; returns Σ w r² (row by row, then in row order).
+    fn blurred_photo(
+        &self,
+        k: usize,
+        o: &super::Observation,
+        kernel: &blur::Kernel,
+        z: ArrayView2<f64>,
+        rho: ArrayView2<f64>,
+        ph: &mut ObsPhoto,
+    ) -> f64 {
+        let pr = self.problem;
+        let model: &dyn ReflectanceModel = pr.model;
+        let (dim, s) = (z.dim(), self.scale);
+        let mut r = Array2::<f64>::zeros(dim);
+        Zip::indexed(r.rows_mut())
+            .and(ph.a.rows_mut())
+            .and(ph.b.rows_mut())
+            .par_for_each(|i, mut r, mut a, mut b| {
+                let (mut p, mut q) = (vec![0.0; dim.1], vec![0.0; dim.1]);
+                ops::gradient_row(z, pr.spacing, i, &mut p, &mut q);
+                for j in 0..dim.1 {
+                    if !o.image[(i, j)].is_finite() {
+                        continue;
+                    }
+                    let sh = model.shade_observed(
+                        p[j],
+                        q[j],
+                        rho[(i, j)],
+                        &o.sun.at(i, j),
+                        &o.view.at(i, j),
+                    );
+                    if sh.lit {
+                        r[j] = sh.r;
+                        a[j] = (sh.dr_dp / s) as f32;
+                        b[j] = (sh.dr_dq / s) as f32;
+                    }
+                }
+            });
+        let modelled = blur::convolve(kernel, &r);
+        let (usable, g, w) = (
+            &self.weights.usable[k],
+            self.weights.gains[k],
+            &self.weights.weight[k],
+        );
+        let parts = Zip::indexed(ph.res.rows_mut())
+            .and(ph.used.rows_mut())
+            .par_map_collect(|i, mut res, mut used| {
+                let mut part = 0.0;
+                for j in 0..dim.1 {
+                    if usable[(i, j)] {
+                        let r = (o.image[(i, j)] / g - modelled[(i, j)]) / s;
+                        part += f64::from(w[(i, j)]) * r * r;
+                        res[j] = r as f32;
+                        used[j] = true;
+                    }
+                }
+                [part]
+            });
+        ops::sum_row_parts(parts.view())[0]
+    }
+
+    /// The Newton operator's part of each observation coarser than the grid (empty when there
+    /// is none).
+    pub fn blurred_terms(&self, photo: &Photo) -> Vec<BlurTerm> {
+        self.kernels
+            .iter()
+            .zip(&photo.obs)
+            .zip(&self.weights.weight)
+            .filter_map(|((k, ph), w)| {
+                k.as_ref().map(|kernel| BlurTerm {
+                    kernel: kernel.clone(),
+                    a: ph.a.clone(),
+                    b: ph.b.clone(),
+                    w2: Zip::from(w)
+                        .and(&ph.used)
+                        .map_collect(|&w, &u| if u { 2.0 * w } else { 0.0 }),
+                })
+            })
+            .collect()
+    }
+
+    /// The factor each observation's residual enters ∂E_I/∂z with at each pixel, w_k r_k,
+    /// and for one coarser than the grid Bᵀ(w_k r_k) (its residual at x depends on the slopes
+    /// around x): `None` for a sharp observation (formed where it is used).
+    fn blurred_fluxes(&self, photo: &Photo) -> Vec<Option<Array2<f64>>> {
+        self.kernels
+            .iter()
+            .zip(&photo.obs)
+            .zip(&self.weights.weight)
+            .map(|((k, ph), w)| {
+                k.as_ref().map(|kernel| {
+                    let wr = Zip::from(w)
+                        .and(&ph.res)
+                        .map_collect(|&w, &r| f64::from(w) * f64::from(r));
+                    blur::convolve(kernel, &wr)
+                })
+            })
+            .collect()
+    }
+
     /// `out` ← ∂E_I/∂z + `out`, ∂E_I/∂z = −2 Dᵀ(fx, fy) of `photo`, (fx, fy) = Σ_k w_k r_k
     /// (a_k, b_k) (summed over the observations in their order). fy is formed as an array
     /// (D_yᵀ reaches two rows either side), fx and ∂E_I/∂z row by row where they are used:
@@ -588,8 +715,16 @@ impl<'a, 'p> Objective<'a, 'p> {
     pub fn add_photo_gradient(&self, photo: &Photo, out: &mut Array2<f64>) {
         let dim = photo.used.dim();
         let weights = &self.weights.weight;
+        let blurred = self.blurred_fluxes(photo);
         let mut fy = Array2::zeros(dim);
-        for (ph, w) in photo.obs.iter().zip(weights) {
+        for ((ph, w), t) in photo.obs.iter().zip(weights).zip(&blurred) {
+            if let Some(t) = t {
+                Zip::from(&mut fy)
+                    .and(t)
+                    .and(&ph.b)
+                    .par_for_each(|fy, &t, &b| *fy += t * f64::from(b));
+                continue;
+            }
             Zip::from(&mut fy)
                 .and(&ph.res)
                 .and(&ph.b)
@@ -601,7 +736,14 @@ impl<'a, 'p> Objective<'a, 'p> {
             .enumerate()
             .for_each(|(i, mut orow)| {
                 let mut fx = vec![0.0; dim.1];
-                for (ph, w) in photo.obs.iter().zip(weights) {
+                for ((ph, w), t) in photo.obs.iter().zip(weights).zip(&blurred) {
+                    if let Some(t) = t {
+                        let (t, a) = (t.row(i), ph.a.row(i));
+                        for (j, fx) in fx.iter_mut().enumerate() {
+                            *fx += t[j] * f64::from(a[j]);
+                        }
+                        continue;
+                    }
                     let (r, a, w) = (ph.res.row(i), ph.a.row(i), w.row(i));
                     for (j, fx) in fx.iter_mut().enumerate() {
                         *fx += f64::from(w[j]) * f64::from(r[j]) * f64::from(a[j]);
@@ -623,7 +765,10 @@ impl<'a, 'p> Objective<'a, 'p> {
         let weights = &self.weights.weight;
         Zip::indexed(m).par_for_each(|ix, m| {
             let mut h = [0.0f64; 3];
-            for (ph, w) in obs.iter().zip(weights) {
+            for ((ph, w), kernel) in obs.iter().zip(weights).zip(&self.kernels) {
+                if kernel.is_some() {
+                    continue; // in the Newton operator ([`Objective::blurred_terms`])
+                }
                 let (a, b, w) = (f64::from(ph.a[ix]), f64::from(ph.b[ix]), f64::from(w[ix]));
                 h[0] += 2.0 * w * a * a;
                 h[1] += 2.0 * w * a * b;
@@ -665,7 +810,7 @@ impl<'a, 'p> Objective<'a, 'p> {
             for (k, o) in pr.observations.iter().enumerate() {
                 let ph = &photo.obs[k];
                 let r = f64::from(ph.res[(i, j)]);
-                if !ph.used[(i, j)] || r.abs() <= min_residual {
+                if !ph.used[(i, j)] || r.abs() <= min_residual || self.kernels[k].is_some() {
                     continue;
                 }
                 let h = 1e-6;
@@ -1085,6 +1230,55 @@ mod tests {
         let obj = Objective::new(&pr, 3.0, 0.2, 1.2, 1.5, 0.03, w).with_multi_delta(0.3, 0.3, 0.3);
         assert!(obj.dem_relief.as_ref().unwrap()[(5, 15)] > 0.5);
         assert_gradient_matches(&obj, &z, &[(3, 4), (6, 9), (5, 15), (11, 25), (0, 29)]);
+    }
+
+    /// The second observation coarser than the grid (a blur of σ = 0.9 px, radius 3): its
+    /// residuals compare the image with B R, it uses only pixels whose whole neighbourhood it
+    /// sees, and the gradient (through Bᵀ) still matches E.
+    #[test]
+    fn gradient_matches_finite_differences_with_a_blurred_observation() {
+        let (z, dem) = surfaces(12, 30);
+        let (a, b) = two_strips(1.1);
+        let model = Hapke::moon();
+        let mut pr = two_observations(&a, &b, &dem, &model);
+        pr.blur = Some(vec![0.0, 0.9]);
+        let w = two_strip_weights(&pr);
+        // Eroded by 3 px: inside the grid and the strip (columns 8..30).
+        assert!(w.usable[1][(3, 11)] && !w.usable[1][(3, 10)] && !w.usable[1][(2, 15)]);
+        assert!(w.usable[1][(8, 26)] && !w.usable[1][(8, 27)] && !w.usable[1][(9, 15)]);
+        let obj = Objective::new(&pr, 3.0, 0.2, 1.2, 1.5, 0.03, w);
+        assert!(obj.kernels[0].is_none() && obj.kernels[1].is_some());
+        // The residual at a used pixel is the image against the blurred rendering.
+        let rho = Array2::from_elem(z.dim(), 0.4);
+        let ph = obj.photo(z.view(), rho.view());
+        let (i, j) = (5, 15);
+        let kernel = obj.kernels[1].as_ref().unwrap();
+        let mut modelled = 0.0;
+        for di in -3i32..=3 {
+            for dj in -3i32..=3 {
+                let (y, x) = ((i as i32 + di) as usize, (j as i32 + dj) as usize);
+                let (p, q) = ops::gradient_at(z.view(), pr.spacing, y, x);
+                let sh = model.shade_observed(
+                    p,
+                    q,
+                    0.4,
+                    &pr.observations[1].sun.at(y, x),
+                    &pr.observations[1].view.at(y, x),
+                );
+                modelled += kernel.taps[di.unsigned_abs() as usize]
+                    * kernel.taps[dj.unsigned_abs() as usize]
+                    * sh.r;
+            }
+        }
+        let expected = (b[(i, j)] / 1.1 - modelled) / 0.03;
+        assert!(
+            (f64::from(ph.obs[1].res[(i, j)]) - expected).abs() < 1e-5 * expected.abs().max(1.0)
+        );
+        assert_gradient_matches(
+            &obj,
+            &z,
+            &[(3, 4), (6, 9), (5, 15), (2, 12), (11, 25), (0, 29)],
+        );
     }
 
     /// E_DEM's height part ([`Objective::with_dem_height_length`], ℓ = 3 px so that it weighs

@@ -408,6 +408,13 @@ pub fn weights(
             })
         })
         .collect();
+    // An observation coarser than the grid models each pixel from its neighbours too: it uses a
+    // pixel only where all of them are usable ([`super::blur`]).
+    for (k, u) in usable.iter_mut().enumerate() {
+        if let Some(kernel) = pr.blur_kernel(k) {
+            *u = super::blur::erode(u, kernel.radius());
+        }
+    }
     let noise = match noise {
         Some(n) => n,
         None if pr.observations.len() == 1 => vec![1.0],
@@ -663,12 +670,15 @@ fn solve_pairs(k_obs: usize, pairs: &[(usize, usize, f64, f64)]) -> Vec<f64> {
 
 /// The joint albedo at each pixel on surface `z`: ρ minimising Σ_k w_k (I_k/g_k − R_k(ρ))² over
 /// the observations usable there, by Gauss–Newton in ρ from the weighted mean of the
-/// per-observation inversions (one observation: its inversion, exactly). Returns ρ, where it
-/// is defined, and the weight Σ_k w_k·(I_k/g_k)² of the pixel's data.
+/// per-observation inversions (one observation: its inversion, exactly). An observation
+/// coarser than the grid ([`super::blur`]) weighs w_k·`blurred_weight` where a sharp one is
+/// used as well. Returns ρ, where it is defined, and the weight Σ_k w_k·(I_k/g_k)² of the
+/// pixel's data.
 pub fn invert_albedo(
     pr: &Problem,
     w: &Weights,
     z: ArrayView2<f64>,
+    blurred_weight: f64,
 ) -> (Array2<f64>, Array2<bool>, Array2<f64>) {
     let z = z.as_standard_layout();
     let dim = z.dim();
@@ -676,6 +686,11 @@ pub fn invert_albedo(
     let mut rho = Array2::zeros(dim);
     let mut ok = Array2::from_elem(dim, false);
     let mut strength = Array2::zeros(dim);
+    // An observation coarser than the grid sees the albedo blurred: where a sharp one is used,
+    // its weight is w_k·`blurred_weight` ([`super::blur`]).
+    let blurred: Vec<bool> = (0..pr.observations.len())
+        .map(|k| pr.blur_kernel(k).is_some())
+        .collect();
     rho.axis_iter_mut(Axis(0))
         .into_par_iter()
         .zip(ok.axis_iter_mut(Axis(0)))
@@ -691,8 +706,12 @@ pub fn invert_albedo(
                 data.clear();
                 let (pp, qq) = (p[j], q[j]);
                 let (mut sw, mut swr, mut s2) = (0.0, 0.0, 0.0);
+                let sharp = (0..blurred.len()).any(|k| !blurred[k] && w.weight[k][(i, j)] > 0.0);
                 for (k, o) in pr.observations.iter().enumerate() {
-                    let wk = f64::from(w.weight[k][(i, j)]);
+                    let mut wk = f64::from(w.weight[k][(i, j)]);
+                    if sharp && blurred[k] {
+                        wk *= blurred_weight;
+                    }
                     if wk <= 0.0 {
                         continue;
                     }

@@ -150,6 +150,10 @@ impl Coarse {
             intensity_scale: Some(scale),
             gains: Some(gains.to_vec()),
             noise_weights: Some(noise.to_vec()),
+            blur: fine
+                .blur
+                .as_ref()
+                .map(|b| b.iter().map(|s| s / f).collect()),
             selection: fine.selection,
         }
     }

@@ -250,6 +250,8 @@ pub(super) struct ObservationRecord {
     pub(super) registration: Option<super::plan::Registration>,
     /// Its pixel size, metres ([`crate::ingest::ground_sample_distance`]).
     pub(super) pixel_size_m: Option<f64>,
+    /// σ, grid pixels, of the blur E_I models it with (0: none; [`super::plan::blur_px`]).
+    pub(super) blur_px: f64,
 }
 
 /// Pixels of an observation this many times the grid's or more count as coarser than it
@@ -257,10 +259,9 @@ pub(super) struct ObservationRecord {
 pub const COARSE_PIXELS_FROM: f64 = 1.25;
 
 /// The warning for observations used on the region whose pixels (`pixel_size`, metres) are
-/// [`COARSE_PIXELS_FROM`] × the grid's `spacing` or more: the fusion takes each grid pixel's
-/// brightness as a detector pixel of the grid's size would see it, so an image blurred over
-/// wider pixels reads as flatter fine relief (docs/science.md, "Images coarser than the
-/// grid").
+/// [`COARSE_PIXELS_FROM`] × the grid's `spacing` or more: the fusion models each as its blur
+/// ([`crate::fusion::blur`]), so it resolves relief at its own scale only (docs/science.md,
+/// "Images coarser than the grid").
 pub(super) fn coarse_pixels_warning(
     labels: &[String],
     used: &[bool],
@@ -278,7 +279,7 @@ pub(super) fn coarse_pixels_warning(
         .collect();
     (!coarse.is_empty()).then(|| {
         format!(
-            "pixels coarser than the grid's {spacing:.0} m: {}. The fusion takes each grid pixel's brightness as a pixel of the grid's size would see it, so an image blurred over wider pixels reads as flatter fine relief, against any finer observation (docs/science.md, \"Images coarser than the grid\": a pair with one image 2× coarser gives 5.97 m where both at the grid's pixel size give 4.52 m and the finer image alone 8.06 m). Use observations at the grid's pixel size where they cover the region, or a grid as coarse as the coarsest ([grid] resolution_m)",
+            "pixels coarser than the grid's {spacing:.0} m: {}. Each is modelled as the reflectance averaged over its pixel (run.json blur_px), so it constrains relief at its own scale only; the finer detail comes from the observations at the grid's pixel size, and where none covers a part of the region, the grid there is finer than anything its images resolve (docs/science.md, \"Images coarser than the grid\"). Add observations at the grid's pixel size, or use a grid as coarse as the coarsest ([grid] resolution_m)",
             coarse.join(", ")
         )
     })
@@ -656,6 +657,7 @@ pub(super) fn mosaic(
                     .map_or(0.0, |o| o.photometric_fraction),
                 registration: plan.registration.get(k).cloned(),
                 pixel_size_m: plan.pixel_size_m.get(k).copied().flatten(),
+                blur_px: plan.blur_px().get(k).copied().unwrap_or(0.0),
             })
             .collect(),
         outputs: outputs.clone(),

@@ -64,6 +64,24 @@ pub struct Plan {
     pub pixel_size_m: Vec<Option<f64>>,
 }
 
+/// σ_k, grid pixels, of each observation's blur on a grid of `spacing` metres, from its pixel
+/// size (`fusion::blur::sigma_px`; 0 where its pixels are no coarser than the grid's or LOC
+/// gives no size): E_I compares such an observation with the reflectance averaged over its
+/// pixel (docs/science.md, "Images coarser than the grid").
+pub fn blur_px(pixel_size_m: &[Option<f64>], spacing: f64) -> Vec<f64> {
+    pixel_size_m
+        .iter()
+        .map(|p| p.map_or(0.0, |p| fusion::blur::sigma_px(p, spacing)))
+        .collect()
+}
+
+impl Plan {
+    /// [`blur_px`] of the plan's observations on its grid.
+    pub fn blur_px(&self) -> Vec<f64> {
+        blur_px(&self.pixel_size_m, self.grid.spacing)
+    }
+}
+
 /// The displacement each observation is moved back by, metres along the grid's x and y: its
 /// registration's where applied, 0 elsewhere. Every ingest of the run uses it.
 pub(super) fn shifts(registration: &[Registration]) -> Vec<[f64; 2]> {
@@ -208,6 +226,7 @@ pub(super) fn register(
                     intensity_scale: Some(scale),
                     gains: None,
                     noise_weights: None,
+                    blur: None,
                     selection: o.inputs.selection(),
                 };
                 // Nothing of the earlier observation usable there (all in shadow, say):
@@ -525,6 +544,7 @@ pub(super) fn run_gains(
         intensity_scale: Some(scale),
         gains: None,
         noise_weights: None,
+        blur: None,
         selection: o.inputs.selection(),
     };
     let mut gains = vec![1.0; inputs.obs.len()];
@@ -823,6 +843,12 @@ pub(super) fn plan(
         vec![1.0]
     };
     std::fs::create_dir_all(out).map_err(|e| Error::io(out, e))?;
+    let pixel_size_m: Vec<Option<f64>> = inputs
+        .obs
+        .iter()
+        .map(|obs| ingest::ground_sample_distance(obs).ok())
+        .collect();
+    let blur = blur_px(&pixel_size_m, grid.spacing);
     let built = match reference_factor {
         Some(f) => {
             progress.stage("planning: the coarse reference over the whole region");
@@ -832,6 +858,7 @@ pub(super) fn plan(
                 scale: intensity_scale,
                 gains: &gains,
                 noise_weights: &noise_weights,
+                blur_px: &blur,
                 dem_psf_sigma,
                 params: &params,
             };
@@ -862,11 +889,7 @@ pub(super) fn plan(
         swaths,
         reference: built.as_ref().map(|b| b.info.clone()),
         registration,
-        pixel_size_m: inputs
-            .obs
-            .iter()
-            .map(|obs| ingest::ground_sample_distance(obs).ok())
-            .collect(),
+        pixel_size_m,
     };
     write_atomic(
         &path,

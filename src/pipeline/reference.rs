@@ -53,6 +53,8 @@ pub(super) struct RunWide<'a> {
     pub scale: f64,
     pub gains: &'a [f64],
     pub noise_weights: &'a [f64],
+    /// Each observation's blur σ_k on the fine grid ([`super::plan::blur_px`]).
+    pub blur_px: &'a [f64],
     pub dem_psf_sigma: f64,
     pub params: &'a FusionParams,
 }
@@ -173,6 +175,11 @@ pub(super) fn build(
         intensity_scale: Some(run.scale),
         gains: Some(per_obs(run.gains)),
         noise_weights: Some(per_obs(run.noise_weights)),
+        blur: Some(
+            keep.iter()
+                .map(|&k| run.blur_px.get(k).copied().unwrap_or(0.0) / f as f64)
+                .collect(),
+        ),
         selection: o.inputs.selection(),
     };
     if problem.observations.is_empty() {

@@ -203,6 +203,12 @@ pub(super) fn run_tile(
         intensity_scale: Some(plan.intensity_scale),
         gains: Some(per_obs(&plan.gains)),
         noise_weights: Some(per_obs(&plan.noise_weights)),
+        blur: Some({
+            let blur = plan.blur_px();
+            ids.iter()
+                .map(|&k| blur.get(k).copied().unwrap_or(0.0))
+                .collect()
+        }),
         selection: o.inputs.selection(),
     };
     // Without the plan's reference the tile solves every stage on its own window (the halo
