@@ -183,6 +183,13 @@ enum Command {
         /// (docs/science.md, "Registration").
         #[arg(long = "loc-offset", allow_hyphen_values = true, value_parser = sfsfuse::synth::parse_offset)]
         loc_offsets: Vec<[f64; 2]>,
+        /// Each observation's detector pixel as F grid pixels (in `--sun` order; missing ones
+        /// are 1): its swath holds F × F block means of the image, as M3's second optical
+        /// period (200 km, ≈ 280 m pixels) sees a region gridded at the first's 140 m, e.g.
+        /// `--pixel-factor 1 --pixel-factor 2` (docs/science.md, "Images coarser than the
+        /// grid").
+        #[arg(long = "pixel-factor")]
+        pixel_factors: Vec<usize>,
         /// Centre of the scene's stereographic grid as LAT/LON in degrees (default: crater
         /// Alphonsus, -13.4/357.2). Scenes wider than ≈ 1100 px at 140 m reach longitude 0°
         /// from Alphonsus, which the LOLA-like writer does not handle: centre them further east.
@@ -404,9 +411,17 @@ fn run(cli: Cli) -> Result<(), sfsfuse::Error> {
             gains,
             strips,
             loc_offsets,
+            pixel_factors,
             center,
             json,
         } => {
+            if pixel_factors.len() > suns.len().max(1) {
+                return Err(sfsfuse::Error::Usage(format!(
+                    "{} --pixel-factor values for {} observation(s): give at most one per --sun",
+                    pixel_factors.len(),
+                    suns.len().max(1)
+                )));
+            }
             if loc_offsets.len() > suns.len().max(1) {
                 return Err(sfsfuse::Error::Usage(format!(
                     "{} --loc-offset values for {} observation(s): give at most one per --sun",
@@ -448,7 +463,13 @@ fn run(cli: Cli) -> Result<(), sfsfuse::Error> {
                 Some((lat, lon)) => sfsfuse::demo::grid_at(&spec, lat, lon)?,
                 None => sfsfuse::demo::demo_grid(&spec)?,
             };
-            let p = sfsfuse::synth::products::write_displaced(&scene, &grid, &out, &loc_offsets)?;
+            let p = sfsfuse::synth::products::write_observed(
+                &scene,
+                &grid,
+                &out,
+                &loc_offsets,
+                &pixel_factors,
+            )?;
             let labels: Vec<String> = p
                 .m3_labels
                 .iter()

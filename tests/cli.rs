@@ -533,3 +533,104 @@ fn synth_writes_a_selenolocation_error_where_asked() {
     }
     std::fs::remove_dir_all(&base).unwrap();
 }
+
+/// `synth --pixel-factor F` writes an observation seen by a detector F grid pixels wide: its
+/// swath holds ⌊32/F⌋² pixels, each radiance the mean of the F × F it spans in the same scene
+/// written at the grid's pixel size, its LOC latitude the mean of theirs; `inspect` then reads
+/// a pixel size F times the grid's; a factor of 0, or more values than `--sun`s, are refused.
+#[test]
+fn synth_writes_an_observation_with_coarser_pixels_where_asked() {
+    let base = scratch("pixel-factor");
+    let write = |name: &str, extra: &[&str]| {
+        let out = base.join(name);
+        let o = sfsfuse()
+            .args([
+                "synth", "--size", "32", "--sun", "105/30", "--sun", "225/35", "--out",
+            ])
+            .arg(&out)
+            .args(extra)
+            .output()
+            .unwrap();
+        assert!(o.status.success(), "{}", String::from_utf8_lossy(&o.stderr));
+        out
+    };
+    let plain = write("plain", &[]);
+    let coarse = write("coarse", &["--pixel-factor", "1", "--pixel-factor", "2"]);
+    let read = |dir: &std::path::Path, file: &str, bytes: usize| -> Vec<f64> {
+        std::fs::read(dir.join(file))
+            .unwrap()
+            .chunks_exact(bytes)
+            .map(|c| match bytes {
+                8 => f64::from_le_bytes(c.try_into().unwrap()),
+                _ => f64::from(f32::from_le_bytes(c.try_into().unwrap())),
+            })
+            .collect()
+    };
+    let second = "M3G20991231T010000";
+    let label = std::fs::read_to_string(coarse.join(format!("{second}_V03_L1B.LBL"))).unwrap();
+    assert!(label.contains("LINES = 16") && label.contains("LINE_SAMPLES = 16"));
+    // RDN line-interleaved: line, band, sample; band 0 here.
+    let (fine, wide) = (
+        read(&plain, &format!("{second}_V03_RDN.IMG"), 4),
+        read(&coarse, &format!("{second}_V03_RDN.IMG"), 4),
+    );
+    let bands = fine.len() / (32 * 32);
+    // LOC: line, then longitude, latitude, radius bands of its samples.
+    let (floc, wloc) = (
+        read(&plain, &format!("{second}_V03_LOC.IMG"), 8),
+        read(&coarse, &format!("{second}_V03_LOC.IMG"), 8),
+    );
+    for a in 0..16 {
+        for b in 0..16 {
+            let px = |i: usize, j: usize| (2 * a + i, 2 * b + j);
+            let quad = [px(0, 0), px(0, 1), px(1, 0), px(1, 1)];
+            let mean = quad
+                .iter()
+                .map(|&(i, j)| fine[i * bands * 32 + j])
+                .sum::<f64>()
+                / 4.0;
+            let got = wide[a * bands * 16 + b];
+            assert!((got / mean - 1.0).abs() < 1e-6, "({a},{b}) {got} {mean}");
+            let lat = quad
+                .iter()
+                .map(|&(i, j)| floc[i * 96 + 32 + j])
+                .sum::<f64>()
+                / 4.0;
+            assert!((wloc[a * 48 + 16 + b] - lat).abs() < 1e-9);
+        }
+    }
+    let o = sfsfuse()
+        .args(["inspect", "--json"])
+        .arg(coarse.join(format!("{second}_V03_L1B.LBL")))
+        .output()
+        .unwrap();
+    let v: serde_json::Value = serde_json::from_slice(&o.stdout).unwrap();
+    let size = v["pixel_size_m"].as_f64().unwrap();
+    assert!((size / 280.0 - 1.0).abs() < 0.01, "{v}");
+    for (bad, says) in [
+        (vec!["--pixel-factor", "0"], "at least 1"),
+        (
+            vec![
+                "--pixel-factor",
+                "1",
+                "--pixel-factor",
+                "2",
+                "--pixel-factor",
+                "2",
+            ],
+            "at most one per --sun",
+        ),
+    ] {
+        let o = sfsfuse()
+            .args([
+                "synth", "--size", "32", "--sun", "105/30", "--sun", "225/35", "--out",
+            ])
+            .arg(base.join("bad"))
+            .args(&bad)
+            .output()
+            .unwrap();
+        let e = String::from_utf8_lossy(&o.stderr);
+        assert!(!o.status.success() && e.contains(says), "{bad:?}: {e}");
+    }
+    std::fs::remove_dir_all(&base).unwrap();
+}

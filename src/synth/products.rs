@@ -80,6 +80,33 @@ pub fn write_displaced(
     dir: &Path,
     loc_offsets_m: &[[f64; 2]],
 ) -> Result<Products> {
+    write_observed(scene, grid, dir, loc_offsets_m, &[])
+}
+
+/// [`write_displaced`], with observation k's detector pixels `pixel_factors[k]` grid pixels
+/// wide (missing entries: 1): its swath holds ⌊rows/F⌋ lines of ⌊columns/F⌋ samples, each the
+/// mean of the scene's image over its F × F grid pixels (the scene's pixels are themselves the
+/// mean over their footprint, so the swath is what a detector F times coarser sees), LOC at
+/// the block's centre (the mean of its pixels' positions and radii) and OBS the block's central
+/// pixel's. M3's second optical period (200 km, ≈ 280 m) over a grid at the first's 140 m is
+/// F = 2 (docs/science.md, "Images coarser than the grid").
+pub fn write_observed(
+    scene: &Scene,
+    grid: &Grid,
+    dir: &Path,
+    loc_offsets_m: &[[f64; 2]],
+    pixel_factors: &[usize],
+) -> Result<Products> {
+    if let Some(f) = pixel_factors
+        .iter()
+        .find(|&&f| f == 0 || f > grid.rows.min(grid.cols))
+    {
+        return Err(Error::Usage(format!(
+            "a pixel factor of {f}: it must be at least 1 and at most the grid's {} × {} pixels",
+            grid.rows, grid.cols
+        )));
+    }
+    let factor = |k: usize| pixel_factors.get(k).copied().unwrap_or(1);
     if let Some(o) = loc_offsets_m.iter().flatten().find(|v| !v.is_finite()) {
         return Err(Error::Usage(format!(
             "a LOC offset of {o} m is not a number of metres"
@@ -109,6 +136,7 @@ pub fn write_displaced(
             sun: scene.sun,
             columns: scene.spec.columns,
             loc_offset_m: offset(0),
+            factor: factor(0),
         },
         scene,
         grid,
@@ -124,6 +152,7 @@ pub fn write_displaced(
                 sun: m.sun,
                 columns: m.spec.columns,
                 loc_offset_m: offset(k + 1),
+                factor: factor(k + 1),
             },
             scene,
             grid,
@@ -185,6 +214,8 @@ struct Shot<'a> {
     columns: Option<[usize; 2]>,
     /// [east, north] metres that LOC misplaces every pixel by.
     loc_offset_m: [f64; 2],
+    /// F: the detector's pixels are F × F grid pixels ([`write_observed`]).
+    factor: usize,
 }
 
 /// One M3-like L1B product set (label, RDN + ENVI header, LOC, OBS) named `id`: swath sample
@@ -203,10 +234,18 @@ fn write_m3(
         .position(|&w| (w - 1209.57).abs() < 0.01)
         .expect("the global table holds 1209.57 nm");
     let irr: Vec<f64> = wl.iter().map(|&w| blackbody_irradiance(w)).collect();
-    let rows = grid.rows;
     let [c0, c1] = shot.columns.unwrap_or([0, grid.cols]);
     let (c0, c1) = (c0.min(grid.cols), c1.min(grid.cols));
-    let cols = c1 - c0;
+    // Swath pixel (line a, sample b) spans grid rows a·F.. and columns c0 + b·F.., F at a time.
+    let f = shot.factor.max(1);
+    let (rows, cols) = (grid.rows / f, (c1 - c0) / f);
+    let block = move |a: usize, b: usize| {
+        (a * f..(a + 1) * f).flat_map(move |i| (c0 + b * f..c0 + (b + 1) * f).map(move |j| (i, j)))
+    };
+    let mean = |a: usize, b: usize, v: &dyn Fn(usize, usize) -> f64| {
+        block(a, b).map(|(i, j)| v(i, j)).sum::<f64>() / (f * f) as f64
+    };
+    let centre = |a: usize, b: usize| (a * f + f / 2, c0 + b * f + f / 2);
 
     let name = |part: &str, ext: &str| format!("{id}_V03_{part}.{ext}");
     // Each file is streamed line by line: at 8192² the radiance cube alone is 23 GB.
@@ -215,11 +254,14 @@ fn write_m3(
         let mut line = Vec::with_capacity(cols * wl.len() * 4);
         for i in 0..rows {
             line.clear();
+            let values: Vec<f64> = (0..cols)
+                .map(|s| mean(i, s, &|i, j| shot.image[(i, j)]))
+                .collect();
             for (b, &wv) in wl.iter().enumerate() {
                 // A smooth, red-sloped lunar spectrum normalised at 1209.57 nm.
                 let shape = (wv / wl[band_1209]).powf(0.6);
-                for j in c0..c1 {
-                    let r = shot.image[(i, j)] * shape;
+                for v in &values {
+                    let r = v * shape;
                     f32_bytes(&mut line, r * irr[b] / (SOLAR_DISTANCE * SOLAR_DISTANCE));
                 }
             }
@@ -233,15 +275,20 @@ fn write_m3(
         for i in 0..rows {
             line.clear();
             for band in 0..3 {
-                for j in c0..c1 {
+                for b in 0..cols {
                     let [east, north] = shot.loc_offset_m;
-                    let lat = geo.lat[(i, j)];
+                    let lat = mean(i, b, &|i, j| geo.lat[(i, j)]);
+                    // Longitudes averaged about the block's first (no wrap at 0/360).
+                    let l0 = geo.lon[block(i, b).next().expect("F ≥ 1")];
+                    let lon = l0
+                        + mean(i, b, &|i, j| {
+                            (geo.lon[(i, j)] - l0 + 180.0).rem_euclid(360.0) - 180.0
+                        });
                     let v = match band {
-                        0 => (geo.lon[(i, j)]
-                            + (east / (MOON_RADIUS_M * lat.to_radians().cos())).to_degrees())
-                        .rem_euclid(360.0),
+                        0 => (lon + (east / (MOON_RADIUS_M * lat.to_radians().cos())).to_degrees())
+                            .rem_euclid(360.0),
                         1 => lat + (north / MOON_RADIUS_M).to_degrees(),
-                        _ => MOON_RADIUS_M + scene.truth_height[(i, j)],
+                        _ => MOON_RADIUS_M + mean(i, b, &|i, j| scene.truth_height[(i, j)]),
                     };
                     line.extend_from_slice(&v.to_le_bytes());
                 }
@@ -268,7 +315,8 @@ fn write_m3(
         for i in 0..rows {
             line.clear();
             bands.iter_mut().for_each(Vec::clear);
-            for j in c0..c1 {
+            for b in 0..cols {
+                let (i, j) = centre(i, b);
                 let t = geo.bearing[(i, j)];
                 let (s, v) = (to_enu(shot.sun, t), to_enu(scene.view, t));
                 let (saz, sz) = az_zen(s);

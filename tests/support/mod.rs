@@ -73,6 +73,29 @@ pub fn observation_products(
     (dir, p)
 }
 
+/// [`observation_products`] with observation k's detector pixels `pixel_factors[k]` grid
+/// pixels wide (`synth --pixel-factor`, `products::write_observed`).
+pub fn coarse_observation_products(
+    size: usize,
+    seed: u64,
+    suns: &[(f64, f64)],
+    pixel_factors: &[usize],
+    name: &str,
+) -> (PathBuf, products::Products) {
+    let spec = SceneSpec {
+        size,
+        seed,
+        ..SceneSpec::default()
+    }
+    .with_observations(suns, &[], false);
+    let scene = generate(&spec);
+    let grid = sfsfuse::demo::demo_grid(&spec).unwrap();
+    let dir = scratch(name);
+    let p =
+        products::write_observed(&scene, &grid, &dir.join("products"), &[], pixel_factors).unwrap();
+    (dir, p)
+}
+
 /// A workflow over the scene's own grid (the region in map metres).
 pub fn workflow(p: &products::Products, out: &Path, tile: usize, extra: &str) -> String {
     let half = p.grid.rows as f64 * p.grid.spacing / 2.0;
