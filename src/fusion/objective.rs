@@ -8,6 +8,8 @@
 //!   through μ0 = 0
 //!   ([`crate::photometry::ReflectanceModel::shade_observed`]),
 //!   so a surface turned away from the Sun at an observed-lit pixel is penalised, not dropped;
+//!   an observation coarser than the grid compares its image with B_k R instead, B_k its blur
+//!   ([`super::blur`], [`Objective::blurred_terms`]);
 //! * E_DEM = Σ ‖f_σ(∇ B z) − f_σ(∇ z_DEM)‖², f_σ the Gaussian low-pass of width σ_DEM, B the
 //!   input DEM's own point-spread (identity for the seed's plain term);
 //! * E_reg = Σ ω(x)·‖∇(z − z_DEM)‖², the membrane regulariser, ω = 1 unless the opt-in
