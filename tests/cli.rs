@@ -505,32 +505,24 @@ fn synth_writes_a_selenolocation_error_where_asked() {
             assert_eq!(la[64 + s], lb[64 + s]);
         }
     }
-    for (bad, says) in [
-        (vec!["--loc-offset", "300"], "EAST/NORTH"),
-        (vec!["--loc-offset", "1e9/0"], "within 100 km"),
-        (
-            vec![
-                "--loc-offset",
-                "0/0",
-                "--loc-offset",
-                "1/1",
-                "--loc-offset",
-                "2/2",
-            ],
-            "at most one per --sun",
-        ),
-    ] {
-        let o = sfsfuse()
-            .args([
-                "synth", "--size", "32", "--sun", "105/30", "--sun", "225/35", "--out",
-            ])
-            .arg(base.join("bad"))
-            .args(&bad)
-            .output()
-            .unwrap();
-        let e = String::from_utf8_lossy(&o.stderr);
-        assert!(!o.status.success() && e.contains(says), "{bad:?}: {e}");
-    }
+    synth_refuses(
+        &base,
+        &[
+            (vec!["--loc-offset", "300"], "EAST/NORTH"),
+            (vec!["--loc-offset", "1e9/0"], "within 100 km"),
+            (
+                vec![
+                    "--loc-offset",
+                    "0/0",
+                    "--loc-offset",
+                    "1/1",
+                    "--loc-offset",
+                    "2/2",
+                ],
+                "at most one per --sun",
+            ),
+        ],
+    );
     std::fs::remove_dir_all(&base).unwrap();
 }
 
@@ -607,30 +599,38 @@ fn synth_writes_an_observation_with_coarser_pixels_where_asked() {
     let v: serde_json::Value = serde_json::from_slice(&o.stdout).unwrap();
     let size = v["pixel_size_m"].as_f64().unwrap();
     assert!((size / 280.0 - 1.0).abs() < 0.01, "{v}");
-    for (bad, says) in [
-        (vec!["--pixel-factor", "0"], "at least 1"),
-        (
-            vec![
-                "--pixel-factor",
-                "1",
-                "--pixel-factor",
-                "2",
-                "--pixel-factor",
-                "2",
-            ],
-            "at most one per --sun",
-        ),
-    ] {
+    synth_refuses(
+        &base,
+        &[
+            (vec!["--pixel-factor", "0"], "at least 1"),
+            (
+                vec![
+                    "--pixel-factor",
+                    "1",
+                    "--pixel-factor",
+                    "2",
+                    "--pixel-factor",
+                    "2",
+                ],
+                "at most one per --sun",
+            ),
+        ],
+    );
+    std::fs::remove_dir_all(&base).unwrap();
+}
+
+/// `synth` with two Suns and each of `cases`' extra arguments fails, saying what is given.
+fn synth_refuses(base: &std::path::Path, cases: &[(Vec<&str>, &str)]) {
+    for (bad, says) in cases {
         let o = sfsfuse()
             .args([
                 "synth", "--size", "32", "--sun", "105/30", "--sun", "225/35", "--out",
             ])
             .arg(base.join("bad"))
-            .args(&bad)
+            .args(bad)
             .output()
             .unwrap();
         let e = String::from_utf8_lossy(&o.stderr);
         assert!(!o.status.success() && e.contains(says), "{bad:?}: {e}");
     }
-    std::fs::remove_dir_all(&base).unwrap();
 }

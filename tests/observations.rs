@@ -282,15 +282,7 @@ fn coarser(image: &ndarray::Array2<f64>, f: usize) -> ndarray::Array2<f64> {
             .mean()
             .unwrap()
     });
-    let at = |x: f64| ((x - (f as f64 - 1.0) / 2.0) / f as f64).clamp(0.0, (nc - 1) as f64);
-    ndarray::Array2::from_shape_fn((n, n), |(i, j)| {
-        let (u, v) = (at(i as f64), at(j as f64));
-        let (i0, j0) = (u.floor() as usize, v.floor() as usize);
-        let (i1, j1) = ((i0 + 1).min(nc - 1), (j0 + 1).min(nc - 1));
-        let (ti, tj) = (u - i0 as f64, v - j0 as f64);
-        (1.0 - ti) * ((1.0 - tj) * block[(i0, j0)] + tj * block[(i0, j1)])
-            + ti * ((1.0 - tj) * block[(i1, j0)] + tj * block[(i1, j1)])
-    })
+    sfsfuse::synth::bilinear_from_blocks(&block, f, n)
 }
 
 /// An observation with pixels twice the grid's (M3's second optical period over a grid at the

@@ -577,13 +577,7 @@ impl<'a, 'p> Objective<'a, 'p> {
                         if !usable[(i, j)] {
                             continue;
                         }
-                        let sh = model.shade_observed(
-                            p[j],
-                            q[j],
-                            rho[(i, j)],
-                            &o.sun.at(i, j),
-                            &o.view.at(i, j),
-                        );
+                        let sh = shade_at(model, o, (p[j], q[j]), rho, (i, j));
                         if sh.lit {
                             let r = (o.image[(i, j)] / g - sh.r) / s;
                             part += f64::from(w[(i, j)]) * r * r;
@@ -634,13 +628,7 @@ impl<'a, 'p> Objective<'a, 'p> {
                     if !o.image[(i, j)].is_finite() {
                         continue;
                     }
-                    let sh = model.shade_observed(
-                        p[j],
-                        q[j],
-                        rho[(i, j)],
-                        &o.sun.at(i, j),
-                        &o.view.at(i, j),
-                    );
+                    let sh = shade_at(model, o, (p[j], q[j]), rho, (i, j));
                     if sh.lit {
                         r[j] = sh.r;
                         a[j] = (sh.dr_dp / s) as f32;
@@ -950,6 +938,19 @@ impl<'a, 'p> Objective<'a, 'p> {
         let (g, h) = (f64::from(self.gs[(i, j)]), self.dem_height);
         2.0 * (self.lam.at(i, j) * (delta * g * g + eta) + h * delta * g * g)
     }
+}
+
+/// R and its slope derivatives of observation `o` at pixel `ij` for slopes `(p, q)` and the
+/// albedo there ([`ReflectanceModel::shade_observed`]).
+#[inline]
+fn shade_at(
+    model: &dyn ReflectanceModel,
+    o: &super::Observation,
+    (p, q): (f64, f64),
+    rho: ArrayView2<f64>,
+    ij: (usize, usize),
+) -> crate::photometry::Shade {
+    model.shade_observed(p, q, rho[ij], &o.sun.at(ij.0, ij.1), &o.view.at(ij.0, ij.1))
 }
 
 /// The gradient with respect to u of a relief field's Σ r·|D u|²/ε² + h·Σ r·u²

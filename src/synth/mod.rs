@@ -681,7 +681,14 @@ fn lola_like(truth: &Array2<f64>, spec: &SceneSpec, dct: &Dct2d, rng: &mut Rng) 
         }
         *v = s / k as f64 + spec.dem_noise_m * rng.normal() + stripes[cj];
     }
-    // Bilinear back to the grid: coarse pixel k is centred on fine coordinate k·f + (f−1)/2.
+    bilinear_from_blocks(&coarse, f, n)
+}
+
+/// An n × n grid interpolated bilinearly from `coarse`, whose pixel k stands for the block of
+/// fine pixels k·f … k·f + f − 1 and is centred on fine coordinate k·f + (f − 1)/2 (clamped at
+/// the edges): how a product f times coarser than the grid is carried onto it.
+pub fn bilinear_from_blocks(coarse: &Array2<f64>, f: usize, n: usize) -> Array2<f64> {
+    let nc = coarse.nrows();
     let c = |x: f64| ((x - (f as f64 - 1.0) / 2.0) / f as f64).clamp(0.0, (nc - 1) as f64);
     Array2::from_shape_fn((n, n), |(i, j)| {
         let (u, v) = (c(i as f64), c(j as f64));

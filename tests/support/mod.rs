@@ -66,10 +66,21 @@ pub fn observation_products(
         ..SceneSpec::default()
     }
     .with_observations(suns, gains, strips);
-    let scene = generate(&spec);
-    let grid = sfsfuse::demo::demo_grid(&spec).unwrap();
+    products_of(&spec, name, &[])
+}
+
+/// The products of `spec` in a fresh scratch directory `name`, observation k's detector pixels
+/// `pixel_factors[k]` grid pixels wide (missing: 1).
+fn products_of(
+    spec: &SceneSpec,
+    name: &str,
+    pixel_factors: &[usize],
+) -> (PathBuf, products::Products) {
+    let scene = generate(spec);
+    let grid = sfsfuse::demo::demo_grid(spec).unwrap();
     let dir = scratch(name);
-    let p = products::write(&scene, &grid, &dir.join("products")).unwrap();
+    let p =
+        products::write_observed(&scene, &grid, &dir.join("products"), &[], pixel_factors).unwrap();
     (dir, p)
 }
 
@@ -88,12 +99,7 @@ pub fn coarse_observation_products(
         ..SceneSpec::default()
     }
     .with_observations(suns, &[], false);
-    let scene = generate(&spec);
-    let grid = sfsfuse::demo::demo_grid(&spec).unwrap();
-    let dir = scratch(name);
-    let p =
-        products::write_observed(&scene, &grid, &dir.join("products"), &[], pixel_factors).unwrap();
-    (dir, p)
+    products_of(&spec, name, pixel_factors)
 }
 
 /// A workflow over the scene's own grid (the region in map metres).
