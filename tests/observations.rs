@@ -290,7 +290,8 @@ fn coarser(image: &ndarray::Array2<f64>, f: usize) -> ndarray::Array2<f64> {
 /// relief; modelled as the reflectance averaged over its pixel (`Problem::blur`, σ from
 /// `blur::sigma_px`; docs/science.md, "Images coarser than the grid") the pair gains. This
 /// scene: 5.97 m taken as sharp, 5.19 m modelled (both at the grid's pixel size: 4.52 m; the
-/// sharp image alone 8.06 m); the albedo stays under the bar.
+/// sharp image alone 8.06 m); the albedo, inverted from the image with the rendering's shading
+/// within its kernel put back, is better than taken as sharp.
 #[test]
 fn an_observation_coarser_than_the_grid_is_modelled_as_its_blur() {
     use sfsfuse::fusion::blur;
@@ -307,5 +308,6 @@ fn an_observation_coarser_than_the_grid_is_modelled_as_its_blur() {
     eprintln!("taken as sharp / modelled as its blur (m, albedo): {results:.4?}");
     let ((sharp, _, _), (modelled, albedo, _)) = (results[0], results[1]);
     assert!(modelled < 0.92 * sharp, "{results:?}");
-    assert!(albedo <= 0.008, "{results:?}");
+    // The final albedo sharpened (0.0051 here; 0.0055 inverted from the blurred image as it is).
+    assert!(albedo <= 0.0053, "{results:?}");
 }

@@ -21,9 +21,10 @@ pub struct Kernel {
 }
 
 /// The weight factor of an observation coarser than the grid in the final albedo map's joint
-/// inversion, where a sharp observation is used too: it sees the albedo blurred, and inverted
-/// at the pixel's own slope its fine structure is the shading's, not the albedo's. (In the
-/// stages' inversions it keeps its full weight: the surface comes out better so.)
+/// inversion, where a sharp observation is used too: it sees the albedo blurred. (Its image
+/// enters that inversion sharpened, `fusion::sharpened_images`, which does most of the work:
+/// 0.3 or 1 differ by 0.0001 in albedo RMSE. In the stages' inversions it keeps its full
+/// weight and its own image: the surface comes out better so.)
 pub const FINAL_ALBEDO_WEIGHT: f64 = 0.3;
 
 /// Below this σ (grid pixels) an observation is taken as sharp: B_k is the identity.

@@ -1072,6 +1072,74 @@ pub const EDGE_STAGE_STEPS: usize = 2;
 /// one ([`FusionParams::multi_albedo_passes`]): a fixed count, as [`EDGE_STAGE_STEPS`].
 pub const PASS_STEPS: usize = 1;
 
+/// The images of the observations coarser than the grid, each times R_k/(B_k R_k) at surface
+/// `z` and albedo `rho` ([`blur`]): the rendering's shading within the kernel put back into the
+/// blurred image, so that the albedo inverted from it at a pixel's own slope keeps the image's
+/// brightness at the scales the image resolves, not its blurred shading. `None` for a sharp
+/// observation (or none at all: every entry `None`).
+fn sharpened_images(
+    pr: &Problem,
+    z: ArrayView2<f64>,
+    rho: ArrayView2<f64>,
+) -> Vec<Option<Array2<f64>>> {
+    let (p, q) = ops::gradient(z, pr.spacing);
+    (0..pr.observations.len())
+        .map(|k| {
+            let kernel = pr.blur_kernel(k)?;
+            let o = &pr.observations[k];
+            let r = Zip::indexed(&o.image).par_map_collect(|(i, j), &v| {
+                if !v.is_finite() {
+                    return 0.0;
+                }
+                let sh = pr.model.shade_observed(
+                    p[(i, j)],
+                    q[(i, j)],
+                    rho[(i, j)],
+                    &o.sun.at(i, j),
+                    &o.view.at(i, j),
+                );
+                if sh.lit {
+                    sh.r
+                } else {
+                    0.0
+                }
+            });
+            let blurred = blur::convolve(&kernel, &r);
+            Some(
+                Zip::from(&o.image)
+                    .and(&r)
+                    .and(&blurred)
+                    .par_map_collect(|&v, &r, &b| if b > 0.0 && r > 0.0 { v * r / b } else { v }),
+            )
+        })
+        .collect()
+}
+
+/// `pr` with observation k's image replaced by `images[k]` where it is `Some`.
+fn with_images<'b>(pr: &'b Problem, images: &'b [Option<Array2<f64>>]) -> Problem<'b> {
+    Problem {
+        observations: pr
+            .observations
+            .iter()
+            .zip(images)
+            .map(|(o, i)| Observation {
+                image: i.as_ref().map_or(o.image.view(), |i| i.view()),
+                sun: o.sun.borrowed(),
+                view: o.view.borrowed(),
+            })
+            .collect(),
+        dem: pr.dem.view(),
+        spacing: pr.spacing,
+        dem_psf_sigma: pr.dem_psf_sigma,
+        model: pr.model,
+        intensity_scale: pr.intensity_scale,
+        gains: pr.gains.clone(),
+        noise_weights: pr.noise_weights.clone(),
+        blur: pr.blur.clone(),
+        selection: pr.selection,
+    }
+}
+
 /// The albedo stages of widths `sigmas` from surface `z`, then the support taper, the final
 /// albedo and the layers.
 fn fine_stages(
@@ -1113,6 +1181,7 @@ fn fine_stages(
             ..params.clone()
         }
     };
+    let mut last_rho: Option<Array2<f64>> = None;
     for (m, &sigma) in sigmas.iter().enumerate() {
         let t0 = Instant::now();
         let rho = albedo_map(pr, &obj.weights, &obj.dct, z.view(), sigma)?;
@@ -1124,6 +1193,7 @@ fn fine_stages(
             &early
         };
         let iterations = minimise(&obj, &mut z, rho.view(), stage_params, &mut |_| {});
+        last_rho = Some(rho);
         stages.push(StageReport {
             sigma_rho: sigma,
             iterations,
@@ -1158,6 +1228,7 @@ fn fine_stages(
                 params
             };
             let iterations = minimise(&obj, &mut z, rho.view(), pass_params, &mut |_| {});
+            last_rho = Some(rho);
             stages.push(StageReport {
                 sigma_rho: params.multi_albedo_sigma,
                 iterations,
@@ -1173,7 +1244,23 @@ fn fine_stages(
         .and(&obj.support())
         .and(pr.dem)
         .par_for_each(|z, &s, &d| *z = d + s * (*z - d));
-    let inverted = observations::invert_albedo(pr, w, z.view(), blur::FINAL_ALBEDO_WEIGHT);
+    // An observation coarser than the grid enters the final albedo with the rendering's shading
+    // within its kernel put back (at the last stage's albedo; [`sharpened_images`]).
+    let inverted = match last_rho
+        .filter(|_| (0..pr.observations.len()).any(|k| pr.blur_kernel(k).is_some()))
+    {
+        Some(rho) => {
+            let images = sharpened_images(pr, z.view(), rho.view());
+            drop(rho);
+            observations::invert_albedo(
+                &with_images(pr, &images),
+                w,
+                z.view(),
+                blur::FINAL_ALBEDO_WEIGHT,
+            )
+        }
+        None => observations::invert_albedo(pr, w, z.view(), blur::FINAL_ALBEDO_WEIGHT),
+    };
     let mut albedo = final_albedo(&obj.dct, &inverted, params.final_albedo_sigma, params)?;
     if let Some(multi) = &multi {
         let fine = final_albedo(&obj.dct, &inverted, params.multi_final_albedo_sigma, params)?;
@@ -1321,4 +1408,53 @@ pub fn anchor(
         .and(&low)
         .and(support)
         .map_collect(|&a, &l, &s| a - s * l)
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use crate::photometry::Lambert;
+
+    /// An image that is exactly B R of the surface at the albedo used: sharpened, it is R
+    /// itself wherever B R is positive (Lambert, R = ρ μ0 for a Sun 40° from zenith); a sharp
+    /// observation is left alone.
+    #[test]
+    fn a_blurred_image_sharpened_at_the_true_albedo_is_the_rendering() {
+        let (ny, nx) = (20, 24);
+        let z = Array2::from_shape_fn((ny, nx), |(i, j)| {
+            30.0 * ((i as f64 / 4.0).sin() + (j as f64 / 5.0).cos())
+        });
+        let rho = Array2::from_elem((ny, nx), 0.3);
+        let sun = crate::synth::direction(40.0, 120.0);
+        let (p, q) = ops::gradient(z.view(), 100.0);
+        let r = Array2::from_shape_fn((ny, nx), |ij| {
+            let n = [-p[ij], -q[ij], 1.0];
+            let len = (n[0] * n[0] + n[1] * n[1] + 1.0).sqrt();
+            0.3 * ((n[0] * sun[0] + n[1] * sun[1] + n[2] * sun[2]) / len).max(0.0)
+        });
+        assert!(r.iter().all(|&v| v > 0.0), "a lit surface");
+        let kernel = blur::Kernel::gaussian(1.0).unwrap();
+        let image = blur::convolve(&kernel, &r);
+        let mut pr = Problem::single(
+            image.view(),
+            Directions::Uniform(sun),
+            Directions::Uniform(crate::synth::direction(0.0, 0.0)),
+            z.view(),
+            100.0,
+            0.0,
+            &Lambert,
+        );
+        pr.observations.push(Observation {
+            image: image.view(),
+            sun: Directions::Uniform(sun),
+            view: Directions::Uniform(crate::synth::direction(0.0, 0.0)),
+        });
+        pr.blur = Some(vec![0.0, 1.0]);
+        let out = sharpened_images(&pr, z.view(), rho.view());
+        assert!(out[0].is_none());
+        let s = out[1].as_ref().unwrap();
+        for (ij, &v) in s.indexed_iter() {
+            assert!((v - r[ij]).abs() < 1e-12, "{ij:?}: {v} against {}", r[ij]);
+        }
+    }
 }
