@@ -466,19 +466,7 @@ fn a_closed_pipe_is_neither_a_panic_nor_a_failure() {
 #[test]
 fn synth_writes_a_selenolocation_error_where_asked() {
     let base = scratch("loc-offset");
-    let write = |name: &str, extra: &[&str]| {
-        let out = base.join(name);
-        let o = sfsfuse()
-            .args([
-                "synth", "--size", "32", "--sun", "105/30", "--sun", "225/35", "--out",
-            ])
-            .arg(&out)
-            .args(extra)
-            .output()
-            .unwrap();
-        assert!(o.status.success(), "{}", String::from_utf8_lossy(&o.stderr));
-        out
-    };
+    let write = |name: &str, extra: &[&str]| synth_two_suns(&base.join(name), extra);
     let plain = write("plain", &[]);
     let moved = write(
         "moved",
@@ -533,19 +521,7 @@ fn synth_writes_a_selenolocation_error_where_asked() {
 #[test]
 fn synth_writes_an_observation_with_coarser_pixels_where_asked() {
     let base = scratch("pixel-factor");
-    let write = |name: &str, extra: &[&str]| {
-        let out = base.join(name);
-        let o = sfsfuse()
-            .args([
-                "synth", "--size", "32", "--sun", "105/30", "--sun", "225/35", "--out",
-            ])
-            .arg(&out)
-            .args(extra)
-            .output()
-            .unwrap();
-        assert!(o.status.success(), "{}", String::from_utf8_lossy(&o.stderr));
-        out
-    };
+    let write = |name: &str, extra: &[&str]| synth_two_suns(&base.join(name), extra);
     let plain = write("plain", &[]);
     let coarse = write("coarse", &["--pixel-factor", "1", "--pixel-factor", "2"]);
     let read = |dir: &std::path::Path, file: &str, bytes: usize| -> Vec<f64> {
@@ -633,4 +609,19 @@ fn synth_refuses(base: &std::path::Path, cases: &[(Vec<&str>, &str)]) {
         let e = String::from_utf8_lossy(&o.stderr);
         assert!(!o.status.success() && e.contains(says), "{bad:?}: {e}");
     }
+}
+
+/// `synth` of a 32² scene under Suns 105/30 and 225/35 with `extra` arguments into `out`
+/// (which it returns), checked to succeed.
+fn synth_two_suns(out: &std::path::Path, extra: &[&str]) -> std::path::PathBuf {
+    let o = sfsfuse()
+        .args([
+            "synth", "--size", "32", "--sun", "105/30", "--sun", "225/35", "--out",
+        ])
+        .arg(out)
+        .args(extra)
+        .output()
+        .unwrap();
+    assert!(o.status.success(), "{}", String::from_utf8_lossy(&o.stderr));
+    out.to_path_buf()
 }

@@ -60,13 +60,20 @@ pub fn observation_products(
     (suns, gains, strips): (&[(f64, f64)], &[f64], bool),
     name: &str,
 ) -> (PathBuf, products::Products) {
-    let spec = SceneSpec {
+    products_of(
+        &spec_of(size, seed).with_observations(suns, gains, strips),
+        name,
+        &[],
+    )
+}
+
+/// The synthetic scene of `size`² pixels and `seed`, otherwise the defaults.
+fn spec_of(size: usize, seed: u64) -> SceneSpec {
+    SceneSpec {
         size,
         seed,
         ..SceneSpec::default()
     }
-    .with_observations(suns, gains, strips);
-    products_of(&spec, name, &[])
 }
 
 /// The products of `spec` in a fresh scratch directory `name`, observation k's detector pixels
@@ -93,13 +100,11 @@ pub fn coarse_observation_products(
     pixel_factors: &[usize],
     name: &str,
 ) -> (PathBuf, products::Products) {
-    let spec = SceneSpec {
-        size,
-        seed,
-        ..SceneSpec::default()
-    }
-    .with_observations(suns, &[], false);
-    products_of(&spec, name, pixel_factors)
+    products_of(
+        &spec_of(size, seed).with_observations(suns, &[], false),
+        name,
+        pixel_factors,
+    )
 }
 
 /// A workflow over the scene's own grid (the region in map metres).
