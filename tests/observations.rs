@@ -222,6 +222,28 @@ fn selection_limits_the_observations_per_pixel() {
     });
     assert!(one.observations.iter().all(|&c| c <= 1));
     assert!(one.observations.iter().any(|&c| c == 1));
+    // The same with the observation kept at a pixel there taken as 2× coarser (σ = 0.87 px,
+    // its pixel 4 grid pixels): its score is divided by 4 and the other one is kept instead,
+    // wherever the other one is usable.
+    let kept = |f: &Fusion, k: usize| f.used_by[k].iter().filter(|&&u| u).count();
+    let first = usize::from(kept(&one, 1) > kept(&one, 0));
+    let mut pr = scene.problem();
+    pr.selection = Selection {
+        max_per_pixel: 1,
+        ..Selection::default()
+    };
+    let mut blur = vec![0.0; 2];
+    blur[first] = sfsfuse::fusion::blur::sigma_px(280.0, 140.0);
+    pr.blur = Some(blur);
+    let coarse = fuse(&pr, &FusionParams::default()).unwrap();
+    eprintln!(
+        "kept: {} / {} sharp, {} / {} with the one kept most 2× coarser",
+        kept(&one, 0),
+        kept(&one, 1),
+        kept(&coarse, 0),
+        kept(&coarse, 1)
+    );
+    assert!(kept(&coarse, 1 - first) > kept(&one, 1 - first) + kept(&one, first) / 2);
     // The first Sun is 60° from the zenith, the second 55°: a window of 50–58° keeps the second.
     let window = run(Selection {
         min_incidence_deg: 50.0,

@@ -20,8 +20,9 @@
 //!     observation carries the pixel away from its own shadows ([`shadow_edge_factors`]); 1
 //!     elsewhere.
 //! * Selection: pixels outside [min, max] incidence drop out; with `max_per_pixel` = M > 0 only
-//!   the M observations of largest w_k·μ_k (μ the cosine of the emission angle) are kept at a
-//!   pixel.
+//!   the M observations of largest w_k·μ_k/s_k² (μ the cosine of the emission angle, s_k² the
+//!   area of an observation's pixel in grid pixels, 1 unless it is coarser than the grid) are
+//!   kept at a pixel.
 
 use super::support::{self, smoothstep};
 use super::Problem;
@@ -480,13 +481,24 @@ pub fn weights(
 /// Keep, at each pixel, the `m` observations of largest w_k·μ_k (ties: the first listed).
 fn keep_best(pr: &Problem, usable: &mut [Array2<bool>], weight: &mut [Array2<f64>], m: usize) {
     let (ny, nx) = usable[0].dim();
+    // An observation coarser than the grid measures one slope per s² grid pixels (its pixel's
+    // area, s² = 1 + 4σ² from σ² = (s² − 1)/4, [`super::blur::sigma_px`]): its score is divided
+    // by it, so that a sharp observation is kept before a coarse one of the same weight.
+    let area: Vec<f64> = (0..pr.observations.len())
+        .map(|k| {
+            pr.blur_kernel(k).map_or(1.0, |_| {
+                let s = pr.blur.as_ref().map_or(0.0, |b| b[k]);
+                1.0 + 4.0 * s * s
+            })
+        })
+        .collect();
     for i in 0..ny {
         for j in 0..nx {
             let mut score: Vec<(f64, usize)> = weight
                 .iter()
                 .enumerate()
                 .filter(|(_, w)| w[(i, j)] > 0.0)
-                .map(|(k, w)| (w[(i, j)] * pr.observations[k].view.at(i, j)[2], k))
+                .map(|(k, w)| (w[(i, j)] * pr.observations[k].view.at(i, j)[2] / area[k], k))
                 .collect();
             if score.len() <= m {
                 continue;
