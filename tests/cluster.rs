@@ -11,18 +11,28 @@ use std::time::{Duration, Instant};
 mod support;
 use support::{run_ok, scene_products, scratch, sfsfuse, workflow, write_workflow};
 
-/// Asserts that a SLURM controller answers. The tests that need one are `#[ignore]`d, so that
-/// a machine without SLURM reports them as ignored; `.ci/run` starts one and runs them.
+/// Asserts that a SLURM controller answers with a node that takes jobs. The tests that need
+/// one are `#[ignore]`d, so that a machine without SLURM reports them as ignored; `.ci/run`
+/// starts one and runs them. A node still `completing` another test's jobs takes new ones
+/// once it is done: the state is asked again for up to 30 s before giving up.
 fn slurm() {
-    let up = Command::new("sinfo")
-        .args(["-h", "-o", "%T"])
-        .output()
-        .is_ok_and(|o| {
-            o.status.success()
-                && String::from_utf8_lossy(&o.stdout)
-                    .lines()
-                    .any(|l| ["idle", "mixed", "allocated"].contains(&l.trim()))
-        });
+    let ready = || {
+        Command::new("sinfo")
+            .args(["-h", "-o", "%T"])
+            .output()
+            .is_ok_and(|o| {
+                o.status.success()
+                    && String::from_utf8_lossy(&o.stdout)
+                        .lines()
+                        .any(|l| ["idle", "mixed", "allocated", "completing"].contains(&l.trim()))
+            })
+    };
+    let start = Instant::now();
+    let mut up = ready();
+    while !up && start.elapsed() < Duration::from_secs(30) {
+        std::thread::sleep(Duration::from_secs(1));
+        up = ready();
+    }
     assert!(
         up,
         "this test needs a SLURM cluster: no node answers `sinfo` (run .ci/slurm-up as root), or leave out --include-ignored"
