@@ -356,8 +356,7 @@ pub fn minimise(
         // H + M, in the curvature's storage.
         let mut hm = obj.curvature(z.view(), rho, &photo, params.curvature_residual);
         obj.add_gauss_newton_hessian(&photo, &mut hm);
-        let blurred = obj.blurred_terms(&photo);
-        drop(photo);
+        let blurred = obj.blurred_terms(photo);
         // The gradient only enters the Newton system, solved in f32, and the line search's
         // slope: rounded to f32 here (and the f64 one freed), it takes half the memory through
         // the iterations.

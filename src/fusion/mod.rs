@@ -107,12 +107,24 @@ impl Observation<'_> {
 }
 
 impl<'a> Problem<'a> {
-    /// B_k of observation `k` ([`blur`]); `None`: sharp.
-    pub fn blur_kernel(&self, k: usize) -> Option<blur::Kernel> {
+    /// σ_k of observation `k` in grid pixels where it is modelled as blurred (at least
+    /// [`blur::MIN_SIGMA_PX`]); 0: sharp.
+    pub fn blur_sigma(&self, k: usize) -> f64 {
         self.blur
             .as_ref()
-            .and_then(|b| b.get(k))
-            .and_then(|&s| blur::Kernel::gaussian(s))
+            .and_then(|b| b.get(k).copied())
+            .filter(|s| s.is_finite() && *s >= blur::MIN_SIGMA_PX)
+            .unwrap_or(0.0)
+    }
+
+    /// Whether any observation is modelled as blurred ([`Problem::blur_sigma`]).
+    pub fn any_blurred(&self) -> bool {
+        (0..self.observations.len()).any(|k| self.blur_sigma(k) > 0.0)
+    }
+
+    /// B_k of observation `k` ([`blur`]); `None`: sharp.
+    pub fn blur_kernel(&self, k: usize) -> Option<blur::Kernel> {
+        blur::Kernel::gaussian(self.blur_sigma(k))
     }
 
     /// The footprint: where at least one image has a value (cast shadow included: the image
@@ -1181,6 +1193,9 @@ fn fine_stages(
             ..params.clone()
         }
     };
+    // The last stage's albedo, kept for the final albedo's sharpened images only where an
+    // observation is coarser than the grid (otherwise not held past its stage).
+    let keep_rho = pr.any_blurred();
     let mut last_rho: Option<Array2<f64>> = None;
     for (m, &sigma) in sigmas.iter().enumerate() {
         let t0 = Instant::now();
@@ -1193,7 +1208,9 @@ fn fine_stages(
             &early
         };
         let iterations = minimise(&obj, &mut z, rho.view(), stage_params, &mut |_| {});
-        last_rho = Some(rho);
+        if keep_rho {
+            last_rho = Some(rho);
+        }
         stages.push(StageReport {
             sigma_rho: sigma,
             iterations,
@@ -1228,7 +1245,9 @@ fn fine_stages(
                 params
             };
             let iterations = minimise(&obj, &mut z, rho.view(), pass_params, &mut |_| {});
-            last_rho = Some(rho);
+            if keep_rho {
+                last_rho = Some(rho);
+            }
             stages.push(StageReport {
                 sigma_rho: params.multi_albedo_sigma,
                 iterations,
@@ -1246,9 +1265,7 @@ fn fine_stages(
         .par_for_each(|z, &s, &d| *z = d + s * (*z - d));
     // An observation coarser than the grid enters the final albedo with the rendering's shading
     // within its kernel put back (at the last stage's albedo; [`sharpened_images`]).
-    let inverted = match last_rho
-        .filter(|_| (0..pr.observations.len()).any(|k| pr.blur_kernel(k).is_some()))
-    {
+    let inverted = match last_rho {
         Some(rho) => {
             let images = sharpened_images(pr, z.view(), rho.view());
             drop(rho);

@@ -660,20 +660,20 @@ impl<'a, 'p> Objective<'a, 'p> {
     }
 
     /// The Newton operator's part of each observation coarser than the grid (empty when there
-    /// is none).
-    pub fn blurred_terms(&self, photo: &Photo) -> Vec<BlurTerm> {
+    /// is none), taking their slope derivatives out of `photo`, which the step no longer needs.
+    pub fn blurred_terms(&self, photo: Photo) -> Vec<BlurTerm> {
         self.kernels
             .iter()
-            .zip(&photo.obs)
+            .zip(photo.obs)
             .zip(&self.weights.weight)
             .filter_map(|((k, ph), w)| {
                 k.as_ref().map(|kernel| BlurTerm {
                     kernel: kernel.clone(),
-                    a: ph.a.clone(),
-                    b: ph.b.clone(),
                     w2: Zip::from(w)
                         .and(&ph.used)
                         .map_collect(|&w, &u| if u { 2.0 * w } else { 0.0 }),
+                    a: ph.a,
+                    b: ph.b,
                 })
             })
             .collect()

@@ -485,12 +485,7 @@ fn keep_best(pr: &Problem, usable: &mut [Array2<bool>], weight: &mut [Array2<f64
     // area, s² = 1 + 4σ² from σ² = (s² − 1)/4, [`super::blur::sigma_px`]): its score is divided
     // by it, so that a sharp observation is kept before a coarse one of the same weight.
     let area: Vec<f64> = (0..pr.observations.len())
-        .map(|k| {
-            pr.blur_kernel(k).map_or(1.0, |_| {
-                let s = pr.blur.as_ref().map_or(0.0, |b| b[k]);
-                1.0 + 4.0 * s * s
-            })
-        })
+        .map(|k| 1.0 + 4.0 * pr.blur_sigma(k).powi(2))
         .collect();
     for i in 0..ny {
         for j in 0..nx {
@@ -701,7 +696,7 @@ pub fn invert_albedo(
     // An observation coarser than the grid sees the albedo blurred: where a sharp one is used,
     // its weight is w_k·`blurred_weight` ([`super::blur`]).
     let blurred: Vec<bool> = (0..pr.observations.len())
-        .map(|k| pr.blur_kernel(k).is_some())
+        .map(|k| pr.blur_sigma(k) > 0.0)
         .collect();
     rho.axis_iter_mut(Axis(0))
         .into_par_iter()

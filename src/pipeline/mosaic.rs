@@ -613,6 +613,7 @@ pub(super) fn mosaic(
         &plan.pixel_size_m,
         plan.grid.spacing,
     ));
+    let blur = plan.blur_px();
     let record = RunRecord {
         tool: "sfsfuse",
         version: env!("CARGO_PKG_VERSION"),
@@ -657,7 +658,7 @@ pub(super) fn mosaic(
                     .map_or(0.0, |o| o.photometric_fraction),
                 registration: plan.registration.get(k).cloned(),
                 pixel_size_m: plan.pixel_size_m.get(k).copied().flatten(),
-                blur_px: plan.blur_px().get(k).copied().unwrap_or(0.0),
+                blur_px: blur.get(k).copied().unwrap_or(0.0),
             })
             .collect(),
         outputs: outputs.clone(),
