@@ -13,6 +13,7 @@
 use crate::error::{Error, Result};
 use crate::grid::{self, enu_to_grid, Geographic, Grid, Interpolation, Projector};
 use crate::photometry::{narrow, Vec3, Vec3f};
+use crate::registration::Displacement;
 use crate::synth::direction;
 use ndarray::{s, Array2, ArrayView2, Axis, Zip};
 use pds::lola::{LolaDem, Projection};
@@ -407,11 +408,11 @@ pub fn survey(
     })
 }
 
-/// Where LOC may put the pixels of an observation displaced by `shift` (metres along the
-/// projection's x and y, [`m3_on_grid`]) that land on `grid`: the grid grown on every side by
-/// the shift's larger component, rounded up to whole pixels (`grid` itself for no shift).
-pub fn reach(grid: &Grid, shift: [f64; 2]) -> Grid {
-    let grow = (shift[0].abs().max(shift[1].abs()) / grid.spacing).ceil() as usize;
+/// Where LOC may put the pixels of an observation displaced by `shift` ([`m3_on_grid`]) that
+/// land on `grid`: the grid grown on every side by the largest component the displacement
+/// reaches, rounded up to whole pixels (`grid` itself for none).
+pub fn reach(grid: &Grid, shift: &Displacement) -> Grid {
+    let grow = (shift.reach_m() / grid.spacing).ceil() as usize;
     grid.window(
         -(grow as isize),
         -(grow as isize),
@@ -423,8 +424,8 @@ pub fn reach(grid: &Grid, shift: [f64; 2]) -> Grid {
 /// Resample observation `obs` at `nm` onto `grid` (`bearing` the grid bearing of north at
 /// each pixel, [`Geographic::bearing`] of `grid.geographic(pr)`), reading only the lines
 /// `index` says can reach the grid (or scanning LOC for them without one). `shift` is the
-/// observation's displacement on the grid, metres along the projection's x and y
-/// ([`crate::registration`]): each swath pixel is placed that far back from where LOC puts it.
+/// observation's displacement on the grid, metres along the projection's x and y at each swath
+/// line ([`Displacement`]): each swath pixel is placed that far back from where LOC puts it.
 #[allow(clippy::too_many_arguments)]
 pub fn m3_on_grid(
     obs: &Observation,
@@ -434,13 +435,12 @@ pub fn m3_on_grid(
     pr: &Projector,
     bearing: ArrayView2<f64>,
     index: Option<&SwathIndex>,
-    shift: [f64; 2],
+    shift: &Displacement,
 ) -> Result<ImageOnGrid> {
     let label = &obs.label_path;
     let (loc, obsr) = parts(obs)?;
-    // In grid pixels (rows run south); the lines and samples are looked for on the grid's
-    // reach, since LOC puts the pixels that land on it that far away.
-    let (d_rows, d_cols) = (-shift[1] / grid.spacing, shift[0] / grid.spacing);
+    // The lines and samples are looked for on the grid's reach, since LOC puts the pixels
+    // that land on it that far away.
     let search = reach(grid, shift);
     let range = match index {
         Some(ix) => ix.lines_for(&search),
@@ -464,9 +464,13 @@ pub fn m3_on_grid(
         let cols = s![.., c0..c1];
         let (mut gr, mut gc) =
             grid::swath_grid_positions(grid, pr, lon.slice(cols), lat.slice(cols));
-        if shift != [0.0; 2] {
-            gr -= d_rows;
-            gc -= d_cols;
+        if !shift.is_none() {
+            // In grid pixels (rows run south), line by line.
+            for (i, (mut r, mut c)) in gr.rows_mut().into_iter().zip(gc.rows_mut()).enumerate() {
+                let d = shift.at((first + i) as f64);
+                r -= -d[1] / grid.spacing;
+                c -= d[0] / grid.spacing;
+            }
         }
         (gr, gc, c0)
     };

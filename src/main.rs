@@ -183,6 +183,13 @@ enum Command {
         /// (docs/science.md, "Registration").
         #[arg(long = "loc-offset", allow_hyphen_values = true, value_parser = sfsfuse::synth::parse_offset)]
         loc_offsets: Vec<[f64; 2]>,
+        /// A selenolocation error that drifts along each observation's strip, as EAST/NORTH
+        /// metres (in `--sun` order; missing ones are 0/0): added to `--loc-offset` in
+        /// proportion to the swath line, from none at the first line to all of it at the last,
+        /// as an attitude drift would, e.g. `--loc-drift 840/0`. `run` registers it on
+        /// segments along the strip (docs/science.md, "Registration").
+        #[arg(long = "loc-drift", allow_hyphen_values = true, value_parser = sfsfuse::synth::parse_offset)]
+        loc_drifts: Vec<[f64; 2]>,
         /// Each observation's detector pixel as F grid pixels (in `--sun` order; missing ones
         /// are 1): its swath holds F × F block means of the image, as M3's second optical
         /// period (200 km, ≈ 280 m pixels) sees a region gridded at the first's 140 m, e.g.
@@ -411,6 +418,7 @@ fn run(cli: Cli) -> Result<(), sfsfuse::Error> {
             gains,
             strips,
             loc_offsets,
+            loc_drifts,
             pixel_factors,
             center,
             json,
@@ -422,13 +430,24 @@ fn run(cli: Cli) -> Result<(), sfsfuse::Error> {
                     suns.len().max(1)
                 )));
             }
-            if loc_offsets.len() > suns.len().max(1) {
-                return Err(sfsfuse::Error::Usage(format!(
-                    "{} --loc-offset values for {} observation(s): give at most one per --sun",
-                    loc_offsets.len(),
-                    suns.len().max(1)
-                )));
+            for (name, n) in [
+                ("--loc-offset", loc_offsets.len()),
+                ("--loc-drift", loc_drifts.len()),
+            ] {
+                if n > suns.len().max(1) {
+                    return Err(sfsfuse::Error::Usage(format!(
+                        "{n} {name} values for {} observation(s): give at most one per --sun",
+                        suns.len().max(1)
+                    )));
+                }
             }
+            let loc_errors: Vec<sfsfuse::synth::products::LocError> =
+                (0..loc_offsets.len().max(loc_drifts.len()))
+                    .map(|k| sfsfuse::synth::products::LocError {
+                        offset_m: loc_offsets.get(k).copied().unwrap_or_default(),
+                        drift_m: loc_drifts.get(k).copied().unwrap_or_default(),
+                    })
+                    .collect();
             if let Some(g) = gains.iter().find(|g| !(g.is_finite() && **g > 0.0)) {
                 return Err(sfsfuse::Error::Usage(format!(
                     "--gain {g}: a gain must be a positive number"
@@ -467,7 +486,7 @@ fn run(cli: Cli) -> Result<(), sfsfuse::Error> {
                 &scene,
                 &grid,
                 &out,
-                &loc_offsets,
+                &loc_errors,
                 &pixel_factors,
             )?;
             let labels: Vec<String> = p

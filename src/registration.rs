@@ -65,6 +65,63 @@ impl Shift {
     }
 }
 
+/// Where an observation's swath pixels are placed back from where its LOC puts them: metres
+/// along the grid's x and y, possibly drifting along the swath (an attitude drift moves the
+/// selenolocation error with time, so with the line). Knots at swath lines, in increasing
+/// order: piecewise linear in the line between them, constant beyond the first and the last
+/// (the plan puts those at the first and last lines that reach the region). No knot: no
+/// displacement; one: a translation.
+#[derive(Debug, Clone, Default, PartialEq, Serialize, Deserialize)]
+pub struct Displacement {
+    pub knots: Vec<Knot>,
+}
+
+/// One knot of a [`Displacement`]: the displacement at swath line `line`, metres along the
+/// grid's x and y.
+#[derive(Debug, Clone, Copy, PartialEq, Serialize, Deserialize)]
+pub struct Knot {
+    pub line: f64,
+    pub m: [f64; 2],
+}
+
+impl Displacement {
+    /// The same displacement at every line.
+    pub fn constant(m: [f64; 2]) -> Displacement {
+        Displacement {
+            knots: vec![Knot { line: 0.0, m }],
+        }
+    }
+
+    /// Whether it moves no pixel.
+    pub fn is_none(&self) -> bool {
+        self.knots.iter().all(|k| k.m == [0.0; 2])
+    }
+
+    /// The displacement at swath line `line`, metres along x and y.
+    pub fn at(&self, line: f64) -> [f64; 2] {
+        let k = &self.knots;
+        match k.iter().position(|k| k.line > line) {
+            _ if k.is_empty() => [0.0; 2],
+            Some(0) => k[0].m,
+            None => k[k.len() - 1].m,
+            Some(i) => {
+                let (a, b) = (k[i - 1], k[i]);
+                let t = (line - a.line) / (b.line - a.line);
+                [0, 1].map(|c| a.m[c] + t * (b.m[c] - a.m[c]))
+            }
+        }
+    }
+
+    /// The largest component, metres, it reaches at any line: how far beyond a grid LOC may
+    /// put the pixels that land on it.
+    pub fn reach_m(&self) -> f64 {
+        self.knots
+            .iter()
+            .map(|k| k.m[0].abs().max(k.m[1].abs()))
+            .fold(0.0, f64::max)
+    }
+}
+
 /// The DEM `dem` (grid `spacing` metres) rendered under `sun` and `view` by `model` at a
 /// constant albedo: R at the central-difference slopes, 0 in the DEM's cast shadows
 /// ([`cast_shadows`]); NaN where the DEM is not finite or the surface is unlit or unseen.
@@ -262,6 +319,39 @@ mod tests {
     use super::*;
     use crate::grid::{interpolate, Interpolation};
     use crate::synth::{generate, SceneSpec};
+
+    /// A displacement is none without knots or with knots at zero, constant with one knot,
+    /// linear in the line between two and constant beyond them; its reach is its largest
+    /// component at a knot.
+    #[test]
+    fn a_displacement_is_piecewise_linear_in_the_line() {
+        assert_eq!(Displacement::default().at(7.0), [0.0; 2]);
+        assert!(Displacement::default().is_none() && Displacement::constant([0.0; 2]).is_none());
+        let c = Displacement::constant([30.0, -40.0]);
+        assert!(!c.is_none());
+        assert_eq!(
+            (c.at(-5.0), c.at(1e6), c.reach_m()),
+            ([30.0, -40.0], [30.0, -40.0], 40.0)
+        );
+        let d = Displacement {
+            knots: vec![
+                Knot {
+                    line: 100.0,
+                    m: [0.0, 10.0],
+                },
+                Knot {
+                    line: 300.0,
+                    m: [200.0, -30.0],
+                },
+            ],
+        };
+        assert_eq!(d.at(0.0), [0.0, 10.0]);
+        assert_eq!(d.at(100.0), [0.0, 10.0]);
+        assert_eq!(d.at(150.0), [50.0, 0.0]);
+        assert_eq!(d.at(300.0), [200.0, -30.0]);
+        assert_eq!(d.at(1000.0), [200.0, -30.0]);
+        assert_eq!(d.reach_m(), 200.0);
+    }
 
     /// `a` displaced by (`rows`, `cols`) pixels: out(x) = a(x − d), bicubic; NaN off `a`.
     fn displaced(a: &Array2<f64>, rows: f64, cols: f64) -> Array2<f64> {

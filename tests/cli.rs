@@ -462,7 +462,9 @@ fn a_closed_pipe_is_neither_a_panic_nor_a_failure() {
 
 /// `synth --loc-offset EAST/NORTH` writes an observation whose LOC backplane misplaces every
 /// pixel by that many metres on the 1737.4 km sphere (checked against the same scene written
-/// without it), leaves the others alone, and refuses what is not an offset.
+/// without it), `--loc-drift` one whose error grows from none at the first line to that at the
+/// last in proportion to the line; the others are left alone, and what is not an offset is
+/// refused.
 #[test]
 fn synth_writes_a_selenolocation_error_where_asked() {
     let base = scratch("loc-offset");
@@ -472,6 +474,7 @@ fn synth_writes_a_selenolocation_error_where_asked() {
         "moved",
         &["--loc-offset", "0/0", "--loc-offset", "300/-200"],
     );
+    let drifting = write("drifting", &["--loc-drift", "-310/620"]);
     let loc = |dir: &std::path::Path, id: &str| -> Vec<f64> {
         std::fs::read(dir.join(format!("{id}_V03_LOC.IMG")))
             .unwrap()
@@ -493,11 +496,34 @@ fn synth_writes_a_selenolocation_error_where_asked() {
             assert_eq!(la[64 + s], lb[64 + s]);
         }
     }
+    // The first observation drifts: line i of 32 is off by i/31 of the drift.
+    let (a, b) = (loc(&plain, first), loc(&drifting, first));
+    assert_eq!(loc(&plain, second), loc(&drifting, second));
+    for (i, (la, lb)) in a.chunks_exact(96).zip(b.chunks_exact(96)).enumerate() {
+        let t = i as f64 / 31.0;
+        for s in 0..32 {
+            let east = (lb[s] - la[s]).to_radians() * r * la[32 + s].to_radians().cos();
+            let north = (lb[32 + s] - la[32 + s]).to_radians() * r;
+            assert!((east + 310.0 * t).abs() < 1e-3 && (north - 620.0 * t).abs() < 1e-3);
+        }
+    }
     synth_refuses(
         &base,
         &[
             (vec!["--loc-offset", "300"], "EAST/NORTH"),
             (vec!["--loc-offset", "1e9/0"], "within 100 km"),
+            (vec!["--loc-drift", "0/nan"], "within 100 km"),
+            (
+                vec![
+                    "--loc-drift",
+                    "0/0",
+                    "--loc-drift",
+                    "1/1",
+                    "--loc-drift",
+                    "2/2",
+                ],
+                "at most one per --sun",
+            ),
             (
                 vec![
                     "--loc-offset",

@@ -138,7 +138,7 @@ fn m3_global_crop_on_a_local_grid() {
         &pr,
         geo.bearing.view(),
         None,
-        [0.0; 2],
+        &Default::default(),
     )
     .unwrap();
     assert_eq!(img.bands, (1, 1));
@@ -237,7 +237,7 @@ fn a_grid_outside_the_product_is_refused_with_its_name() {
         &pr,
         g.geographic(&pr).bearing.view(),
         None,
-        [0.0; 2],
+        &Default::default(),
     )
     .unwrap_err()
     .to_string();
@@ -270,7 +270,7 @@ fn a_grid_outside_the_product_is_refused_with_its_name() {
         &pr2,
         g2.geographic(&pr2).bearing.view(),
         None,
-        [0.0; 2],
+        &Default::default(),
     )
     .unwrap_err()
     .to_string();
@@ -460,7 +460,7 @@ fn m3_on_a_window_is_the_window_of_m3_on_the_whole_grid() {
             &pr,
             g.geographic(&pr).bearing.view(),
             Some(&index),
-            [0.0; 2],
+            &Default::default(),
         )
     };
     let whole = on(&p.grid).unwrap();

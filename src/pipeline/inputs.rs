@@ -227,20 +227,21 @@ impl Dem {
 pub const LOLA_TRACK_GAP_M: f64 = 600.0;
 
 /// Every observation whose swath reaches `grid`, on it (`index` of [`Plan::swaths`], moved by
-/// its registration shift of [`super::plan::shifts`]; none where `shifts` is shorter), in input order
+/// its registration shift of [`super::register::shifts`]; none where `shifts` is shorter), in input order
 /// with its index: reflectance NaN where the geometry is not finite; observations without a
 /// finite pixel are left out.
 pub(super) fn observations_on(
     o: &Orbital,
     inputs: &Inputs,
-    (swaths, shifts): (&[SwathIndex], &[[f64; 2]]),
+    (swaths, shifts): (&[SwathIndex], &[Displacement]),
     grid: &Grid,
     pr: &Projector,
     bearing: ndarray::ArrayView2<f64>,
 ) -> Result<Vec<(usize, ingest::ImageOnGrid)>> {
     let mut shots = Vec::new();
     for (k, (obs, index)) in inputs.obs.iter().zip(swaths).enumerate() {
-        let shift = shifts.get(k).copied().unwrap_or([0.0; 2]);
+        let none = Displacement::default();
+        let shift = shifts.get(k).unwrap_or(&none);
         if index.lines_for(&ingest::reach(grid, shift)).is_none() {
             continue;
         }
@@ -280,7 +281,7 @@ pub(super) struct Ingested {
 pub(super) fn ingest_window(
     o: &Orbital,
     inputs: &Inputs,
-    swaths: (&[SwathIndex], &[[f64; 2]]),
+    swaths: (&[SwathIndex], &[Displacement]),
     window: &Grid,
 ) -> Result<Ingested> {
     let pr = projector(&window.crs)?;

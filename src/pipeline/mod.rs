@@ -32,6 +32,7 @@ use crate::photometry::{ModelSpec, ReflectanceModel};
 use crate::progress::Progress;
 use crate::quicklook::Thumbnail;
 use crate::raster::write_atomic;
+use crate::registration::Displacement;
 use crate::sanity::{Sanity, TileSums, Usage};
 use crate::tiling::{self, Tile, Window};
 use crate::workflow::{Lab, Layer, Orbital, RegionKind, Workflow};
@@ -51,6 +52,7 @@ mod lab;
 mod mosaic;
 mod plan;
 mod reference;
+mod register;
 mod tile;
 
 pub use inputs::LOLA_TRACK_GAP_M;
@@ -61,6 +63,7 @@ pub use plan::Plan;
 use plan::*;
 pub use reference::ReferenceInfo;
 use reference::*;
+use register::*;
 use tile::*;
 pub use tile::{TileRecord, MASK_FUSED, MASK_NOT_PHOTOMETRIC, MASK_NO_IMAGE};
 

@@ -246,8 +246,8 @@ pub(super) struct ObservationRecord {
     pub(super) footprint_pixels: usize,
     /// The share of its footprint where it carried photometric information.
     pub(super) photometric_fraction: f64,
-    /// Its registration to the DEM ([`super::plan::register`]).
-    pub(super) registration: Option<super::plan::Registration>,
+    /// Its registration to the DEM ([`super::register::register`]).
+    pub(super) registration: Option<super::register::Registration>,
     /// Its pixel size, metres ([`crate::ingest::ground_sample_distance`]).
     pub(super) pixel_size_m: Option<f64>,
     /// σ, grid pixels, of the blur E_I models it with (0: none; [`super::plan::blur_px`]).

@@ -48,8 +48,8 @@ pub(super) fn factor(grid: &Grid, params: &FusionParams) -> Option<usize> {
 /// The run-wide quantities a reference is solved with.
 pub(super) struct RunWide<'a> {
     pub swaths: &'a [SwathIndex],
-    /// Each observation's registration shift ([`super::plan::shifts`]).
-    pub shifts: &'a [[f64; 2]],
+    /// Each observation's registration shift ([`super::register::shifts`]).
+    pub shifts: &'a [crate::registration::Displacement],
     pub scale: f64,
     pub gains: &'a [f64],
     pub noise_weights: &'a [f64],

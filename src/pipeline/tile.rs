@@ -180,7 +180,7 @@ pub(super) fn run_tile(
         None => ingest_window(
             o,
             inputs,
-            (&plan.swaths, &super::plan::shifts(&plan.registration)),
+            (&plan.swaths, &super::register::shifts(&plan.registration)),
             &grid,
         )?,
     };

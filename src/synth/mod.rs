@@ -132,15 +132,14 @@ pub fn parse_sun(text: &str) -> Result<(f64, f64), String> {
     Ok((a, e))
 }
 
-/// `--loc-offset EAST/NORTH`: a selenolocation error in metres, each finite and within
+/// `--loc-offset` and `--loc-drift` EAST/NORTH: a selenolocation error in metres, each finite and within
 /// 100 km.
 pub fn parse_offset(text: &str) -> Result<[f64; 2], String> {
-    let (e, n) = parse_pair(text).ok_or_else(|| {
-        format!("--loc-offset {text}: expected EAST/NORTH in metres, e.g. 150/-150")
-    })?;
+    let (e, n) = parse_pair(text)
+        .ok_or_else(|| format!("{text}: expected EAST/NORTH in metres, e.g. 150/-150"))?;
     if !(e.is_finite() && n.is_finite() && e.abs() <= 1e5 && n.abs() <= 1e5) {
         return Err(format!(
-            "--loc-offset {text}: each of east and north must be a number of metres within 100 km"
+            "{text}: each of east and north must be a number of metres within 100 km"
         ));
     }
     Ok([e, n])

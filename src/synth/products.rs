@@ -80,10 +80,28 @@ pub fn write_displaced(
     dir: &Path,
     loc_offsets_m: &[[f64; 2]],
 ) -> Result<Products> {
-    write_observed(scene, grid, dir, loc_offsets_m, &[])
+    let errors: Vec<LocError> = loc_offsets_m
+        .iter()
+        .map(|&offset_m| LocError {
+            offset_m,
+            drift_m: [0.0; 2],
+        })
+        .collect();
+    write_observed(scene, grid, dir, &errors, &[])
 }
 
-/// [`write_displaced`], with observation k's detector pixels `pixel_factors[k]` grid pixels
+/// An error of an observation's selenolocation as its LOC backplane carries it: every pixel
+/// of swath line l put `offset_m + drift_m·l/(L − 1)` ([east, north] metres on the
+/// 1737.4 km sphere; L lines) from where it lies — a constant error, and one that drifts along
+/// the strip as an attitude error growing with time would.
+#[derive(Debug, Clone, Copy, Default, PartialEq)]
+pub struct LocError {
+    pub offset_m: [f64; 2],
+    pub drift_m: [f64; 2],
+}
+
+/// [`write_displaced`] with observation k's LOC error `loc_errors[k]` (missing entries: none),
+/// and its detector pixels `pixel_factors[k]` grid pixels
 /// wide (missing entries: 1): its swath holds ⌊rows/F⌋ lines of ⌊columns/F⌋ samples, each the
 /// mean of the scene's image over its F × F grid pixels (the scene's pixels are themselves the
 /// mean over their footprint, so the swath is what a detector F times coarser sees), LOC at
@@ -94,7 +112,7 @@ pub fn write_observed(
     scene: &Scene,
     grid: &Grid,
     dir: &Path,
-    loc_offsets_m: &[[f64; 2]],
+    loc_errors: &[LocError],
     pixel_factors: &[usize],
 ) -> Result<Products> {
     if let Some(f) = pixel_factors
@@ -107,12 +125,16 @@ pub fn write_observed(
         )));
     }
     let factor = |k: usize| pixel_factors.get(k).copied().unwrap_or(1);
-    if let Some(o) = loc_offsets_m.iter().flatten().find(|v| !v.is_finite()) {
+    if let Some(o) = loc_errors
+        .iter()
+        .flat_map(|e| e.offset_m.iter().chain(&e.drift_m))
+        .find(|v| !v.is_finite())
+    {
         return Err(Error::Usage(format!(
-            "a LOC offset of {o} m is not a number of metres"
+            "a LOC error of {o} m is not a number of metres"
         )));
     }
-    let offset = |k: usize| loc_offsets_m.get(k).copied().unwrap_or([0.0; 2]);
+    let offset = |k: usize| loc_errors.get(k).copied().unwrap_or_default();
     std::fs::create_dir_all(dir).map_err(|e| Error::io(dir, e))?;
     let (rows, cols) = scene.image.dim();
     if (rows, cols) != (grid.rows, grid.cols) {
@@ -135,7 +157,7 @@ pub fn write_observed(
             image: scene.image.view(),
             sun: scene.sun,
             columns: scene.spec.columns,
-            loc_offset_m: offset(0),
+            loc_error: offset(0),
             factor: factor(0),
         },
         scene,
@@ -151,7 +173,7 @@ pub fn write_observed(
                 image: m.image.view(),
                 sun: m.sun,
                 columns: m.spec.columns,
-                loc_offset_m: offset(k + 1),
+                loc_error: offset(k + 1),
                 factor: factor(k + 1),
             },
             scene,
@@ -212,8 +234,8 @@ struct Shot<'a> {
     image: ndarray::ArrayView2<'a, f64>,
     sun: crate::photometry::Vec3,
     columns: Option<[usize; 2]>,
-    /// [east, north] metres that LOC misplaces every pixel by.
-    loc_offset_m: [f64; 2],
+    /// How LOC misplaces the pixels.
+    loc_error: LocError,
     /// F: the detector's pixels are F × F grid pixels ([`write_observed`]).
     factor: usize,
 }
@@ -275,8 +297,15 @@ fn write_m3(
         for i in 0..rows {
             line.clear();
             for band in 0..3 {
+                // Line i of `rows`: the drift's share at it.
+                let t = if rows > 1 {
+                    i as f64 / (rows - 1) as f64
+                } else {
+                    0.0
+                };
+                let e = shot.loc_error;
+                let [east, north] = [0, 1].map(|c| e.offset_m[c] + t * e.drift_m[c]);
                 for b in 0..cols {
-                    let [east, north] = shot.loc_offset_m;
                     let lat = mean(i, b, &|i, j| geo.lat[(i, j)]);
                     // Longitudes averaged about the block's first (no wrap at 0/360).
                     let l0 = geo.lon[block(i, b).next().expect("F ≥ 1")];

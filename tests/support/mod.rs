@@ -83,12 +83,46 @@ fn products_of(
     name: &str,
     pixel_factors: &[usize],
 ) -> (PathBuf, products::Products) {
+    products_in(spec, &scratch(name), &[], pixel_factors)
+}
+
+/// The products of `spec` in `dir`/products, observation k's LOC misplacing its pixels by
+/// `loc_errors[k]` and its detector pixels `pixel_factors[k]` grid pixels wide (missing: none
+/// and 1; `products::write_observed`).
+fn products_in(
+    spec: &SceneSpec,
+    dir: &Path,
+    loc_errors: &[products::LocError],
+    pixel_factors: &[usize],
+) -> (PathBuf, products::Products) {
     let scene = generate(spec);
     let grid = sfsfuse::demo::demo_grid(spec).unwrap();
+    let p = products::write_observed(
+        &scene,
+        &grid,
+        &dir.join("products"),
+        loc_errors,
+        pixel_factors,
+    )
+    .unwrap();
+    (dir.to_path_buf(), p)
+}
+
+/// [`observation_products`] written twice in a fresh scratch directory `name`: as they are
+/// (`in_place/`) and with observation k's LOC misplacing its pixels by `loc_errors[k]`
+/// (`moved/`; `synth --loc-offset`/`--loc-drift`).
+pub fn observation_products_moved(
+    size: usize,
+    seed: u64,
+    suns: &[(f64, f64)],
+    loc_errors: &[products::LocError],
+    name: &str,
+) -> (PathBuf, products::Products, products::Products) {
+    let spec = spec_of(size, seed).with_observations(suns, &[], false);
     let dir = scratch(name);
-    let p =
-        products::write_observed(&scene, &grid, &dir.join("products"), &[], pixel_factors).unwrap();
-    (dir, p)
+    let (_, p) = products_in(&spec, &dir.join("in_place"), &[], &[]);
+    let (_, q) = products_in(&spec, &dir.join("moved"), loc_errors, &[]);
+    (dir, p, q)
 }
 
 /// [`observation_products`] with observation k's detector pixels `pixel_factors[k]` grid
