@@ -81,6 +81,12 @@ pub const REGISTER_WINDOW: usize = 512;
 /// enough for estimates as good as on one window (docs/science.md, "Registration").
 pub const REGISTER_SEGMENT: usize = 256;
 
+/// The most segments a footprint is cut into: a longer one is cut into segments longer than
+/// [`REGISTER_SEGMENT`], each registered on a window of at most [`REGISTER_WINDOW`] px along
+/// the track at its middle, so the plan's registration costs at most this many windows per
+/// observation however long the region.
+pub const REGISTER_MAX_SEGMENTS: usize = 8;
+
 /// The widest DEM point spread σ_B, grid pixels, against which an observation is registered:
 /// beyond it the DEM's shading holds too little to place an image to a pixel.
 pub const REGISTER_MAX_PSF: f64 = 8.0;
@@ -550,10 +556,11 @@ fn along_rows(grid: &Grid, index: &SwathIndex) -> bool {
 }
 
 /// Box `b` (of [`footprint_box`]) cut along the track into ⌊length / [`REGISTER_SEGMENT`]⌋
-/// equal segments (itself where that is under two).
+/// equal segments, at most [`REGISTER_MAX_SEGMENTS`] (itself where that is under two).
 fn segments(b: [f64; 4], rows: bool) -> Vec<[f64; 4]> {
     let (lo, hi) = if rows { (b[0], b[1]) } else { (b[2], b[3]) };
-    let n = ((hi - lo + 1.0) / REGISTER_SEGMENT as f64).floor() as usize;
+    let n =
+        (((hi - lo + 1.0) / REGISTER_SEGMENT as f64).floor() as usize).min(REGISTER_MAX_SEGMENTS);
     if n < 2 {
         return vec![b];
     }
@@ -662,6 +669,10 @@ mod tests {
         let across = segments([5.0, 100.0, 0.0, 767.0], false);
         assert_eq!(across.len(), 3);
         assert_eq!(across[1], [5.0, 100.0, 256.0, 511.0]);
+        // A long footprint: eight segments of 1024 px.
+        let long = segments([0.0, 8191.0, 0.0, 300.0], true);
+        assert_eq!(long.len(), REGISTER_MAX_SEGMENTS);
+        assert_eq!(long[7], [7168.0, 8191.0, 0.0, 300.0]);
     }
 
     fn segment(line: f64, m: [f64; 2]) -> Segment {
