@@ -81,6 +81,10 @@ pub struct ImageOnGrid {
     pub view: Array2<Vec3f>,
     /// The swath lines used, `first..end`.
     pub lines: (usize, usize),
+    /// The swath line (fractional, counted from the product's first) each grid pixel is
+    /// resampled at; NaN outside the swath. Registration places its estimates along the track
+    /// by it.
+    pub line: Array2<f32>,
     /// The wavelength used and the two bands blended to reach it (same band twice when exact).
     pub wavelength_nm: f64,
     pub bands: (usize, usize),
@@ -530,11 +534,13 @@ pub fn m3_on_grid(
     };
     let out_s = directions(0, 1)?;
     let out_v = directions(2, 3)?;
+    let first_f = first as f64;
     Ok(ImageOnGrid {
         reflectance: out_r,
         sun: out_s,
         view: out_v,
         lines: (first, end),
+        line: line.mapv(|l| (first_f + l) as f32),
         wavelength_nm: nm,
         bands: (lo, up),
         irradiance: e,

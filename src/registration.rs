@@ -220,12 +220,8 @@ pub fn estimate(
     psf: f64,
     search: usize,
 ) -> Option<Shift> {
+    let (a, b) = compared(image, rendered, psf)?;
     let lo = psf.max(1.0);
-    let hi = 4.0 * lo;
-    let a = band_pass(image, lo, hi)?;
-    // The rendering of a DEM blurred by σ_B is already that blurred: only its long
-    // wavelengths (albedo-free, but the image's are not) are taken out.
-    let b = band_pass(rendered, 0.0, hi)?;
     let r = search as isize;
     let shifts: Vec<(isize, isize)> = (-r..=r)
         .flat_map(|dy| (-r..=r).map(move |dx| (dy, dx)))
@@ -285,6 +281,52 @@ pub fn estimate(
     })
 }
 
+/// The band-passed image and rendering [`estimate`] correlates.
+fn compared(
+    image: ArrayView2<f64>,
+    rendered: ArrayView2<f64>,
+    psf: f64,
+) -> Option<(Array2<f64>, Array2<f64>)> {
+    let lo = psf.max(1.0);
+    let hi = 4.0 * lo;
+    let a = band_pass(image, lo, hi)?;
+    // The rendering of a DEM blurred by σ_B is already that blurred: only its long
+    // wavelengths (albedo-free, but the image's are not) are taken out.
+    let b = band_pass(rendered, 0.0, hi)?;
+    Some((a, b))
+}
+
+/// Where on the window an estimate `s` of [`estimate`] (same `image`, `rendered` and `psf`)
+/// was made: the mean of `values` (say, each pixel's swath line) weighted by each pixel's
+/// share of the correlation at the peak's whole-pixel displacement, max(0, a(x)·b(x − d)).
+/// Where the displacement drifts over the window the estimate is that of the pixels that
+/// carry the correlation (a large crater's rim, say), not of the window's middle. `None` when
+/// no pixel contributes.
+pub fn where_estimated(
+    image: ArrayView2<f64>,
+    rendered: ArrayView2<f64>,
+    psf: f64,
+    s: &Shift,
+    values: ArrayView2<f32>,
+) -> Option<f64> {
+    let (a, b) = compared(image, rendered, psf)?;
+    let (dy, dx) = (s.rows.round() as isize, s.cols.round() as isize);
+    let (ny, nx) = a.dim();
+    let (mut sum, mut weight) = (0.0, 0.0);
+    for i in (dy.max(0) as usize)..((ny as isize + dy.min(0)).max(0) as usize) {
+        let bi = (i as isize - dy) as usize;
+        for j in (dx.max(0) as usize)..((nx as isize + dx.min(0)).max(0) as usize) {
+            let w = a[(i, j)] * b[(bi, (j as isize - dx) as usize)];
+            let v = f64::from(values[(i, j)]);
+            if w > 0.0 && v.is_finite() {
+                sum += w * v;
+                weight += w;
+            }
+        }
+    }
+    (weight > 0.0).then(|| sum / weight)
+}
+
 /// c(d) of the module documentation for d = (`dy`, `dx`) over every `step`-th row and column,
 /// with the pixel count; sums in row order (deterministic).
 fn correlation(
@@ -319,6 +361,29 @@ mod tests {
     use super::*;
     use crate::grid::{interpolate, Interpolation};
     use crate::synth::{generate, SceneSpec};
+
+    /// Where an estimate was made: the correlation's weight lies on the one feature of the
+    /// window, a bump at row 40 of 128, so the mean row weighted by it is 40 (by symmetry);
+    /// with no finite value there is none.
+    #[test]
+    fn an_estimate_stands_for_where_the_correlation_lies() {
+        let bump = Array2::from_shape_fn((128, 128), |(i, j)| {
+            let r2 = (i as f64 - 40.0).powi(2) + (j as f64 - 64.0).powi(2);
+            (-r2 / 18.0).exp()
+        });
+        let s = Shift {
+            rows: 0.2,
+            cols: -0.3,
+            correlation: 1.0,
+            correlation_in_place: 1.0,
+            pixels: 128 * 128,
+        };
+        let rows = Array2::from_shape_fn((128, 128), |(i, _)| i as f32);
+        let at = where_estimated(bump.view(), bump.view(), 1.0, &s, rows.view()).unwrap();
+        assert!((at - 40.0).abs() < 1e-6, "{at}");
+        let none = Array2::from_elem((128, 128), f32::NAN);
+        assert!(where_estimated(bump.view(), bump.view(), 1.0, &s, none.view()).is_none());
+    }
 
     /// A displacement is none without knots or with knots at zero, constant with one knot,
     /// linear in the line between two and constant beyond them; its reach is its largest

@@ -59,7 +59,9 @@ pub struct Registration {
 /// One segment of an observation's track ([`Registration::along_track`]).
 #[derive(Debug, Clone, Serialize, Deserialize)]
 pub struct Segment {
-    /// The swath line at its middle (the mean line of the swath's pixels on its window).
+    /// The swath line its estimate stands for: the mean line of the pixels on its window,
+    /// weighted by their share of the correlation at the peak
+    /// ([`crate::registration::where_estimated`]; the window's mean line without an estimate).
     pub line: f64,
     /// Its window on the grid: first row, rows, first column, columns.
     pub window: [usize; 4],
@@ -99,6 +101,17 @@ pub const REGISTER_RELATIVE_MIN_PX: f64 = 1.25;
 /// The smallest side, grid pixels, of two observations' common window for one to be placed
 /// relative to the other.
 const RELATIVE_MIN_SIDE: f64 = 64.0;
+
+/// One window's estimate ([`Context::estimate`]).
+struct Found {
+    /// First row, rows, first column, columns of the grid.
+    window: [usize; 4],
+    shift: Option<Shift>,
+    /// Placed relative to the earlier observation (`false`: against the DEM).
+    relative: bool,
+    /// The swath line it stands for ([`crate::registration::where_estimated`]).
+    line: Option<f64>,
+}
 
 /// The run-wide quantities a registration window is estimated with.
 struct Context<'a> {
@@ -185,16 +198,20 @@ pub(super) fn register(
             for &piece in &pieces {
                 let (win, at) = window_on(grid, piece);
                 let with = partner.map(|j| (j, &out[j]));
-                let (shift, relative) = cx.estimate(k, &win, prior, with)?;
-                found.push((at, shift, relative));
+                found.push(cx.estimate(k, (&win, at), prior, with)?);
             }
             Ok(found)
         };
         let none = Displacement::default();
         let mut found = estimates(&none)?;
         out.push(if found.len() == 1 {
-            let (at, shift, relative) = found.pop().expect("one");
-            one_window(&cx, at, shift, relative.then_some(partner).flatten())
+            let f = found.pop().expect("one");
+            one_window(
+                &cx,
+                f.window,
+                f.shift,
+                f.relative.then_some(partner).flatten(),
+            )
         } else {
             // Each segment's estimate is that of its middle only where the displacement is
             // the same along it: where it drifts, the peak is smeared and falls short. So once
@@ -232,14 +249,15 @@ fn not(note: String) -> Registration {
 impl Context<'_> {
     /// Observation `k`'s displacement on window `win` once moved back by `prior`: relative to
     /// observation j of `partner` (with its registration, already made) where that one fused
-    /// alone has something usable there (`true`), else against the DEM.
+    /// alone has something usable there (`true`), else against the DEM; with the swath line
+    /// it was estimated at ([`crate::registration::where_estimated`]).
     fn estimate(
         &self,
         k: usize,
-        win: &Grid,
+        (win, window): (&Grid, [usize; 4]),
         prior: &Displacement,
         partner: Option<(usize, &Registration)>,
-    ) -> Result<(Option<Shift>, bool)> {
+    ) -> Result<Found> {
         let (o, inputs) = (self.o, self.inputs);
         let pr = projector(&win.crs)?;
         let geo = win.geographic(&pr);
@@ -301,7 +319,21 @@ impl Context<'_> {
             against_psf,
             o.inputs.register_search_px,
         );
-        Ok((est, fused.is_some()))
+        let line = est.as_ref().and_then(|s| {
+            crate::registration::where_estimated(
+                img.reflectance.view(),
+                rendered.view(),
+                against_psf,
+                s,
+                img.line.view(),
+            )
+        });
+        Ok(Found {
+            window,
+            shift: est,
+            relative: fused.is_some(),
+            line,
+        })
     }
 
     /// What an estimate is made against, in words, and the length from which it is applied.
@@ -388,22 +420,24 @@ fn one_window(
 }
 
 /// The registration of observation `k` estimated on two or more segments along its track
-/// (`found`: each segment's window, estimate and whether it was placed relative to `partner`),
-/// the image moved back by `prior` (its estimates are what is left: `prior` is added to them).
+/// (`found`: each segment's window, estimate, whether it was placed relative to `partner`, and
+/// the swath line it was estimated at), the image moved back by `prior` (its estimates are
+/// what is left: `prior` is added to them).
 fn along_track(
     cx: &Context,
     k: usize,
-    found: Vec<([usize; 4], Option<Shift>, bool)>,
+    found: Vec<Found>,
     partner: Option<usize>,
     prior: &Displacement,
 ) -> Registration {
     let index = &cx.swaths[k];
     let mut segs: Vec<Segment> = found
         .into_iter()
-        .map(|(window, shift, relative)| {
-            let line = mean_line(cx.grid, index, window);
+        .map(|f| {
+            let (window, relative) = (f.window, f.relative);
+            let line = f.line.unwrap_or_else(|| mean_line(cx.grid, index, window));
             let [x, y] = prior.at(line).map(|m| m / cx.grid.spacing);
-            let shift = shift.map(|s| Shift {
+            let shift = f.shift.map(|s| Shift {
                 rows: s.rows - y,
                 cols: s.cols + x,
                 ..s
