@@ -81,10 +81,6 @@ pub struct ImageOnGrid {
     pub view: Array2<Vec3f>,
     /// The swath lines used, `first..end`.
     pub lines: (usize, usize),
-    /// The swath line (fractional, counted from the product's first) each grid pixel is
-    /// resampled at; NaN outside the swath. Registration places its estimates along the track
-    /// by it.
-    pub line: Array2<f32>,
     /// The wavelength used and the two bands blended to reach it (same band twice when exact).
     pub wavelength_nm: f64,
     pub bands: (usize, usize),
@@ -441,6 +437,40 @@ pub fn m3_on_grid(
     index: Option<&SwathIndex>,
     shift: &Displacement,
 ) -> Result<ImageOnGrid> {
+    resample(obs, solar, nm, grid, pr, bearing, index, shift, false).map(|(img, _)| img)
+}
+
+/// [`m3_on_grid`], with the swath line (fractional, counted from the product's first) each
+/// grid pixel is resampled at, NaN outside the swath: registration places its estimates along
+/// the track by it. (A tile's ingest leaves it out: 4 bytes a pixel more.)
+#[allow(clippy::too_many_arguments)]
+pub fn m3_on_grid_with_lines(
+    obs: &Observation,
+    solar: &SolarSpectrum,
+    nm: f64,
+    grid: &Grid,
+    pr: &Projector,
+    bearing: ArrayView2<f64>,
+    index: Option<&SwathIndex>,
+    shift: &Displacement,
+) -> Result<(ImageOnGrid, Array2<f32>)> {
+    resample(obs, solar, nm, grid, pr, bearing, index, shift, true)
+        .map(|(img, lines)| (img, lines.expect("asked for")))
+}
+
+/// [`m3_on_grid`], with [`m3_on_grid_with_lines`]'s lines where `with_lines`.
+#[allow(clippy::too_many_arguments)]
+fn resample(
+    obs: &Observation,
+    solar: &SolarSpectrum,
+    nm: f64,
+    grid: &Grid,
+    pr: &Projector,
+    bearing: ArrayView2<f64>,
+    index: Option<&SwathIndex>,
+    shift: &Displacement,
+    with_lines: bool,
+) -> Result<(ImageOnGrid, Option<Array2<f32>>)> {
     let label = &obs.label_path;
     let (loc, obsr) = parts(obs)?;
     // The lines and samples are looked for on the grid's reach, since LOC puts the pixels
@@ -535,16 +565,17 @@ pub fn m3_on_grid(
     let out_s = directions(0, 1)?;
     let out_v = directions(2, 3)?;
     let first_f = first as f64;
-    Ok(ImageOnGrid {
+    let lines = with_lines.then(|| line.mapv(|l| (first_f + l) as f32));
+    let img = ImageOnGrid {
         reflectance: out_r,
         sun: out_s,
         view: out_v,
         lines: (first, end),
-        line: line.mapv(|l| (first_f + l) as f32),
         wavelength_nm: nm,
         bands: (lo, up),
         irradiance: e,
-    })
+    };
+    Ok((img, lines))
 }
 
 /// The lines of a swath whose pixels fall on `grid` (with a margin of 2 grid pixels and one

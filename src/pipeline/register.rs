@@ -263,7 +263,7 @@ impl Context<'_> {
         let geo = win.geographic(&pr);
         let dem = dem_on(o, inputs, &geo);
         let ingest = |k: usize, shift: &Displacement| {
-            ingest::m3_on_grid(
+            ingest::m3_on_grid_with_lines(
                 &inputs.obs[k],
                 &inputs.solar,
                 o.inputs.wavelength_nm,
@@ -274,7 +274,7 @@ impl Context<'_> {
                 shift,
             )
         };
-        let img = ingest(k, prior)?;
+        let (img, lines) = ingest(k, prior)?;
         let (sun, view) = (
             Directions::PerPixel(img.sun.view().into()),
             Directions::PerPixel(img.view.view().into()),
@@ -283,7 +283,7 @@ impl Context<'_> {
         // the DEM.
         let fused = match partner {
             Some((j, r)) => {
-                let other = [(j, ingest(j, &r.displacement())?)];
+                let other = [(j, ingest(j, &r.displacement())?.0)];
                 let mut filled = dem.clone();
                 crate::pipeline::lab::fill_holes(&mut filled);
                 let problem = Problem {
@@ -325,7 +325,7 @@ impl Context<'_> {
                 rendered.view(),
                 against_psf,
                 s,
-                img.line.view(),
+                lines.view(),
             )
         });
         Ok(Found {
