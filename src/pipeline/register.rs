@@ -589,12 +589,22 @@ fn along_rows(grid: &Grid, index: &SwathIndex) -> bool {
     }
 }
 
-/// Box `b` (of [`footprint_box`]) cut along the track into ⌊length / [`REGISTER_SEGMENT`]⌋
-/// equal segments, at most [`REGISTER_MAX_SEGMENTS`] (itself where that is under two).
+/// Box `b` (of [`footprint_box`]) cut along the track into ⌊length / L⌋ equal segments, at
+/// most [`REGISTER_MAX_SEGMENTS`] (itself where that is under two). L is
+/// [`REGISTER_SEGMENT`], or longer where the box is narrow: a segment must hold twice the
+/// pixels an estimate needs ([`crate::registration::MIN_PIXELS`]) across the box's width
+/// (capped at [`REGISTER_WINDOW`], as its window is), so that a narrow strip registered on
+/// one window before is not left unregistered on segments too small for an estimate.
 fn segments(b: [f64; 4], rows: bool) -> Vec<[f64; 4]> {
-    let (lo, hi) = if rows { (b[0], b[1]) } else { (b[2], b[3]) };
-    let n =
-        (((hi - lo + 1.0) / REGISTER_SEGMENT as f64).floor() as usize).min(REGISTER_MAX_SEGMENTS);
+    let ((lo, hi), (a, z)) = if rows {
+        ((b[0], b[1]), (b[2], b[3]))
+    } else {
+        ((b[2], b[3]), (b[0], b[1]))
+    };
+    let width = (z - a + 1.0).min(REGISTER_WINDOW as f64);
+    let least = (2 * crate::registration::MIN_PIXELS) as f64 / width;
+    let n = (((hi - lo + 1.0) / least.max(REGISTER_SEGMENT as f64)).floor() as usize)
+        .min(REGISTER_MAX_SEGMENTS);
     if n < 2 {
         return vec![b];
     }
@@ -688,7 +698,8 @@ fn window_on(grid: &Grid, b: [f64; 4]) -> (Grid, [usize; 4]) {
 mod tests {
     use super::*;
 
-    /// A footprint is cut into ⌊length/256⌋ equal segments along the track, itself under two.
+    /// A footprint is cut into ⌊length/256⌋ equal segments along the track (longer ones where
+    /// it is narrow, at most 8), itself under two.
     #[test]
     fn a_footprint_is_cut_into_segments_along_the_track() {
         let b = [0.0, 511.0, 10.0, 300.0];
@@ -700,13 +711,17 @@ mod tests {
             segments([0.0, 510.0, 10.0, 300.0], true),
             vec![[0.0, 510.0, 10.0, 300.0]]
         );
-        let across = segments([5.0, 100.0, 0.0, 767.0], false);
+        let across = segments([5.0, 300.0, 0.0, 767.0], false);
         assert_eq!(across.len(), 3);
-        assert_eq!(across[1], [5.0, 100.0, 256.0, 511.0]);
+        assert_eq!(across[1], [5.0, 300.0, 256.0, 511.0]);
         // A long footprint: eight segments of 1024 px.
         let long = segments([0.0, 8191.0, 0.0, 300.0], true);
         assert_eq!(long.len(), REGISTER_MAX_SEGMENTS);
         assert_eq!(long[7], [7168.0, 8191.0, 0.0, 300.0]);
+        // A strip 64 px wide: segments of at least 2 · 16384 / 64 = 512 px, so 1500 px make
+        // two, and 1000 px one.
+        assert_eq!(segments([0.0, 1499.0, 0.0, 63.0], true).len(), 2);
+        assert_eq!(segments([0.0, 999.0, 0.0, 63.0], true).len(), 1);
     }
 
     fn segment(line: f64, m: [f64; 2]) -> Segment {
