@@ -499,11 +499,12 @@ fn resample(
         let (mut gr, mut gc) =
             grid::swath_grid_positions(grid, pr, lon.slice(cols), lat.slice(cols));
         if !shift.is_none() {
-            // In grid pixels (rows run south), line by line.
+            // Line by line, in grid pixels: back by x along the columns, and by y along the
+            // rows, which run south.
             for (i, (mut r, mut c)) in gr.rows_mut().into_iter().zip(gc.rows_mut()).enumerate() {
-                let d = shift.at((first + i) as f64);
-                r -= -d[1] / grid.spacing;
-                c -= d[0] / grid.spacing;
+                let [x, y] = shift.at((first + i) as f64);
+                r += y / grid.spacing;
+                c -= x / grid.spacing;
             }
         }
         (gr, gc, c0)

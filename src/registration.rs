@@ -69,7 +69,7 @@ impl Shift {
 /// along the grid's x and y, possibly drifting along the swath (an attitude drift moves the
 /// selenolocation error with time, so with the line). Knots at swath lines, in increasing
 /// order: piecewise linear in the line between them, constant beyond the first and the last
-/// (the plan puts those at the first and last lines that reach the region). No knot: no
+/// (the plan puts those at the first and last lines it registered on). No knot: no
 /// displacement; one: a translation.
 #[derive(Debug, Clone, Default, PartialEq, Serialize, Deserialize)]
 pub struct Displacement {

@@ -49,7 +49,7 @@ pub struct Registration {
     pub along_track: Vec<Segment>,
     /// What the run moves it back by where applied (no knot otherwise): one translation, or
     /// the segments' estimates that count as knots at their lines, carried linearly to the
-    /// first and last lines that reach the region.
+    /// first and last lines the segments' windows hold.
     #[serde(default)]
     pub displacement: Displacement,
     /// What was done and why, in words.
@@ -111,6 +111,8 @@ struct Found {
     relative: bool,
     /// The swath line it stands for ([`crate::registration::where_estimated`]).
     line: Option<f64>,
+    /// The first and last swath lines on the window.
+    extent: Option<(f64, f64)>,
 }
 
 /// The run-wide quantities a registration window is estimated with.
@@ -328,11 +330,20 @@ impl Context<'_> {
                 lines.view(),
             )
         });
+        let extent =
+            lines
+                .iter()
+                .filter(|l| l.is_finite())
+                .fold(None, |e: Option<(f64, f64)>, &l| {
+                    let l = f64::from(l);
+                    Some(e.map_or((l, l), |(a, b)| (a.min(l), b.max(l))))
+                });
         Ok(Found {
             window,
             shift: est,
             relative: fused.is_some(),
             line,
+            extent,
         })
     }
 
@@ -431,6 +442,11 @@ fn along_track(
     prior: &Displacement,
 ) -> Registration {
     let index = &cx.swaths[k];
+    // The lines the segments' windows hold together.
+    let extent = found
+        .iter()
+        .filter_map(|f| f.extent)
+        .reduce(|(a, b), (c, d)| (a.min(c), b.max(d)));
     let mut segs: Vec<Segment> = found
         .into_iter()
         .map(|f| {
@@ -483,7 +499,7 @@ fn along_track(
         }
     });
     let displacement = if applied {
-        knots(&strong, index.lines_for(cx.grid))
+        knots(&strong, extent)
     } else {
         Displacement::default()
     };
@@ -534,9 +550,11 @@ fn along_track(
 }
 
 /// The displacement through the estimates that count (at least one), ordered by line: one
-/// translation for one; for more, knots at their lines, and at the first and last `lines`
-/// that reach the region, there carried linearly from the nearest two.
-fn knots(strong: &[&Segment], lines: Option<(usize, usize)>) -> Displacement {
+/// translation for one; for more, knots at their lines, and at the first and last of `lines`
+/// (those the segments' windows hold), there carried linearly from the nearest two. Beyond
+/// them it stays constant: where an observation is placed relative to another over part of its
+/// length only, the drift found there is not carried along the rest.
+fn knots(strong: &[&Segment], lines: Option<(f64, f64)>) -> Displacement {
     let mut knots: Vec<Knot> = strong
         .iter()
         .map(|s| Knot {
@@ -556,13 +574,12 @@ fn knots(strong: &[&Segment], lines: Option<(usize, usize)>) -> Displacement {
     if knots.len() < 2 {
         return Displacement::constant(knots[0].m);
     }
-    if let Some((first, end)) = lines {
+    if let Some((lo, hi)) = lines {
         let carry = |a: Knot, b: Knot, line: f64| Knot {
             line,
             m: [0, 1].map(|c| a.m[c] + (line - a.line) / (b.line - a.line) * (b.m[c] - a.m[c])),
         };
         let n = knots.len();
-        let (lo, hi) = (first as f64, (end - 1) as f64);
         if lo < knots[0].line {
             knots.insert(0, carry(knots[0], knots[1], lo));
         }
@@ -735,11 +752,11 @@ mod tests {
     }
 
     /// The knots are the estimates at their lines, carried linearly to the first and last
-    /// lines that reach the region; one estimate, or two at one line, give one translation.
+    /// lines the segments hold; one estimate, or two at one line, give one translation.
     #[test]
     fn the_displacement_runs_through_the_estimates_to_the_region_s_ends() {
         let (a, b) = (segment(128.0, [100.0, 0.0]), segment(384.0, [300.0, -20.0]));
-        let d = knots(&[&a, &b], Some((0, 512)));
+        let d = knots(&[&a, &b], Some((0.0, 511.0)));
         let lines: Vec<f64> = d.knots.iter().map(|k| k.line).collect();
         assert_eq!(lines, [0.0, 128.0, 384.0, 511.0]);
         // 200 m and −20 m over 256 lines, carried 128 lines back and 127 on.
@@ -748,12 +765,12 @@ mod tests {
         assert!(close(d.knots[3].m, [399.21875, -29.921875]), "{d:?}");
         assert!(close(d.at(256.0), [200.0, -10.0]));
         assert_eq!(
-            knots(&[&a], Some((0, 512))),
+            knots(&[&a], Some((0.0, 511.0))),
             Displacement::constant([100.0, 0.0])
         );
         let same = segment(140.0, [200.0, 10.0]);
         assert_eq!(
-            knots(&[&a, &same], Some((0, 512))),
+            knots(&[&a, &same], Some((0.0, 511.0))),
             Displacement::constant([150.0, 5.0])
         );
     }
