@@ -92,6 +92,13 @@ impl Displacement {
         }
     }
 
+    /// Through `knots`, (line, [x, y] metres), ordered by line.
+    pub fn through(knots: &[(f64, [f64; 2])]) -> Displacement {
+        Displacement {
+            knots: knots.iter().map(|&(line, m)| Knot { line, m }).collect(),
+        }
+    }
+
     /// Whether it moves no pixel.
     pub fn is_none(&self) -> bool {
         self.knots.iter().all(|k| k.m == [0.0; 2])
@@ -398,18 +405,7 @@ mod tests {
             (c.at(-5.0), c.at(1e6), c.reach_m()),
             ([30.0, -40.0], [30.0, -40.0], 40.0)
         );
-        let d = Displacement {
-            knots: vec![
-                Knot {
-                    line: 100.0,
-                    m: [0.0, 10.0],
-                },
-                Knot {
-                    line: 300.0,
-                    m: [200.0, -30.0],
-                },
-            ],
-        };
+        let d = Displacement::through(&[(100.0, [0.0, 10.0]), (300.0, [200.0, -30.0])]);
         assert_eq!(d.at(0.0), [0.0, 10.0]);
         assert_eq!(d.at(100.0), [0.0, 10.0]);
         assert_eq!(d.at(150.0), [50.0, 0.0]);

@@ -446,25 +446,14 @@ fn gdal_written_geotiff_dems_resample_like_the_pds_product() {
 #[test]
 fn m3_on_a_window_is_the_window_of_m3_on_the_whole_grid() {
     use sfsfuse::ingest::survey;
-    use sfsfuse::registration::{Displacement, Knot};
+    use sfsfuse::registration::Displacement;
     let p = support::scene_products(256, 10);
     let obs = Observation::open(&p.m3_label).unwrap();
     let solar = SolarSpectrum::read(&p.solar_table).unwrap();
     let pr = p.grid.crs.projector().unwrap();
     let nm = 1209.6;
     let index = survey(&obs, &solar, nm, &p.grid, &pr).unwrap().index;
-    let drifting = Displacement {
-        knots: vec![
-            Knot {
-                line: 20.0,
-                m: [0.0, 0.0],
-            },
-            Knot {
-                line: 230.0,
-                m: [310.0, -170.0],
-            },
-        ],
-    };
+    let drifting = Displacement::through(&[(20.0, [0.0, 0.0]), (230.0, [310.0, -170.0])]);
     let (mut compared, mut finite) = (0, 0);
     for shift in [Displacement::default(), drifting] {
         let on = |g: &Grid| {
