@@ -131,7 +131,7 @@ impl Displacement {
 
 /// The DEM `dem` (grid `spacing` metres) rendered under `sun` and `view` by `model` at a
 /// constant albedo: R at the central-difference slopes, 0 in the DEM's cast shadows
-/// ([`cast_shadows`]); NaN where the DEM is not finite or the surface is unlit or unseen.
+/// (`cast_shadows`); NaN where the DEM is not finite or the surface is unlit or unseen.
 pub fn render(
     dem: ArrayView2<f64>,
     spacing: f64,

@@ -14,7 +14,7 @@ use crate::spectral::{to, Real};
 use ndarray::{Array2, Axis, Zip};
 use rayon::prelude::*;
 
-/// A normalised, symmetric, truncated Gaussian: taps[0] at the centre, taps[d] at ±d.
+/// A normalised, symmetric, truncated Gaussian: `taps[0]` at the centre, `taps[d]` at ±d.
 #[derive(Debug, Clone, PartialEq)]
 pub struct Kernel {
     pub taps: Vec<f64>,

@@ -55,7 +55,7 @@ pub struct Plan {
     /// tiles solve every stage themselves (`pipeline::reference`).
     #[serde(default)]
     pub reference: Option<ReferenceInfo>,
-    /// Each observation's registration, in input order ([`register`]).
+    /// Each observation's registration, in input order (`pipeline::register`).
     #[serde(default)]
     pub registration: Vec<Registration>,
     /// Each observation's pixel size, metres ([`ingest::ground_sample_distance`]; `None` where
@@ -76,7 +76,7 @@ pub fn blur_px(pixel_size_m: &[Option<f64>], spacing: f64) -> Vec<f64> {
 }
 
 impl Plan {
-    /// [`blur_px`] of the plan's observations on its grid.
+    /// `blur_px` of the plan's observations on its grid.
     pub fn blur_px(&self) -> Vec<f64> {
         blur_px(&self.pixel_size_m, self.grid.spacing)
     }

@@ -69,10 +69,10 @@ pub fn write(scene: &Scene, grid: &Grid, dir: &Path) -> Result<Products> {
     write_displaced(scene, grid, dir, &[])
 }
 
-/// [`write`], with observation k's LOC backplane putting every pixel `loc_offsets_m[k]` =
+/// [`write()`], with observation k's LOC backplane putting every pixel `loc_offsets_m[k]` =
 /// [east, north] metres (on the 1737.4 km sphere) from where it lies, as an error of its
 /// selenolocation would (missing entries: none). The images, OBS and the truth are those of
-/// [`write`]; `sfsfuse run`'s registration should find and undo the offsets
+/// [`write()`]; `sfsfuse run`'s registration should find and undo the offsets
 /// (docs/science.md, "Registration").
 pub fn write_displaced(
     scene: &Scene,
