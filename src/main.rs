@@ -190,6 +190,13 @@ enum Command {
         /// segments along the strip (docs/science.md, "Registration").
         #[arg(long = "loc-drift", allow_hyphen_values = true, value_parser = sfsfuse::synth::parse_offset)]
         loc_drifts: Vec<[f64; 2]>,
+        /// A gain drifting along each observation's strip (in `--sun` order; missing ones
+        /// are 0): its radiance multiplied by exp(T·(l − l_mid)/1000) at swath line l, T the
+        /// change of ln g per 1000 lines, e.g. `--gain-trend 0 --gain-trend 0.2`. `run` with
+        /// `[inputs] gain_trend = true` estimates it where observations overlap
+        /// (docs/science.md, "Several observations").
+        #[arg(long = "gain-trend", allow_hyphen_values = true)]
+        gain_trends: Vec<f64>,
         /// Each observation's detector pixel as F grid pixels (in `--sun` order; missing ones
         /// are 1): its swath holds F × F block means of the image, as M3's second optical
         /// period (200 km, ≈ 280 m pixels) sees a region gridded at the first's 140 m, e.g.
@@ -419,6 +426,7 @@ fn run(cli: Cli) -> Result<(), sfsfuse::Error> {
             strips,
             loc_offsets,
             loc_drifts,
+            gain_trends,
             pixel_factors,
             center,
             json,
@@ -433,6 +441,7 @@ fn run(cli: Cli) -> Result<(), sfsfuse::Error> {
             for (name, n) in [
                 ("--loc-offset", loc_offsets.len()),
                 ("--loc-drift", loc_drifts.len()),
+                ("--gain-trend", gain_trends.len()),
             ] {
                 if n > suns.len().max(1) {
                     return Err(sfsfuse::Error::Usage(format!(
@@ -441,13 +450,25 @@ fn run(cli: Cli) -> Result<(), sfsfuse::Error> {
                     )));
                 }
             }
-            let loc_errors: Vec<sfsfuse::synth::products::LocError> =
-                (0..loc_offsets.len().max(loc_drifts.len()))
-                    .map(|k| sfsfuse::synth::products::LocError {
-                        offset_m: loc_offsets.get(k).copied().unwrap_or_default(),
-                        drift_m: loc_drifts.get(k).copied().unwrap_or_default(),
-                    })
-                    .collect();
+            if let Some(t) = gain_trends
+                .iter()
+                .find(|t| !(t.is_finite() && t.abs() <= 10.0))
+            {
+                return Err(sfsfuse::Error::Usage(format!(
+                    "--gain-trend {t}: a change of ln g per 1000 lines must be a number within ±10"
+                )));
+            }
+            let n = loc_offsets
+                .len()
+                .max(loc_drifts.len())
+                .max(gain_trends.len());
+            let loc_errors: Vec<sfsfuse::synth::products::ProductErrors> = (0..n)
+                .map(|k| sfsfuse::synth::products::ProductErrors {
+                    offset_m: loc_offsets.get(k).copied().unwrap_or_default(),
+                    drift_m: loc_drifts.get(k).copied().unwrap_or_default(),
+                    gain_trend: gain_trends.get(k).copied().unwrap_or_default(),
+                })
+                .collect();
             if let Some(g) = gains.iter().find(|g| !(g.is_finite() && **g > 0.0)) {
                 return Err(sfsfuse::Error::Usage(format!(
                     "--gain {g}: a gain must be a positive number"

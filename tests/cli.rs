@@ -463,10 +463,11 @@ fn a_closed_pipe_is_neither_a_panic_nor_a_failure() {
 /// `synth --loc-offset EAST/NORTH` writes an observation whose LOC backplane misplaces every
 /// pixel by that many metres on the 1737.4 km sphere (checked against the same scene written
 /// without it), `--loc-drift` one whose error grows from none at the first line to that at the
-/// last in proportion to the line; the others are left alone, and what is not an offset is
-/// refused.
+/// last in proportion to the line, `--gain-trend` one whose radiance at line l is the plain
+/// one's times exp(T·(l − 15.5)/1000) over its 32 lines; the others are left alone, and what is
+/// not an offset or a trend is refused.
 #[test]
-fn synth_writes_a_selenolocation_error_where_asked() {
+fn synth_writes_product_errors_where_asked() {
     let base = scratch("loc-offset");
     let write = |name: &str, extra: &[&str]| synth_two_suns(&base.join(name), extra);
     let plain = write("plain", &[]);
@@ -475,6 +476,7 @@ fn synth_writes_a_selenolocation_error_where_asked() {
         &["--loc-offset", "0/0", "--loc-offset", "300/-200"],
     );
     let drifting = write("drifting", &["--loc-drift", "-310/620"]);
+    let trending = write("trending", &["--gain-trend", "0", "--gain-trend", "0.5"]);
     let loc = |dir: &std::path::Path, id: &str| -> Vec<f64> {
         std::fs::read(dir.join(format!("{id}_V03_LOC.IMG")))
             .unwrap()
@@ -507,9 +509,30 @@ fn synth_writes_a_selenolocation_error_where_asked() {
             assert!((east + 310.0 * t).abs() < 1e-3 && (north - 620.0 * t).abs() < 1e-3);
         }
     }
+    let rdn = |dir: &std::path::Path, id: &str| -> Vec<f32> {
+        std::fs::read(dir.join(format!("{id}_V03_RDN.IMG")))
+            .unwrap()
+            .chunks_exact(4)
+            .map(|c| f32::from_le_bytes(c.try_into().unwrap()))
+            .collect()
+    };
+    assert_eq!(rdn(&plain, first), rdn(&trending, first));
+    let (a, b) = (rdn(&plain, second), rdn(&trending, second));
+    let per_line = a.len() / 32;
+    for (i, (la, lb)) in a
+        .chunks_exact(per_line)
+        .zip(b.chunks_exact(per_line))
+        .enumerate()
+    {
+        let g = (0.5 * (i as f64 - 15.5) / 1000.0).exp();
+        for (x, y) in la.iter().zip(lb) {
+            assert!((f64::from(*y) - g * f64::from(*x)).abs() <= 1e-6 * f64::from(x.abs()));
+        }
+    }
     synth_refuses(
         &base,
         &[
+            (vec!["--gain-trend", "inf"], "within ±10"),
             (vec!["--loc-offset", "300"], "EAST/NORTH"),
             (vec!["--loc-offset", "1e9/0"], "within 100 km"),
             (vec!["--loc-drift", "0/nan"], "within 100 km"),

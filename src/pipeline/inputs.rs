@@ -226,35 +226,88 @@ impl Dem {
 /// one (E_DEM then deconvolves: docs/science.md, "The DEM's resolution").
 pub const LOLA_TRACK_GAP_M: f64 = 600.0;
 
-/// Every observation whose swath reaches `grid`, on it (`index` of [`Plan::swaths`], moved by
-/// its registration shift of [`super::register::shifts`]; none where `shifts` is shorter), in input order
-/// with its index: reflectance NaN where the geometry is not finite; observations without a
-/// finite pixel are left out.
+/// How every ingest of a run places and corrects each observation (the plan's): its swath
+/// index ([`Plan::swaths`]), its registration's displacement ([`super::register::shifts`]) and
+/// its gain trend ([`Plan::gain_trends`]); none where those are shorter.
+#[derive(Clone, Copy)]
+pub(super) struct Placing<'a> {
+    pub(super) swaths: &'a [SwathIndex],
+    pub(super) shifts: &'a [Displacement],
+    pub(super) trends: &'a [Option<GainTrend>],
+}
+
+/// Every observation whose swath reaches `grid`, on it, placed and corrected as `placing` says
+/// (an image with a gain trend divided by it at each pixel's swath line), in input order with
+/// its index: reflectance NaN where the geometry is not finite; observations without a finite
+/// pixel are left out.
 pub(super) fn observations_on(
     o: &Orbital,
     inputs: &Inputs,
-    (swaths, shifts): (&[SwathIndex], &[Displacement]),
+    placing: Placing,
     grid: &Grid,
     pr: &Projector,
     bearing: ndarray::ArrayView2<f64>,
 ) -> Result<Vec<(usize, ingest::ImageOnGrid)>> {
+    Ok(
+        observations_with_lines(o, inputs, placing, grid, (pr, bearing), false)?
+            .into_iter()
+            .map(|(k, img, _)| (k, img))
+            .collect(),
+    )
+}
+
+/// One observation on a grid: its input index, its image, and its swath lines where asked for
+/// ([`observations_with_lines`]).
+pub(super) type Shot = (usize, ingest::ImageOnGrid, Option<Array2<f32>>);
+
+/// [`observations_on`], with each observation's swath lines on the grid where `with_lines`
+/// ([`ingest::m3_on_grid_with_lines`]).
+pub(super) fn observations_with_lines(
+    o: &Orbital,
+    inputs: &Inputs,
+    placing: Placing,
+    grid: &Grid,
+    (pr, bearing): (&Projector, ndarray::ArrayView2<f64>),
+    with_lines: bool,
+) -> Result<Vec<Shot>> {
     let mut shots = Vec::new();
-    for (k, (obs, index)) in inputs.obs.iter().zip(swaths).enumerate() {
+    for (k, (obs, index)) in inputs.obs.iter().zip(placing.swaths).enumerate() {
         let none = Displacement::default();
-        let shift = shifts.get(k).unwrap_or(&none);
+        let shift = placing.shifts.get(k).unwrap_or(&none);
         if index.lines_for(&ingest::reach(grid, shift)).is_none() {
             continue;
         }
-        let mut img = ingest::m3_on_grid(
-            obs,
-            &inputs.solar,
-            o.inputs.wavelength_nm,
-            grid,
-            pr,
-            bearing,
-            Some(index),
-            shift,
-        )?;
+        let trend = placing.trends.get(k).copied().flatten();
+        let (mut img, lines) = if with_lines || trend.is_some() {
+            let (img, lines) = ingest::m3_on_grid_with_lines(
+                obs,
+                &inputs.solar,
+                o.inputs.wavelength_nm,
+                grid,
+                pr,
+                bearing,
+                Some(index),
+                shift,
+            )?;
+            (img, Some(lines))
+        } else {
+            let img = ingest::m3_on_grid(
+                obs,
+                &inputs.solar,
+                o.inputs.wavelength_nm,
+                grid,
+                pr,
+                bearing,
+                Some(index),
+                shift,
+            )?;
+            (img, None)
+        };
+        if let (Some(t), Some(lines)) = (trend, &lines) {
+            Zip::from(&mut img.reflectance)
+                .and(lines)
+                .par_for_each(|r, &l| *r /= t.factor(f64::from(l)));
+        }
         Zip::from(&mut img.reflectance)
             .and(&img.sun)
             .and(&img.view)
@@ -264,7 +317,7 @@ pub(super) fn observations_on(
                 }
             });
         if img.reflectance.iter().any(|r| r.is_finite()) {
-            shots.push((k, img));
+            shots.push((k, img, lines.filter(|_| with_lines)));
         }
     }
     Ok(shots)
@@ -281,7 +334,7 @@ pub(super) struct Ingested {
 pub(super) fn ingest_window(
     o: &Orbital,
     inputs: &Inputs,
-    swaths: (&[SwathIndex], &[Displacement]),
+    placing: Placing,
     window: &Grid,
 ) -> Result<Ingested> {
     let pr = projector(&window.crs)?;
@@ -291,7 +344,7 @@ pub(super) fn ingest_window(
     let dem = dem_on(o, inputs, &geo);
     let crate::grid::Geographic { lon, lat, bearing } = geo;
     drop((lon, lat));
-    let shots = observations_on(o, inputs, swaths, window, &pr, bearing.view())?;
+    let shots = observations_on(o, inputs, placing, window, &pr, bearing.view())?;
     Ok(Ingested { shots, dem })
 }
 

@@ -240,6 +240,9 @@ pub(super) struct ObservationRecord {
     pub(super) gain: f64,
     /// How that gain was fixed ([`gain_source`]).
     pub(super) gain_source: String,
+    /// Its gain's trend along the track (`[inputs] gain_trend`; absent: none).
+    #[serde(skip_serializing_if = "Option::is_none")]
+    pub(super) gain_trend: Option<GainTrend>,
     /// Noise weight ν (docs/science.md, "Several observations").
     pub(super) noise_weight: f64,
     /// Its pixels on the grid (its footprint).
@@ -650,6 +653,7 @@ pub(super) fn mosaic(
                     usage.get(k).copied().unwrap_or(Usage::OffRegion),
                     &labels,
                 ),
+                gain_trend: plan.gain_trends.get(k).copied().flatten(),
                 noise_weight: plan.noise_weights.get(k).copied().unwrap_or(1.0),
                 footprint_pixels: sanity.observations.get(k).map_or(0, |o| o.footprint_pixels),
                 photometric_fraction: sanity

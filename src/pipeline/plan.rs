@@ -48,6 +48,10 @@ pub struct Plan {
     /// the observation does not reach the grid).
     #[serde(default)]
     pub gain_reference: Vec<Option<usize>>,
+    /// Each observation's gain trend along its track (`[inputs] gain_trend`; `None`: none, the
+    /// default), in input order.
+    #[serde(default)]
+    pub gain_trends: Vec<Option<GainTrend>>,
     /// Noise weight ν_k of each observation (docs/science.md, "Several observations").
     #[serde(default)]
     pub noise_weights: Vec<f64>,
@@ -222,16 +226,28 @@ pub fn dem_blur_track_weight(
 /// The most pixels the gain estimate looks at: the run's grid is decimated to at most this.
 pub(super) const GAIN_PIXELS: usize = 1 << 20;
 
+/// The gains of [`run_gains`], per observation in input order.
+pub(super) struct RunGains {
+    pub(super) gains: Vec<f64>,
+    /// What each gain is relative to, by input index (`None`: nothing tied it down).
+    pub(super) reference: Vec<Option<usize>>,
+    pub(super) trends: Vec<Option<GainTrend>>,
+}
+
 /// The gains of the observations, estimated once for the whole run (tiles must agree on them)
 /// by [`fusion::observations::estimate_gains`] on the grid decimated to at most
-/// [`GAIN_PIXELS`], over the input DEM, and what each is relative to (input indices).
+/// [`GAIN_PIXELS`], over the input DEM, what each is relative to (input indices), and with
+/// `[inputs] gain_trend` their trends along the track
+/// ([`fusion::observations::estimate_gain_trends`]; the gains are then estimated again on the
+/// images divided by the trends).
 pub(super) fn run_gains(
     o: &Orbital,
     inputs: &Inputs,
     grid: &Grid,
     swaths: (&[SwathIndex], &[Displacement]),
     scale: f64,
-) -> Result<(Vec<f64>, Vec<Option<usize>>)> {
+) -> Result<RunGains> {
+    let n_obs = inputs.obs.len();
     let f = ((grid.rows * grid.cols) as f64 / GAIN_PIXELS as f64)
         .sqrt()
         .ceil()
@@ -244,32 +260,68 @@ pub(super) fn run_gains(
     };
     let pr = projector(&coarse.crs)?;
     let geo = coarse.geographic(&pr);
-    let shots = observations_on(o, inputs, swaths, &coarse, &pr, geo.bearing.view())?;
+    let placing = Placing {
+        swaths: swaths.0,
+        shifts: swaths.1,
+        trends: &[],
+    };
+    let with_lines = o.inputs.gain_trend;
+    let mut shots = observations_with_lines(
+        o,
+        inputs,
+        placing,
+        &coarse,
+        (&pr, geo.bearing.view()),
+        with_lines,
+    )?;
     let mut dem = dem_on(o, inputs, &geo);
     fill_holes(&mut dem);
+    let mut gains = vec![1.0; n_obs];
+    let mut trends = vec![None; n_obs];
     if !dem.iter().all(|v| v.is_finite()) {
         // No DEM on the grid at all: the tiles will say so; gains cannot be estimated.
-        return Ok((vec![1.0; inputs.obs.len()], vec![None; inputs.obs.len()]));
+        return Ok(RunGains {
+            gains,
+            reference: vec![None; n_obs],
+            trends,
+        });
     }
-    let problem = Problem {
-        observations: fusion_observations(&shots),
-        dem: dem.view(),
-        spacing: coarse.spacing,
-        dem_psf_sigma: 0.0,
-        model: inputs.model.as_ref(),
-        intensity_scale: Some(scale),
-        gains: None,
-        noise_weights: None,
-        blur: None,
-        selection: o.inputs.selection(),
-    };
-    let mut gains = vec![1.0; inputs.obs.len()];
     // Input indices: `shots` holds the observations that reach the grid, in input order.
-    let mut reference = vec![None; inputs.obs.len()];
-    if let [(k, _)] = shots[..] {
+    let mut reference = vec![None; n_obs];
+    if let [(k, _, _)] = shots[..] {
         reference[k] = Some(k);
     }
-    if problem.observations.len() > 1 {
+    if shots.len() < 2 {
+        return Ok(RunGains {
+            gains,
+            reference,
+            trends,
+        });
+    }
+    // The gains (and, asked for, the trends) on `shots` as they are.
+    let estimate = |shots: &[Shot],
+                    trend: bool|
+     -> (fusion::observations::GainEstimate, Vec<Option<GainTrend>>) {
+        let views: Vec<fusion::Observation> = shots
+            .iter()
+            .map(|(_, img, _)| fusion::Observation {
+                image: img.reflectance.view(),
+                sun: Directions::PerPixel(img.sun.view().into()),
+                view: Directions::PerPixel(img.view.view().into()),
+            })
+            .collect();
+        let problem = Problem {
+            observations: views,
+            dem: dem.view(),
+            spacing: coarse.spacing,
+            dem_psf_sigma: 0.0,
+            model: inputs.model.as_ref(),
+            intensity_scale: Some(scale),
+            gains: None,
+            noise_weights: None,
+            blur: None,
+            selection: o.inputs.selection(),
+        };
         let w = fusion::observations::weights(
             &problem,
             vec![1.0; problem.observations.len()],
@@ -280,12 +332,45 @@ pub(super) fn run_gains(
             1.0,
         );
         let g = fusion::observations::estimate_gains(&problem, &w.usable, dem.view());
-        for (((k, _), g), r) in shots.iter().zip(g.gains).zip(g.relative_to) {
-            gains[*k] = g;
-            reference[*k] = r.map(|r| shots[r].0);
+        let t = if trend {
+            let lines: Vec<ndarray::ArrayView2<f32>> = shots
+                .iter()
+                .map(|(_, _, l)| l.as_ref().expect("ingested with lines").view())
+                .collect();
+            fusion::observations::estimate_gain_trends(
+                &problem,
+                &w.usable,
+                dem.view(),
+                (&g.gains, &g.relative_to),
+                &lines,
+            )
+        } else {
+            vec![None; shots.len()]
+        };
+        (g, t)
+    };
+    let (mut g, t) = estimate(&shots, with_lines);
+    if t.iter().any(Option::is_some) {
+        // The images divided by their trends, and the gains estimated again on them.
+        for ((_, img, lines), t) in shots.iter_mut().zip(&t) {
+            if let (Some(t), Some(lines)) = (t, lines) {
+                Zip::from(&mut img.reflectance)
+                    .and(&*lines)
+                    .for_each(|r, &l| *r /= t.factor(f64::from(l)));
+            }
         }
+        g = estimate(&shots, false).0;
     }
-    Ok((gains, reference))
+    for ((((k, _, _), g), r), t) in shots.iter().zip(g.gains).zip(g.relative_to).zip(t) {
+        gains[*k] = g;
+        reference[*k] = r.map(|r| shots[r].0);
+        trends[*k] = t;
+    }
+    Ok(RunGains {
+        gains,
+        reference,
+        trends,
+    })
 }
 
 /// The grid spacing of an orbital workflow and where it came from.
@@ -541,11 +626,19 @@ pub(super) fn plan(
         intensity_scale,
     )?;
     let shifts = shifts(&registration);
-    let (gains, gain_reference) = if inputs.obs.len() > 1 {
+    let RunGains {
+        gains,
+        reference: gain_reference,
+        trends: gain_trends,
+    } = if inputs.obs.len() > 1 {
         progress.stage("planning: radiometric gains where observations overlap");
         run_gains(o, inputs, &grid, (&swaths, &shifts), intensity_scale)?
     } else {
-        (vec![1.0], vec![Some(0)])
+        RunGains {
+            gains: vec![1.0],
+            reference: vec![Some(0)],
+            trends: vec![None],
+        }
     };
     // ν_k = (Ī/Ī_k)², Ī_k the observation's mean reflectance over its pixels on the grid,
     // corrected by its gain (fusion::observations); 1 for a single observation.
@@ -571,6 +664,7 @@ pub(super) fn plan(
             let run = RunWide {
                 swaths: &swaths,
                 shifts: &shifts,
+                trends: &gain_trends,
                 scale: intensity_scale,
                 gains: &gains,
                 noise_weights: &noise_weights,
@@ -593,6 +687,7 @@ pub(super) fn plan(
         intensity_pixels: count,
         gains,
         gain_reference,
+        gain_trends,
         noise_weights,
         dem_psf_sigma,
         resolution_source,
@@ -662,6 +757,17 @@ pub(super) fn plan(
             p.gains.len(),
             list(&p.gains),
             list(&p.noise_weights)
+        ));
+    }
+    if p.gain_trends.iter().any(Option::is_some) {
+        let list: Vec<String> = p
+            .gain_trends
+            .iter()
+            .map(|t| t.map_or("none".into(), |t| format!("{:+.4}", t.per_1000_lines)))
+            .collect();
+        progress.note(&format!(
+            "plan: gain trends along the track, change of ln g per 1000 lines: {}",
+            list.join(", ")
         ));
     }
     let (reference, ingested) = match built {

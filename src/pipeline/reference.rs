@@ -50,6 +50,8 @@ pub(super) struct RunWide<'a> {
     pub swaths: &'a [SwathIndex],
     /// Each observation's registration shift ([`super::register::shifts`]).
     pub shifts: &'a [crate::registration::Displacement],
+    /// Each observation's gain trend ([`super::Plan::gain_trends`]).
+    pub trends: &'a [Option<GainTrend>],
     pub scale: f64,
     pub gains: &'a [f64],
     pub noise_weights: &'a [f64],
@@ -120,7 +122,12 @@ pub(super) fn build(
         let i1 = (i0 + band).min(cr);
         let (r0, r1) = (i0 * f, (i1 * f).min(grid.rows));
         let win = grid.window(r0 as isize, 0, r1 - r0, grid.cols);
-        let ingested = ingest_window(o, inputs, (run.swaths, run.shifts), &win)?;
+        let placing = Placing {
+            swaths: run.swaths,
+            shifts: run.shifts,
+            trends: run.trends,
+        };
+        let ingested = ingest_window(o, inputs, placing, &win)?;
         // A region the DEM does not cover fails here, before the reference is solved, as
         // every tile over the gap would.
         super::tile::dem_covers(&win, (r0, 0), &ingested.dem).map_err(|e| match e {

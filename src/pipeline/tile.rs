@@ -180,7 +180,11 @@ pub(super) fn run_tile(
         None => ingest_window(
             o,
             inputs,
-            (&plan.swaths, &super::register::shifts(&plan.registration)),
+            Placing {
+                swaths: &plan.swaths,
+                shifts: &super::register::shifts(&plan.registration),
+                trends: &plan.gain_trends,
+            },
             &grid,
         )?,
     };

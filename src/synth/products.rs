@@ -80,24 +80,28 @@ pub fn write_displaced(
     dir: &Path,
     loc_offsets_m: &[[f64; 2]],
 ) -> Result<Products> {
-    let errors: Vec<LocError> = loc_offsets_m
+    let errors: Vec<ProductErrors> = loc_offsets_m
         .iter()
-        .map(|&offset_m| LocError {
+        .map(|&offset_m| ProductErrors {
             offset_m,
-            drift_m: [0.0; 2],
+            ..ProductErrors::default()
         })
         .collect();
     write_observed(scene, grid, dir, &errors, &[])
 }
 
-/// An error of an observation's selenolocation as its LOC backplane carries it: every pixel
-/// of swath line l put `offset_m + drift_m·l/(L − 1)` ([east, north] metres on the
-/// 1737.4 km sphere; L lines) from where it lies — a constant error, and one that drifts along
-/// the strip as an attitude error growing with time would.
+/// How an observation's products depart from the scene along its strip:
+/// - its selenolocation as its LOC backplane carries it: every pixel of swath line l put
+///   `offset_m + drift_m·l/(L − 1)` ([east, north] metres on the 1737.4 km sphere; L lines)
+///   from where it lies — a constant error, and one that drifts along the strip as an
+///   attitude error growing with time would;
+/// - its radiance multiplied by exp(τ·(l − (L − 1)/2)/1000), τ = `gain_trend`: a gain
+///   drifting along the track (`fusion::observations::GainTrend`).
 #[derive(Debug, Clone, Copy, Default, PartialEq)]
-pub struct LocError {
+pub struct ProductErrors {
     pub offset_m: [f64; 2],
     pub drift_m: [f64; 2],
+    pub gain_trend: f64,
 }
 
 /// [`write_displaced`] with observation k's LOC error `loc_errors[k]` (missing entries: none),
@@ -112,7 +116,7 @@ pub fn write_observed(
     scene: &Scene,
     grid: &Grid,
     dir: &Path,
-    loc_errors: &[LocError],
+    loc_errors: &[ProductErrors],
     pixel_factors: &[usize],
 ) -> Result<Products> {
     if let Some(f) = pixel_factors
@@ -127,7 +131,7 @@ pub fn write_observed(
     let factor = |k: usize| pixel_factors.get(k).copied().unwrap_or(1);
     if let Some(o) = loc_errors
         .iter()
-        .flat_map(|e| e.offset_m.iter().chain(&e.drift_m))
+        .flat_map(|e| e.offset_m.iter().chain(&e.drift_m).chain([&e.gain_trend]))
         .find(|v| !v.is_finite())
     {
         return Err(Error::Usage(format!(
@@ -235,7 +239,7 @@ struct Shot<'a> {
     sun: crate::photometry::Vec3,
     columns: Option<[usize; 2]>,
     /// How LOC misplaces the pixels.
-    loc_error: LocError,
+    loc_error: ProductErrors,
     /// F: the detector's pixels are F × F grid pixels ([`write_observed`]).
     factor: usize,
 }
@@ -274,11 +278,16 @@ fn write_m3(
     // RDN: LINE_INTERLEAVED = for each line, every band's samples in turn.
     write_atomic_with(&dir.join(name("RDN", "IMG")), |w| {
         let mut line = Vec::with_capacity(cols * wl.len() * 4);
+        let tau = shot.loc_error.gain_trend;
         for i in 0..rows {
             line.clear();
-            let values: Vec<f64> = (0..cols)
+            let mut values: Vec<f64> = (0..cols)
                 .map(|s| mean(i, s, &|i, j| shot.image[(i, j)]))
                 .collect();
+            if tau != 0.0 {
+                let g = (tau * (i as f64 - 0.5 * (rows - 1) as f64) / 1000.0).exp();
+                values.iter_mut().for_each(|v| *v *= g);
+            }
             for (b, &wv) in wl.iter().enumerate() {
                 // A smooth, red-sloped lunar spectrum normalised at 1209.57 nm.
                 let shape = (wv / wl[band_1209]).powf(0.6);

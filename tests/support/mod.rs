@@ -92,7 +92,7 @@ fn products_of(
 fn products_in(
     spec: &SceneSpec,
     dir: &Path,
-    loc_errors: &[products::LocError],
+    loc_errors: &[products::ProductErrors],
     pixel_factors: &[usize],
 ) -> (PathBuf, products::Products) {
     let scene = generate(spec);
@@ -115,7 +115,7 @@ pub fn observation_products_moved(
     size: usize,
     seed: u64,
     suns: &[(f64, f64)],
-    loc_errors: &[products::LocError],
+    loc_errors: &[products::ProductErrors],
     name: &str,
 ) -> (PathBuf, products::Products, products::Products) {
     let spec = spec_of(size, seed).with_observations(suns, &[], false);
