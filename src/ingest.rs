@@ -437,30 +437,16 @@ pub fn m3_on_grid(
     index: Option<&SwathIndex>,
     shift: &Displacement,
 ) -> Result<ImageOnGrid> {
-    resample(obs, solar, nm, grid, pr, bearing, index, shift, false).map(|(img, _)| img)
+    m3_on_grid_with_lines(obs, solar, nm, grid, pr, bearing, index, shift, false)
+        .map(|(img, _)| img)
 }
 
-/// [`m3_on_grid`], with the swath line (fractional, counted from the product's first) each
-/// grid pixel is resampled at, NaN outside the swath: registration places its estimates along
-/// the track by it. (A tile's ingest leaves it out: 4 bytes a pixel more.)
+/// [`m3_on_grid`], and where `with_lines` the swath line (fractional, counted from the
+/// product's first) each grid pixel is resampled at, NaN outside the swath: registration
+/// places its estimates along the track by it, and a gain trend is a function of it. (4 bytes
+/// a pixel more while they are kept.)
 #[allow(clippy::too_many_arguments)]
 pub fn m3_on_grid_with_lines(
-    obs: &Observation,
-    solar: &SolarSpectrum,
-    nm: f64,
-    grid: &Grid,
-    pr: &Projector,
-    bearing: ArrayView2<f64>,
-    index: Option<&SwathIndex>,
-    shift: &Displacement,
-) -> Result<(ImageOnGrid, Array2<f32>)> {
-    resample(obs, solar, nm, grid, pr, bearing, index, shift, true)
-        .map(|(img, lines)| (img, lines.expect("asked for")))
-}
-
-/// [`m3_on_grid`], with [`m3_on_grid_with_lines`]'s lines where `with_lines`.
-#[allow(clippy::too_many_arguments)]
-fn resample(
     obs: &Observation,
     solar: &SolarSpectrum,
     nm: f64,

@@ -1605,6 +1605,29 @@ fn a_full_disk_is_reported_by_file_and_a_rerun_completes() {
     let _ = std::fs::remove_dir_all(&dir);
 }
 
+/// Fuse `products` through `run` into `dir/name` with `input` (a line of `[inputs]`) added:
+/// the DEM's RMSE against `truth` and run.json.
+fn run_with(
+    dir: &Path,
+    name: &str,
+    products: &sfsfuse::synth::products::Products,
+    input: &str,
+    truth: &ndarray::Array2<f64>,
+) -> (f64, serde_json::Value) {
+    let out = dir.join(name);
+    let text = workflow(products, &out, 512, "").replace(
+        "dem_psf_sigma_px = 3.0",
+        &format!("dem_psf_sigma_px = 3.0\n{input}"),
+    );
+    let wf = dir.join(format!("{name}.toml"));
+    std::fs::write(&wf, text).unwrap();
+    run_ok(&["run", "--progress", "quiet"], &wf);
+    let rec: serde_json::Value =
+        serde_json::from_slice(&std::fs::read(out.join("run.json")).unwrap()).unwrap();
+    let e = rmse(&read_tiff(&out.join("dem.tif")).unwrap().data, truth);
+    (e, rec)
+}
+
 /// Fuse `products` through `run` into `dir/name` with `[inputs] register` set: the DEM's RMSE
 /// against `truth` and run.json's registration records, one per observation.
 fn registered_run(
@@ -1614,17 +1637,13 @@ fn registered_run(
     register: bool,
     truth: &ndarray::Array2<f64>,
 ) -> (f64, Vec<serde_json::Value>) {
-    let out = dir.join(name);
-    let text = workflow(products, &out, 512, "").replace(
-        "dem_psf_sigma_px = 3.0",
-        &format!("dem_psf_sigma_px = 3.0\nregister = {register}"),
+    let (e, rec) = run_with(
+        dir,
+        name,
+        products,
+        &format!("register = {register}"),
+        truth,
     );
-    let wf = dir.join(format!("{name}.toml"));
-    std::fs::write(&wf, text).unwrap();
-    run_ok(&["run", "--progress", "quiet"], &wf);
-    let rec: serde_json::Value =
-        serde_json::from_slice(&std::fs::read(out.join("run.json")).unwrap()).unwrap();
-    let e = rmse(&read_tiff(&out.join("dem.tif")).unwrap().data, truth);
     let regs = rec["observations"]
         .as_array()
         .unwrap()
@@ -1708,18 +1727,7 @@ fn gains_drifting_along_the_track_are_followed() {
     );
     let truth = read_tiff(&p.truth_dem).unwrap().data;
     let run = |name: &str, products: &sfsfuse::synth::products::Products, on: bool| {
-        let out = dir.join(name);
-        let text = workflow(products, &out, 512, "").replace(
-            "dem_psf_sigma_px = 3.0",
-            &format!("dem_psf_sigma_px = 3.0\ngain_trend = {on}"),
-        );
-        let wf = dir.join(format!("{name}.toml"));
-        std::fs::write(&wf, text).unwrap();
-        run_ok(&["run", "--progress", "quiet"], &wf);
-        let rec: serde_json::Value =
-            serde_json::from_slice(&std::fs::read(out.join("run.json")).unwrap()).unwrap();
-        let e = rmse(&read_tiff(&out.join("dem.tif")).unwrap().data, &truth);
-        (e, rec)
+        run_with(&dir, name, products, &format!("gain_trend = {on}"), &truth)
     };
     let (e_plain, _) = run("plain", &p, true);
     let (e_followed, rec) = run("followed", &q, true);

@@ -278,31 +278,17 @@ pub(super) fn observations_with_lines(
             continue;
         }
         let trend = placing.trends.get(k).copied().flatten();
-        let (mut img, lines) = if with_lines || trend.is_some() {
-            let (img, lines) = ingest::m3_on_grid_with_lines(
-                obs,
-                &inputs.solar,
-                o.inputs.wavelength_nm,
-                grid,
-                pr,
-                bearing,
-                Some(index),
-                shift,
-            )?;
-            (img, Some(lines))
-        } else {
-            let img = ingest::m3_on_grid(
-                obs,
-                &inputs.solar,
-                o.inputs.wavelength_nm,
-                grid,
-                pr,
-                bearing,
-                Some(index),
-                shift,
-            )?;
-            (img, None)
-        };
+        let (mut img, lines) = ingest::m3_on_grid_with_lines(
+            obs,
+            &inputs.solar,
+            o.inputs.wavelength_nm,
+            grid,
+            pr,
+            bearing,
+            Some(index),
+            shift,
+            with_lines || trend.is_some(),
+        )?;
         if let (Some(t), Some(lines)) = (trend, &lines) {
             Zip::from(&mut img.reflectance)
                 .and(lines)

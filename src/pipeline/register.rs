@@ -274,7 +274,9 @@ impl Context<'_> {
                 geo.bearing.view(),
                 Some(&self.swaths[k]),
                 shift,
+                true,
             )
+            .map(|(img, lines)| (img, lines.expect("asked for")))
         };
         let (img, lines) = ingest(k, prior)?;
         let (sun, view) = (
