@@ -192,9 +192,9 @@ enum Command {
         loc_drifts: Vec<[f64; 2]>,
         /// A gain drifting along each observation's strip (in `--sun` order; missing ones
         /// are 0): its radiance multiplied by exp(T·(l − l_mid)/1000) at swath line l, T the
-        /// change of ln g per 1000 lines, e.g. `--gain-trend 0 --gain-trend 0.2`. `run` with
-        /// `[inputs] gain_trend = true` estimates it where observations overlap
-        /// (docs/science.md, "Several observations").
+        /// change of ln g per 1000 lines, e.g. `--gain-trend 0 --gain-trend 0.2`. `run`
+        /// estimates it where observations overlap (`[inputs] gain_trend`, on by default;
+        /// docs/science.md, "Several observations").
         #[arg(long = "gain-trend", allow_hyphen_values = true)]
         gain_trends: Vec<f64>,
         /// Each observation's detector pixel as F grid pixels (in `--sun` order; missing ones
