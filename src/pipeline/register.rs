@@ -61,7 +61,8 @@ pub struct Registration {
 pub struct Segment {
     /// The swath line its estimate stands for: the mean line of the pixels on its window,
     /// weighted by their share of the correlation at the peak
-    /// ([`crate::registration::where_estimated`]; the window's mean line without an estimate).
+    /// ([`crate::registration::where_estimated`]; the middle of the window's lines without an
+    /// estimate).
     pub line: f64,
     /// Its window on the grid: first row, rows, first column, columns.
     pub window: [usize; 4],
@@ -453,7 +454,11 @@ fn along_track(
         .into_iter()
         .map(|f| {
             let (window, relative) = (f.window, f.relative);
-            let line = f.line.unwrap_or_else(|| mean_line(cx.grid, index, window));
+            // Without an estimate (display only): the middle of the window's lines.
+            let line = f
+                .line
+                .or(f.extent.map(|(a, b)| 0.5 * (a + b)))
+                .unwrap_or(0.5 * index.lines as f64);
             let [x, y] = prior.at(line).map(|m| m / cx.grid.spacing);
             let shift = f.shift.map(|s| Shift {
                 rows: s.rows - y,
@@ -638,30 +643,6 @@ fn segments(b: [f64; 4], rows: bool) -> Vec<[f64; 4]> {
             }
         })
         .collect()
-}
-
-/// The mean swath line of the pixels on window `win` (first row, rows, first column, columns
-/// of `grid`): each block of the swath index that reaches it, at its middle line, weighted by
-/// the area of its box (pixel centres, grown by half a pixel) on the window.
-fn mean_line(grid: &Grid, index: &SwathIndex, win: [usize; 4]) -> f64 {
-    let (r0, c0) = (win[0] as f64 - 0.5, win[2] as f64 - 0.5);
-    let (r1, c1) = (r0 + win[1] as f64, c0 + win[3] as f64);
-    let (mut sum, mut weight) = (0.0, 0.0);
-    for (k, b) in index.boxes.iter().enumerate() {
-        let Some(b) = b else { continue };
-        let (ra, ca) = grid.pixel(b[0], b[3]);
-        let (rb, cb) = grid.pixel(b[1], b[2]);
-        let (ra, ca, rb, cb) = (ra - 0.5, ca - 0.5, rb + 0.5, cb + 0.5);
-        let w = (rb.min(r1) - ra.max(r0)).max(0.0) * (cb.min(c1) - ca.max(c0)).max(0.0);
-        let mid = ((k * INDEX_BLOCK) as f64 + 0.5 * INDEX_BLOCK as f64).min(index.lines as f64);
-        sum += w * mid;
-        weight += w;
-    }
-    if weight > 0.0 {
-        sum / weight
-    } else {
-        0.5 * index.lines as f64
-    }
 }
 
 /// The bounding box [row₀, row₁, col₀, col₁] (grid pixels, inclusive, clipped to the grid) of

@@ -66,28 +66,7 @@ fn f32_bytes(out: &mut Vec<u8>, v: f64) {
 
 /// Write the scene's products into `dir`.
 pub fn write(scene: &Scene, grid: &Grid, dir: &Path) -> Result<Products> {
-    write_displaced(scene, grid, dir, &[])
-}
-
-/// [`write()`], with observation k's LOC backplane putting every pixel `loc_offsets_m[k]` =
-/// [east, north] metres (on the 1737.4 km sphere) from where it lies, as an error of its
-/// selenolocation would (missing entries: none). The images, OBS and the truth are those of
-/// [`write()`]; `sfsfuse run`'s registration should find and undo the offsets
-/// (docs/science.md, "Registration").
-pub fn write_displaced(
-    scene: &Scene,
-    grid: &Grid,
-    dir: &Path,
-    loc_offsets_m: &[[f64; 2]],
-) -> Result<Products> {
-    let errors: Vec<ProductErrors> = loc_offsets_m
-        .iter()
-        .map(|&offset_m| ProductErrors {
-            offset_m,
-            ..ProductErrors::default()
-        })
-        .collect();
-    write_observed(scene, grid, dir, &errors, &[])
+    write_observed(scene, grid, dir, &[], &[])
 }
 
 /// How an observation's products depart from the scene along its strip:
@@ -104,9 +83,9 @@ pub struct ProductErrors {
     pub gain_trend: f64,
 }
 
-/// [`write_displaced`] with observation k's LOC error `loc_errors[k]` (missing entries: none),
-/// and its detector pixels `pixel_factors[k]` grid pixels
-/// wide (missing entries: 1): its swath holds ⌊rows/F⌋ lines of ⌊columns/F⌋ samples, each the
+/// [`write()`] with observation k's LOC and gain errors `loc_errors[k]` (missing entries:
+/// none; `sfsfuse run`'s registration and gain trends should find and undo them), and its
+/// detector pixels `pixel_factors[k]` grid pixels wide (missing entries: 1): its swath holds ⌊rows/F⌋ lines of ⌊columns/F⌋ samples, each the
 /// mean of the scene's image over its F × F grid pixels (the scene's pixels are themselves the
 /// mean over their footprint, so the swath is what a detector F times coarser sees), LOC at
 /// the block's centre (the mean of its pixels' positions and radii) and OBS the block's central
