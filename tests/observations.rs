@@ -206,6 +206,43 @@ fn overlapping_strips_are_better_in_the_overlap_and_show_no_edge() {
     }
 }
 
+/// A low Sun added to a good observation: its image is dim, and its photometric model error
+/// (cast and partial shadows, grazing incidence) grows faster than its brightness falls. With
+/// the noise weight ν_k = (Ī/Ī_k)² of before (a fixed relative error) the 10°-high image
+/// weighed several times the 30° one and the pair came out worse than the 30° image alone
+/// (1.03×); with ν_k = Ī/Ī_k (shot noise, `observations::noise_weight`) it is 0.94× (this
+/// scene, docs/science.md "Several observations"). The test asks for at most 0.97×, and for
+/// the weights of the record: the dim image's ν above the bright one's, by less than the
+/// square of their brightness ratio.
+#[test]
+fn a_low_sun_added_to_a_good_observation_does_not_make_it_worse() {
+    let spec = base();
+    let suns = [(105.0, 30.0), (100.0, 10.0)];
+    let (scene, f) = fused(&spec.clone().with_observations(&suns[..1], &[], false));
+    let alone = score(&scene, &f).0;
+    let (scene, f) = fused(&spec.clone().with_observations(&suns, &[], false));
+    let both = score(&scene, &f).0;
+    let nu = &f.noise_weights;
+    eprintln!(
+        "105/30 alone {alone:.2} m, with 100/10 {both:.2} m ({:.3}×), noise weights {nu:?}",
+        both / alone
+    );
+    assert!(
+        both <= 0.97 * alone,
+        "adding a 10° Sun: {both:.2} m against {alone:.2} m alone"
+    );
+    // ν_k = Ī/Ī_k: the dim image weighs more, and ν_0·Ī_0 = ν_1·Ī_1 = Ī.
+    let mean = |k: usize| {
+        let (s, n) = scene.problem().observations[k].valid_sum(f.gains[k]);
+        s / n as f64
+    };
+    assert!(nu[1] > nu[0], "{nu:?}");
+    assert!(
+        (nu[0] * mean(0) / (nu[1] * mean(1)) - 1.0).abs() < 1e-9,
+        "ν·Ī_k differs between the observations: {nu:?}"
+    );
+}
+
 /// Selection: at most one observation per pixel, or an incidence window that leaves one out.
 #[test]
 fn selection_limits_the_observations_per_pixel() {

@@ -82,7 +82,7 @@ pub struct Problem<'a> {
     /// overlap on the input DEM ([`observations::estimate_gains`]); a tiled run passes the
     /// run-wide values.
     pub gains: Option<Vec<f64>>,
-    /// Noise weights ν_k. `None`: (Ī/Ī_k)² from the images ([`observations`]).
+    /// Noise weights ν_k. `None`: Ī/Ī_k from the images ([`observations::noise_weight`]).
     pub noise_weights: Option<Vec<f64>>,
     /// σ_k, grid pixels, of each observation's blur relative to the grid: its detector
     /// averages the reflectance over more than one grid pixel (an image coarser than the grid;

@@ -13,7 +13,7 @@ pub struct Plan {
     /// Blend half-width, pixels ([`tiling::weight`]).
     pub blend: usize,
     pub tiles: Vec<Tile>,
-    /// Ī: mean valid reflectance on the grid, sr⁻¹.
+    /// Ī: mean valid reflectance on the grid (each observation's divided by its gain), sr⁻¹.
     pub intensity_scale: f64,
     /// Swath pixels behind Ī.
     pub intensity_pixels: usize,
@@ -532,12 +532,14 @@ pub(super) fn plan(
     let mut swaths = Vec::new();
     let (mut sum, mut count) = (0.0, 0usize);
     let mut means = Vec::new();
+    let mut sums = Vec::new();
     let mut why = Vec::new();
     for obs in &inputs.obs {
         let s = ingest::survey(obs, &inputs.solar, o.inputs.wavelength_nm, &grid, &pr)?;
         sum += s.sum;
         count += s.count;
         means.push((s.count > 0).then(|| s.sum / s.count as f64));
+        sums.push(s.sum);
         why.push(if s.on_grid == 0 {
             format!(
                 "{}: no pixel of its swath falls on the grid (region)",
@@ -640,13 +642,24 @@ pub(super) fn plan(
             trends: vec![None],
         }
     };
-    // ν_k = (Ī/Ī_k)², Ī_k the observation's mean reflectance over its pixels on the grid,
-    // corrected by its gain (fusion::observations); 1 for a single observation.
+    // Ī of the tiles' E_I: the mean of I_k/g_k over every observation's pixels on the grid, as
+    // `fuse` computes it for itself (the raw mean served the registration and the gains).
+    let intensity_scale = if inputs.obs.len() > 1 {
+        sums.iter().zip(&gains).map(|(s, g)| s / g).sum::<f64>() / count as f64
+    } else {
+        intensity_scale
+    };
+    // ν_k = Ī/Ī_k, Ī_k the observation's mean reflectance over its pixels on the grid,
+    // corrected by its gain (fusion::observations::noise_weight); 1 for a single observation.
     let noise_weights = if inputs.obs.len() > 1 {
         means
             .iter()
             .zip(&gains)
-            .map(|(m, g)| m.map_or(1.0, |m| (intensity_scale * g / m).powi(2)))
+            .map(|(m, g)| {
+                m.map_or(1.0, |m| {
+                    fusion::observations::noise_weight(intensity_scale, m / g)
+                })
+            })
             .collect()
     } else {
         vec![1.0]
