@@ -210,7 +210,7 @@ pub fn run(
     if let Some(dir) = out {
         let grid = demo_grid(spec)?;
         let meta = [
-            ("SFSFUSE_VERSION", env!("CARGO_PKG_VERSION").to_string()),
+            ("SFSFUSE_VERSION", crate::BUILD.to_string()),
             ("SFSFUSE_SCENE", format!("synthetic, seed {}", spec.seed)),
         ];
         let layers: [(&str, &Array2<f64>, &str, &str); 6] = [

@@ -10,7 +10,7 @@ use std::process::ExitCode;
 #[derive(Parser)]
 #[command(
     name = "sfsfuse",
-    version,
+    version = sfsfuse::BUILD,
     about = "Shape-from-shading fusion of lunar imagery (M3) with laser altimetry (LOLA)"
 )]
 struct Cli {

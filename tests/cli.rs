@@ -674,3 +674,23 @@ fn synth_two_suns(out: &std::path::Path, extra: &[&str]) -> std::path::PathBuf {
     assert!(o.status.success(), "{}", String::from_utf8_lossy(&o.stderr));
     out.to_path_buf()
 }
+
+/// `--version` names the build: the crate version and the hash of the sources it was built
+/// from (build.rs), the identity the plan, tile and run keys carry (`sfsfuse::BUILD`).
+#[test]
+fn version_names_the_build() {
+    let o = sfsfuse().arg("--version").output().unwrap();
+    assert!(o.status.success());
+    let s = String::from_utf8(o.stdout).unwrap();
+    let v = s
+        .trim()
+        .strip_prefix("sfsfuse ")
+        .expect("starts with the name");
+    assert_eq!(v, sfsfuse::BUILD);
+    let (version, hash) = v.split_once("+src.").expect("version+src.hash");
+    assert_eq!(version, env!("CARGO_PKG_VERSION"));
+    assert!(
+        hash.len() == 16 && hash.chars().all(|c| c.is_ascii_hexdigit()),
+        "source hash {hash:?}"
+    );
+}

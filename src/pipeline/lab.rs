@@ -123,7 +123,7 @@ pub(super) fn run_lab(l: &Lab, wf: &Workflow, progress: &Progress) -> Result<Run
     let files = checksums(&[l.inputs.image.clone(), l.inputs.depth.clone()], progress)?;
     let key = run_key(wf, &files);
     let meta = [
-        ("SFSFUSE_VERSION", env!("CARGO_PKG_VERSION").to_string()),
+        ("SFSFUSE_VERSION", crate::BUILD.to_string()),
         ("RUN_KEY", key.clone()),
     ];
     let mut outputs = Vec::new();
@@ -151,7 +151,7 @@ pub(super) fn run_lab(l: &Lab, wf: &Workflow, progress: &Progress) -> Result<Run
     let (rows, cols) = image.dim();
     let record = RunRecord {
         tool: "sfsfuse",
-        version: env!("CARGO_PKG_VERSION"),
+        version: crate::BUILD,
         workflow: wf,
         run_key: key,
         inputs: files,

@@ -136,10 +136,12 @@ pub fn file_sha256(path: &Path) -> Result<String> {
     crate::raster::file_digest::<Sha256>(path)
 }
 
-/// What both keys hash first: the tool version and the resolved workflow (with whether
+/// What both keys hash first: the build ([`crate::BUILD`]: the version and a hash of the
+/// sources it was built from, so that another build's plan and tiles are not reused) and the
+/// resolved workflow (with whether
 /// `[solver] sigma_dem` and `dem_track_weight` were given, which serialisation does not show).
 fn key_text(wf: &Workflow) -> String {
-    let mut text = format!("sfsfuse {}\n", env!("CARGO_PKG_VERSION"));
+    let mut text = format!("sfsfuse {}\n", crate::BUILD);
     text.push_str(&serde_json::to_string(wf).expect("workflows serialise"));
     if let Workflow::Orbital(o) = wf {
         text.push_str(&format!("\nsigma_dem_given={}", o.sigma_dem_given));
@@ -169,7 +171,7 @@ fn plan_key(wf: &Workflow, files: &[PathBuf]) -> Result<String> {
 }
 
 /// The run key written into every product (`RUN_KEY`) and into run.json: the hex SHA-256 of
-/// the tool version, the workflow with every default filled in and every path reduced to its
+/// the build ([`crate::BUILD`]), the workflow with every default filled in and every path reduced to its
 /// file name, and each input file's name and SHA-256 in order. It names what the products
 /// were made from, not where: the same input files and parameters give the same key (and the
 /// same bytes) wherever they lie and wherever the run writes, and any change of an input's

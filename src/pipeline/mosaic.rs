@@ -110,7 +110,7 @@ pub(super) fn product_metadata(
             .join(",")
     };
     vec![
-        ("SFSFUSE_VERSION", env!("CARGO_PKG_VERSION").to_string()),
+        ("SFSFUSE_VERSION", crate::BUILD.to_string()),
         ("RUN_KEY", key.to_string()),
         ("M3_PRODUCT_IDS", m3.join(",")),
         ("DEM_PRODUCT_IDS", dems.join(",")),
@@ -619,7 +619,7 @@ pub(super) fn mosaic(
     let blur = plan.blur_px();
     let record = RunRecord {
         tool: "sfsfuse",
-        version: env!("CARGO_PKG_VERSION"),
+        version: crate::BUILD,
         workflow: wf,
         run_key: key,
         inputs: files,

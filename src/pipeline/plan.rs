@@ -690,7 +690,7 @@ pub(super) fn plan(
         None => None,
     };
     let p = Plan {
-        version: env!("CARGO_PKG_VERSION").into(),
+        version: crate::BUILD.into(),
         key,
         grid,
         halo,
