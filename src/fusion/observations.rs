@@ -401,8 +401,8 @@ pub fn noise_weight(scale: f64, mean: f64) -> f64 {
 }
 
 /// The usable pixels and weights of every observation, with the given gains g_k, scale Ī,
-/// noise weights ν_k (`None`: [`noise_weight`] of each observation's mean) and shadow-edge factor β ([`shadow_edge_factors`];
-/// 1: none).
+/// noise weights ν_k (`None`: [`noise_weight`] of each observation's mean) and shadow-edge
+/// factor β ([`shadow_edge_factors`]; 1: none).
 pub fn weights(
     pr: &Problem,
     gains: Vec<f64>,
