@@ -141,6 +141,23 @@ pub struct Survey {
     pub on_grid: usize,
     /// Of those, how many [`check_pixel`] refused, by cause.
     pub refused: Refusals,
+    /// Over the `count` usable pixels: Σ of the OBS to-Sun zenith (degrees) and of the sine
+    /// and cosine of the to-Sun azimuth (clockwise from north) — the observation's mean
+    /// illumination over the region ([`Survey::mean_sun`]).
+    pub sun_sums: [f64; 3],
+}
+
+impl Survey {
+    /// The observation's mean Sun over its usable pixels on the grid, as (azimuth clockwise
+    /// from north, elevation above the local horizontal of the reference sphere), degrees; the
+    /// azimuth is the circular mean. `None` without a usable pixel.
+    pub fn mean_sun(&self) -> Option<(f64, f64)> {
+        (self.count > 0).then(|| {
+            let [zen, sin, cos] = self.sun_sums;
+            let az = sin.atan2(cos).to_degrees().rem_euclid(360.0);
+            (az, 90.0 - zen / self.count as f64)
+        })
+    }
 }
 
 /// Why swath pixels were refused as photometric ([`check_pixel`]).
@@ -362,19 +379,28 @@ pub fn survey(
     let mut boxes = Vec::with_capacity(loc.lines.div_ceil(INDEX_BLOCK));
     let (mut sum, mut count) = (0.0, 0usize);
     let (mut on_grid_count, mut refused) = (0usize, Refusals::default());
+    let mut sun_sums = [0.0; 3];
     for start in (0..loc.lines).step_by(INDEX_BLOCK) {
         let n = INDEX_BLOCK.min(loc.lines - start);
         let lon = loc.read_band(0, start, n)?;
         let lat = loc.read_band(1, start, n)?;
         let (refl, _, _, cause) =
             reflectance_lines(obs, &obsr, solar, nm, (start, n), 0..loc.samples)?;
+        // OBS bands 1 and 2: to-Sun azimuth and zenith, degrees.
+        let (sun_az, sun_zen) = (read2(&obsr, 0, start, n)?, read2(&obsr, 1, start, n)?);
         let mut b = [f64::MAX, f64::MIN, f64::MAX, f64::MIN];
         let mut any = false;
         // The projections in parallel; the sums below in the samples' order, as before.
         let xy = Zip::from(&lon)
             .and(&lat)
             .par_map_collect(|&lo, &la| pr.forward(lo, la));
-        for ((xy, &r), &c) in xy.iter().zip(refl.iter()).zip(cause.iter()) {
+        for ((((xy, &r), &c), &az), &zen) in xy
+            .iter()
+            .zip(refl.iter())
+            .zip(cause.iter())
+            .zip(sun_az.iter())
+            .zip(sun_zen.iter())
+        {
             let Some((x, y)) = *xy else {
                 continue;
             };
@@ -391,6 +417,10 @@ pub fn survey(
                 if c == Cause::Ok {
                     sum += r;
                     count += 1;
+                    let a = az.to_radians();
+                    sun_sums[0] += zen;
+                    sun_sums[1] += a.sin();
+                    sun_sums[2] += a.cos();
                 }
             }
         }
@@ -405,6 +435,7 @@ pub fn survey(
         count,
         on_grid: on_grid_count,
         refused,
+        sun_sums,
     })
 }
 
@@ -919,6 +950,30 @@ pub fn geotiff_on_grid(
 #[cfg(test)]
 mod tests {
     use super::*;
+
+    /// The mean Sun: the azimuth's circular mean (350° and 20° average to 5°, not 185°), the
+    /// elevation 90° − the mean zenith; none without a usable pixel.
+    #[test]
+    fn the_mean_sun_averages_azimuths_on_the_circle() {
+        let survey = |pixels: &[(f64, f64)]| Survey {
+            index: SwathIndex {
+                lines: 0,
+                boxes: Vec::new(),
+            },
+            sum: 0.0,
+            count: pixels.len(),
+            on_grid: pixels.len(),
+            refused: Refusals::default(),
+            sun_sums: pixels.iter().fold([0.0; 3], |[z, s, c], &(az, zen)| {
+                let a = f64::to_radians(az);
+                [z + zen, s + a.sin(), c + a.cos()]
+            }),
+        };
+        let (az, el) = survey(&[(350.0, 60.0), (20.0, 70.0)]).mean_sun().unwrap();
+        assert!((az - 5.0).abs() < 1e-9, "{az}");
+        assert!((el - 25.0).abs() < 1e-9, "{el}");
+        assert_eq!(survey(&[]).mean_sun(), None);
+    }
 
     /// The box's weights by hand: width 1 is the identity; width 2 weighs the neighbours ½
     /// (a unit spike spreads as ¼, ½, ¼); width 3 weighs three pixels alike; a constant stays

@@ -1294,6 +1294,48 @@ fn suns_mirrored_about_the_east_west_line_or_alike_are_named_in_a_warning() {
     }
 }
 
+/// Each observation's mean Sun over the region is recorded (run.json `sun`, from the OBS
+/// backplane: the synthetic products give every pixel the Sun they were rendered under), and an
+/// observation used alongside another under a Sun less than 10° high is named in a warning: its
+/// image is mostly cast shadow and grazing light (docs/science.md, "Several observations").
+#[test]
+fn a_low_sun_is_recorded_and_named_in_a_warning() {
+    let suns = [(105.0, 30.0), (100.0, 5.0)];
+    let (dir, p) = observation_products(128, 10, (&suns, &[], false), "lowsun");
+    let out = dir.join("out");
+    let wf = write_workflow(&dir, &workflow(&p, &out, 512, ""));
+    run_ok(&["run", "--progress", "quiet"], &wf);
+    let rec: serde_json::Value =
+        serde_json::from_slice(&std::fs::read(out.join("run.json")).unwrap()).unwrap();
+    let obs = rec["observations"].as_array().unwrap();
+    for (o, (az, el)) in obs.iter().zip(suns) {
+        let sun = &o["sun"];
+        let (a, e) = (
+            sun["azimuth_deg"].as_f64().unwrap(),
+            sun["elevation_deg"].as_f64().unwrap(),
+        );
+        assert!(
+            (a - az).abs() < 0.05 && (e - el).abs() < 0.05,
+            "recorded Sun {a:.3}/{e:.3} for {az}/{el}"
+        );
+    }
+    let warnings = rec["sanity"]["warnings"].as_array().unwrap();
+    let low: Vec<&str> = warnings
+        .iter()
+        .filter_map(|w| w.as_str())
+        .filter(|w| w.starts_with("Sun less than 10°"))
+        .collect();
+    assert_eq!(low.len(), 1, "{warnings:?}");
+    let second = obs[1]["label"].as_str().unwrap();
+    let first = obs[0]["label"].as_str().unwrap();
+    assert!(
+        low[0].contains(&format!("{second} (5.0°)")) && !low[0].contains(first),
+        "{}",
+        low[0]
+    );
+    std::fs::remove_dir_all(&dir).unwrap();
+}
+
 /// The record says how each gain was fixed, and the run warns where it could not be. Five
 /// strips of the 256² scene (columns [0, 85), [43, 128), [85, 171), [128, 213), [171, 256))
 /// listed without the middle one form two groups that touch but do not overlap: the fourth

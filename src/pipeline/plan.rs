@@ -66,6 +66,11 @@ pub struct Plan {
     /// LOC gives none), in input order.
     #[serde(default)]
     pub pixel_size_m: Vec<Option<f64>>,
+    /// Each observation's mean Sun over its usable pixels on the grid, [azimuth clockwise from
+    /// north, elevation], degrees ([`ingest::Survey::mean_sun`]; `None` without any), in
+    /// input order.
+    #[serde(default)]
+    pub sun_deg: Vec<Option<[f64; 2]>>,
 }
 
 /// σ_k, grid pixels, of each observation's blur on a grid of `spacing` metres, from its pixel
@@ -533,6 +538,7 @@ pub(super) fn plan(
     let (mut sum, mut count) = (0.0, 0usize);
     let mut means = Vec::new();
     let mut sums = Vec::new();
+    let mut sun_deg = Vec::new();
     let mut why = Vec::new();
     for obs in &inputs.obs {
         let s = ingest::survey(obs, &inputs.solar, o.inputs.wavelength_nm, &grid, &pr)?;
@@ -540,6 +546,7 @@ pub(super) fn plan(
         count += s.count;
         means.push((s.count > 0).then(|| s.sum / s.count as f64));
         sums.push(s.sum);
+        sun_deg.push(s.mean_sun().map(|(az, el)| [az, el]));
         why.push(if s.on_grid == 0 {
             format!(
                 "{}: no pixel of its swath falls on the grid (region)",
@@ -714,6 +721,7 @@ pub(super) fn plan(
         reference: built.as_ref().map(|b| b.info.clone()),
         registration,
         pixel_size_m,
+        sun_deg,
     };
     write_atomic(
         &path,
@@ -745,6 +753,14 @@ pub(super) fn plan(
         p.dem_track_weight, p.dem_track_source
     ));
     progress.note(&format!("plan: membrane {}", p.membrane));
+    for (obs, sun) in inputs.obs.iter().zip(&p.sun_deg) {
+        if let Some([az, el]) = sun {
+            progress.note(&format!(
+                "plan: {}: mean Sun over its pixels on the grid at azimuth {az:.1}°, elevation {el:.1}°",
+                obs.label_path.display()
+            ));
+        }
+    }
     for (obs, r) in inputs.obs.iter().zip(&p.registration) {
         progress.note(&format!(
             "plan: registration of {}: {}",
