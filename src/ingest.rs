@@ -287,8 +287,15 @@ pub fn check_pixel(
 }
 
 /// What [`reflectance_lines`] returns: reflectance, the two bands blended, the irradiance
-/// used and each pixel's [`Cause`].
-type Lines = (Array2<f64>, (usize, usize), f64, Array2<Cause>);
+/// used, each pixel's [`Cause`], and the OBS to-Sun azimuth and zenith it checked them with
+/// (degrees; [`survey`] averages them, so the bands are read once).
+type Lines = (
+    Array2<f64>,
+    (usize, usize),
+    f64,
+    Array2<Cause>,
+    [Array2<f64>; 2],
+);
 
 /// Reflectance at `nm` of lines `first..first + n`, samples `samples` (the arrays' column 0 is
 /// sample `samples.start`): r = L·d²/E, L blended linearly between the two bands around `nm`,
@@ -349,7 +356,11 @@ fn reflectance_lines(
                 _ => {}
             }
         });
-    Ok((refl, (lo, up), e, cause))
+    // OBS bands 1 and 2: to-Sun azimuth and zenith.
+    let mut geo = geo.into_iter();
+    let (az, zen) = (geo.next(), geo.next());
+    let sun = [az, zen].map(|b| b.expect("five OBS bands read"));
+    Ok((refl, (lo, up), e, cause, sun))
 }
 
 /// The parts of an observation, checked to match the radiance cube.
@@ -384,10 +395,8 @@ pub fn survey(
         let n = INDEX_BLOCK.min(loc.lines - start);
         let lon = loc.read_band(0, start, n)?;
         let lat = loc.read_band(1, start, n)?;
-        let (refl, _, _, cause) =
+        let (refl, _, _, cause, [sun_az, sun_zen]) =
             reflectance_lines(obs, &obsr, solar, nm, (start, n), 0..loc.samples)?;
-        // OBS bands 1 and 2: to-Sun azimuth and zenith, degrees.
-        let (sun_az, sun_zen) = (read2(&obsr, 0, start, n)?, read2(&obsr, 1, start, n)?);
         let mut b = [f64::MAX, f64::MIN, f64::MAX, f64::MIN];
         let mut any = false;
         // The projections in parallel; the sums below in the samples' order, as before.
@@ -533,7 +542,8 @@ pub fn m3_on_grid_with_lines(
     let per_pixel = swath_pixels_per_grid_pixel(gr.slice(within), gc.slice(within));
     drop((gr, gc));
     let cols = s![.., s0..s1];
-    let (mut refl, (lo, up), e, _) = reflectance_lines(obs, &obsr, solar, nm, (first, n), s0..s1)?;
+    let (mut refl, (lo, up), e, _, _) =
+        reflectance_lines(obs, &obsr, solar, nm, (first, n), s0..s1)?;
     // A swath finer than the grid is averaged over each grid pixel's extent first: sampled
     // at a point, it would alias relief finer than a grid pixel into the image the fusion
     // explains (and keep all of its noise).
