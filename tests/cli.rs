@@ -477,13 +477,8 @@ fn synth_writes_product_errors_where_asked() {
     );
     let drifting = write("drifting", &["--loc-drift", "-310/620"]);
     let trending = write("trending", &["--gain-trend", "0", "--gain-trend", "0.5"]);
-    let loc = |dir: &std::path::Path, id: &str| -> Vec<f64> {
-        std::fs::read(dir.join(format!("{id}_V03_LOC.IMG")))
-            .unwrap()
-            .chunks_exact(8)
-            .map(|c| f64::from_le_bytes(c.try_into().unwrap()))
-            .collect()
-    };
+    let loc =
+        |dir: &std::path::Path, id: &str| le_values(&dir.join(format!("{id}_V03_LOC.IMG")), 8);
     let first = "M3G20991231T000000";
     assert_eq!(loc(&plain, first), loc(&moved, first));
     let second = "M3G20991231T010000";
@@ -509,13 +504,8 @@ fn synth_writes_product_errors_where_asked() {
             assert!((east + 310.0 * t).abs() < 1e-3 && (north - 620.0 * t).abs() < 1e-3);
         }
     }
-    let rdn = |dir: &std::path::Path, id: &str| -> Vec<f32> {
-        std::fs::read(dir.join(format!("{id}_V03_RDN.IMG")))
-            .unwrap()
-            .chunks_exact(4)
-            .map(|c| f32::from_le_bytes(c.try_into().unwrap()))
-            .collect()
-    };
+    let rdn =
+        |dir: &std::path::Path, id: &str| le_values(&dir.join(format!("{id}_V03_RDN.IMG")), 4);
     assert_eq!(rdn(&plain, first), rdn(&trending, first));
     let (a, b) = (rdn(&plain, second), rdn(&trending, second));
     let per_line = a.len() / 32;
@@ -526,7 +516,7 @@ fn synth_writes_product_errors_where_asked() {
     {
         let g = (0.5 * (i as f64 - 15.5) / 1000.0).exp();
         for (x, y) in la.iter().zip(lb) {
-            assert!((f64::from(*y) - g * f64::from(*x)).abs() <= 1e-6 * f64::from(x.abs()));
+            assert!((y - g * x).abs() <= 1e-6 * x.abs());
         }
     }
     synth_refuses(
@@ -563,6 +553,19 @@ fn synth_writes_product_errors_where_asked() {
     std::fs::remove_dir_all(&base).unwrap();
 }
 
+/// The little-endian values of a raw product file: f64 for `bytes` = 8, f32 (widened exactly)
+/// for 4.
+fn le_values(path: &std::path::Path, bytes: usize) -> Vec<f64> {
+    std::fs::read(path)
+        .unwrap()
+        .chunks_exact(bytes)
+        .map(|c| match bytes {
+            8 => f64::from_le_bytes(c.try_into().unwrap()),
+            _ => f64::from(f32::from_le_bytes(c.try_into().unwrap())),
+        })
+        .collect()
+}
+
 /// `synth --pixel-factor F` writes an observation seen by a detector F grid pixels wide: its
 /// swath holds ⌊32/F⌋² pixels, each radiance the mean of the F × F it spans in the same scene
 /// written at the grid's pixel size, its LOC latitude the mean of theirs; `inspect` then reads
@@ -573,16 +576,7 @@ fn synth_writes_an_observation_with_coarser_pixels_where_asked() {
     let write = |name: &str, extra: &[&str]| synth_two_suns(&base.join(name), extra);
     let plain = write("plain", &[]);
     let coarse = write("coarse", &["--pixel-factor", "1", "--pixel-factor", "2"]);
-    let read = |dir: &std::path::Path, file: &str, bytes: usize| -> Vec<f64> {
-        std::fs::read(dir.join(file))
-            .unwrap()
-            .chunks_exact(bytes)
-            .map(|c| match bytes {
-                8 => f64::from_le_bytes(c.try_into().unwrap()),
-                _ => f64::from(f32::from_le_bytes(c.try_into().unwrap())),
-            })
-            .collect()
-    };
+    let read = |dir: &std::path::Path, file: &str, bytes: usize| le_values(&dir.join(file), bytes);
     let second = "M3G20991231T010000";
     let label = std::fs::read_to_string(coarse.join(format!("{second}_V03_L1B.LBL"))).unwrap();
     assert!(label.contains("LINES = 16") && label.contains("LINE_SAMPLES = 16"));
