@@ -127,8 +127,8 @@ pub struct OrbitalInputs {
     #[serde(default = "default_register_search_px")]
     pub register_search_px: usize,
     /// Estimate, besides each observation's gain, a trend of it along the track
-    /// ([`crate::fusion::observations::GainTrend`]) where observations overlap over
-    /// [`crate::fusion::observations::MIN_TREND_LINES`] lines or more, and divide the image by
+    /// ([`crate::fusion::gains::GainTrend`]) where observations overlap over
+    /// [`crate::fusion::gains::MIN_TREND_LINES`] lines or more, and divide the image by
     /// it at every ingest (default true; false: one gain per observation; docs/science.md,
     /// "Several observations").
     #[serde(default = "default_true")]

@@ -8,6 +8,7 @@
 
 pub mod blur;
 mod fast;
+pub mod gains;
 pub mod objective;
 pub mod observations;
 pub mod ops;
@@ -79,7 +80,7 @@ pub struct Problem<'a> {
     /// E_I against the DEM terms alike (no tile-to-tile offsets).
     pub intensity_scale: Option<f64>,
     /// Radiometric gains g_k (I_k = g_k·R). `None`: estimated from where the observations
-    /// overlap on the input DEM ([`observations::estimate_gains`]); a tiled run passes the
+    /// overlap on the input DEM ([`gains::estimate_gains`]); a tiled run passes the
     /// run-wide values.
     pub gains: Option<Vec<f64>>,
     /// Noise weights ν_k. `None`: Ī/Ī_k from the images ([`observations::noise_weight`]).
@@ -979,7 +980,7 @@ pub(crate) fn objective<'a, 'p>(
     };
     if pr.gains.is_none() && k > 1 {
         let first = weights(gains, scale);
-        gains = observations::estimate_gains(pr, &first.usable, pr.dem).gains;
+        gains = gains::estimate_gains(pr, &first.usable, pr.dem).gains;
         if pr.intensity_scale.is_none() {
             scale = mean_intensity(pr, &gains).0;
         }

@@ -24,7 +24,7 @@
 
 use crate::error::{Error, Result};
 use crate::export::{BandInfo, CogWriter, Container, SampleFormat};
-use crate::fusion::observations::GainTrend;
+use crate::fusion::gains::GainTrend;
 use crate::fusion::{self, Directions, FusionParams, Problem, StageReport};
 use crate::grid::{Crs, Grid, Projector};
 use crate::ingest::{self, SwathIndex};

@@ -334,7 +334,7 @@ pub(super) fn coarse_pixels_warning(
 }
 
 /// How observation `k`'s gain was fixed, in words: estimated relative to the first observation
-/// of its overlapping group (`reference`, [`fusion::observations::GainEstimate`]), 1 by
+/// of its overlapping group (`reference`, [`fusion::gains::GainEstimate`]), 1 by
 /// definition for that one, assumed 1 where it overlaps no other, or none where the
 /// observation was not used (`usage`).
 pub(super) fn gain_source(

@@ -44,7 +44,7 @@ pub struct Plan {
     #[serde(default)]
     pub gains: Vec<f64>,
     /// What each gain is relative to, by input index
-    /// ([`fusion::observations::GainEstimate::relative_to`]; `None`: nothing tied it down, or
+    /// ([`fusion::gains::GainEstimate::relative_to`]; `None`: nothing tied it down, or
     /// the observation does not reach the grid).
     #[serde(default)]
     pub gain_reference: Vec<Option<usize>>,
@@ -240,10 +240,10 @@ pub(super) struct RunGains {
 }
 
 /// The gains of the observations, estimated once for the whole run (tiles must agree on them)
-/// by [`fusion::observations::estimate_gains`] on the grid decimated to at most
+/// by [`fusion::gains::estimate_gains`] on the grid decimated to at most
 /// [`GAIN_PIXELS`], over the input DEM, what each is relative to (input indices), and with
 /// `[inputs] gain_trend` their trends along the track
-/// ([`fusion::observations::estimate_gain_trends`]; the gains are then estimated again on the
+/// ([`fusion::gains::estimate_gain_trends`]; the gains are then estimated again on the
 /// images divided by the trends).
 pub(super) fn run_gains(
     o: &Orbital,
@@ -304,56 +304,55 @@ pub(super) fn run_gains(
         });
     }
     // The gains (and, asked for, the trends) on `shots` as they are.
-    let estimate = |shots: &[Shot],
-                    trend: bool|
-     -> (fusion::observations::GainEstimate, Vec<Option<GainTrend>>) {
-        let views: Vec<fusion::Observation> = shots
-            .iter()
-            .map(|(_, img, _)| fusion::Observation {
-                image: img.reflectance.view(),
-                sun: Directions::PerPixel(img.sun.view().into()),
-                view: Directions::PerPixel(img.view.view().into()),
-            })
-            .collect();
-        let problem = Problem {
-            observations: views,
-            dem: dem.view(),
-            spacing: coarse.spacing,
-            dem_psf_sigma: 0.0,
-            model: inputs.model.as_ref(),
-            intensity_scale: Some(scale),
-            gains: None,
-            noise_weights: None,
-            blur: None,
-            selection: o.inputs.selection(),
-        };
-        let w = fusion::observations::weights(
-            &problem,
-            vec![1.0; problem.observations.len()],
-            scale,
-            None,
-            o.solver.shadow_threshold,
-            0.0,
-            1.0,
-        );
-        let g = fusion::observations::estimate_gains(&problem, &w.usable, dem.view());
-        let t = if trend {
-            let lines: Vec<ndarray::ArrayView2<f32>> = shots
+    let estimate =
+        |shots: &[Shot], trend: bool| -> (fusion::gains::GainEstimate, Vec<Option<GainTrend>>) {
+            let views: Vec<fusion::Observation> = shots
                 .iter()
-                .map(|(_, _, l)| l.as_ref().expect("ingested with lines").view())
+                .map(|(_, img, _)| fusion::Observation {
+                    image: img.reflectance.view(),
+                    sun: Directions::PerPixel(img.sun.view().into()),
+                    view: Directions::PerPixel(img.view.view().into()),
+                })
                 .collect();
-            fusion::observations::estimate_gain_trends(
+            let problem = Problem {
+                observations: views,
+                dem: dem.view(),
+                spacing: coarse.spacing,
+                dem_psf_sigma: 0.0,
+                model: inputs.model.as_ref(),
+                intensity_scale: Some(scale),
+                gains: None,
+                noise_weights: None,
+                blur: None,
+                selection: o.inputs.selection(),
+            };
+            let w = fusion::observations::weights(
                 &problem,
-                &w.usable,
-                dem.view(),
-                (&g.gains, &g.relative_to),
-                &lines,
-            )
-        } else {
-            vec![None; shots.len()]
+                vec![1.0; problem.observations.len()],
+                scale,
+                None,
+                o.solver.shadow_threshold,
+                0.0,
+                1.0,
+            );
+            let g = fusion::gains::estimate_gains(&problem, &w.usable, dem.view());
+            let t = if trend {
+                let lines: Vec<ndarray::ArrayView2<f32>> = shots
+                    .iter()
+                    .map(|(_, _, l)| l.as_ref().expect("ingested with lines").view())
+                    .collect();
+                fusion::gains::estimate_gain_trends(
+                    &problem,
+                    &w.usable,
+                    dem.view(),
+                    (&g.gains, &g.relative_to),
+                    &lines,
+                )
+            } else {
+                vec![None; shots.len()]
+            };
+            (g, t)
         };
-        (g, t)
-    };
     let (mut g, t) = estimate(&shots, with_lines);
     if t.iter().any(Option::is_some) {
         // The images divided by their trends, and the gains estimated again on them.

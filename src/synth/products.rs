@@ -75,7 +75,7 @@ pub fn write(scene: &Scene, grid: &Grid, dir: &Path) -> Result<Products> {
 ///   from where it lies — a constant error, and one that drifts along the strip as an
 ///   attitude error growing with time would;
 /// - its radiance multiplied by exp(τ·(l − (L − 1)/2)/1000), τ = `gain_trend`: a gain
-///   drifting along the track (`fusion::observations::GainTrend`).
+///   drifting along the track (`fusion::gains::GainTrend`).
 #[derive(Debug, Clone, Copy, Default, PartialEq)]
 pub struct ProductErrors {
     pub offset_m: [f64; 2],
