@@ -1166,6 +1166,71 @@ fn fine_stages(
     // The multi-coverage c(x), kept only where observations overlap (a single observation's
     // is 0 everywhere: no array is held through the stages for it).
     let multi = Some(obj.weights.multiplicity()).filter(|c| c.iter().any(|&c| c > 0.0));
+    let last_rho = albedo_stages(
+        pr,
+        &mut obj,
+        params,
+        &mut z,
+        sigmas,
+        multi.as_ref(),
+        &mut stages,
+    )?;
+    // Beyond the support band the result is the input DEM; within it the correction fades.
+    // (s is formed again for the layers at the end: the final albedo's arrays need the
+    // memory in between.)
+    Zip::from(&mut z)
+        .and(&obj.support())
+        .and(pr.dem)
+        .par_for_each(|z, &s, &d| *z = d + s * (*z - d));
+    let mut albedo = final_albedo_layer(pr, &obj, params, z.view(), last_rho, multi.as_ref())?;
+    drop(multi);
+    // The residuals and coverage of each observation on the final surface (their slopes'
+    // derivatives are not needed: freed at once).
+    let Photo {
+        obs, used: covered, ..
+    } = obj.photo(z.view(), albedo.view());
+    let obs: Vec<_> = obs.into_iter().map(|ph| (ph.res, ph.used)).collect();
+    // Off every image's footprint the albedo would only be the smoothing's fill: no data.
+    Zip::from(&mut albedo)
+        .and(&pr.footprint())
+        .for_each(|a, &s| {
+            if !s {
+                *a = f64::NAN;
+            }
+        });
+    let w = &obj.weights;
+    let (residual, count) = residual_layers(&obs, &w.weight, &covered, obj.scale);
+    let photometric = covered;
+    let used_by = obs.into_iter().map(|(_, used)| used).collect();
+    Ok(Fusion {
+        height: z,
+        albedo,
+        residual,
+        photometric,
+        observations: count,
+        used_by,
+        gains: w.gains.clone(),
+        noise_weights: w.noise.clone(),
+        support: obj.support(),
+        stages,
+    })
+}
+
+/// The alternation of albedo and surface: one stage per width of `sigmas` (the albedo
+/// low-passed at σ_ρ from the current surface, the membrane weighed on it, then the surface
+/// solved), and where observations overlap (`multi`, the multi-coverage c(x)) the last stage
+/// at `multi_albedo_sigma` blended by c, `multi_albedo_passes` times. Appends each stage's
+/// report to `stages`; returns the last stage's albedo where an observation is coarser than the
+/// grid (the final albedo's sharpened images need it), `None` otherwise.
+fn albedo_stages(
+    pr: &Problem,
+    obj: &mut Objective,
+    params: &FusionParams,
+    z: &mut Array2<f64>,
+    sigmas: &[f64],
+    multi: Option<&Array2<f64>>,
+    stages: &mut Vec<StageReport>,
+) -> Result<Option<Array2<f64>>, FusionError> {
     // Where observations overlap, a last stage at `multi_albedo_sigma` follows the configured
     // ones (blended into the last of them).
     let multi_stage = params
@@ -1208,7 +1273,7 @@ fn fine_stages(
         } else {
             &early
         };
-        let iterations = minimise(&obj, &mut z, rho.view(), stage_params, &mut |_| {});
+        let iterations = minimise(obj, z, rho.view(), stage_params, &mut |_| {});
         if keep_rho {
             last_rho = Some(rho);
         }
@@ -1218,7 +1283,7 @@ fn fine_stages(
             seconds: t0.elapsed().as_secs_f64(),
         });
     }
-    if let (Some(last), Some(multi)) = (multi_stage, &multi) {
+    if let (Some(last), Some(multi)) = (multi_stage, multi) {
         // Every pass but the last hands the next its surface, from which the next inverts its
         // albedo and weighs its membrane: a fixed number of steps, the same in every window
         // (one: a second step moves the results by less than 1 mm).
@@ -1245,7 +1310,7 @@ fn fine_stages(
             } else {
                 params
             };
-            let iterations = minimise(&obj, &mut z, rho.view(), pass_params, &mut |_| {});
+            let iterations = minimise(obj, z, rho.view(), pass_params, &mut |_| {});
             if keep_rho {
                 last_rho = Some(rho);
             }
@@ -1256,54 +1321,57 @@ fn fine_stages(
             });
         }
     }
+    Ok(last_rho)
+}
+
+/// The albedo layer on the final surface `z`: inverted jointly over the observations
+/// ([`observations::invert_albedo`]; an observation coarser than the grid with the rendering's
+/// shading within its kernel put back, at the last stage's albedo `last_rho`:
+/// [`sharpened_images`]) and low-passed at `final_albedo_sigma`, and where observations
+/// overlap blended by their multi-coverage `multi` with the same at
+/// `multi_final_albedo_sigma`.
+fn final_albedo_layer(
+    pr: &Problem,
+    obj: &Objective,
+    params: &FusionParams,
+    z: ArrayView2<f64>,
+    last_rho: Option<Array2<f64>>,
+    multi: Option<&Array2<f64>>,
+) -> Result<Array2<f64>, FusionError> {
     let w = &obj.weights;
-    // Beyond the support band the result is the input DEM; within it the correction fades.
-    // (s is formed again for the layers at the end: the final albedo's arrays need the
-    // memory in between.)
-    Zip::from(&mut z)
-        .and(&obj.support())
-        .and(pr.dem)
-        .par_for_each(|z, &s, &d| *z = d + s * (*z - d));
-    // An observation coarser than the grid enters the final albedo with the rendering's shading
-    // within its kernel put back (at the last stage's albedo; [`sharpened_images`]).
     let inverted = match last_rho {
         Some(rho) => {
-            let images = sharpened_images(pr, z.view(), rho.view());
+            let images = sharpened_images(pr, z, rho.view());
             drop(rho);
-            observations::invert_albedo(
-                &with_images(pr, &images),
-                w,
-                z.view(),
-                blur::FINAL_ALBEDO_WEIGHT,
-            )
+            observations::invert_albedo(&with_images(pr, &images), w, z, blur::FINAL_ALBEDO_WEIGHT)
         }
-        None => observations::invert_albedo(pr, w, z.view(), blur::FINAL_ALBEDO_WEIGHT),
+        None => observations::invert_albedo(pr, w, z, blur::FINAL_ALBEDO_WEIGHT),
     };
-    let mut albedo = final_albedo(&obj.dct, &inverted, params.final_albedo_sigma, params)?;
-    if let Some(multi) = &multi {
-        let fine = final_albedo(&obj.dct, &inverted, params.multi_final_albedo_sigma, params)?;
-        albedo = blend(&fine, &albedo, multi);
-    }
-    drop(inverted);
-    // The residuals and coverage of each observation on the final surface (their slopes'
-    // derivatives are not needed: freed at once).
-    let Photo {
-        obs, used: covered, ..
-    } = obj.photo(z.view(), albedo.view());
-    let obs: Vec<_> = obs.into_iter().map(|ph| (ph.res, ph.used)).collect();
-    // Off every image's footprint the albedo would only be the smoothing's fill: no data.
-    Zip::from(&mut albedo)
-        .and(&pr.footprint())
-        .for_each(|a, &s| {
-            if !s {
-                *a = f64::NAN;
-            }
-        });
-    // The weighted RMS of the residuals over the observations used at a pixel.
-    let mut sq = Array2::<f64>::zeros(z.dim());
-    let mut sw = Array2::<f64>::zeros(z.dim());
-    let mut count = Array2::<u8>::zeros(z.dim());
-    for ((res, used), wk) in obs.iter().zip(&w.weight) {
+    let albedo = final_albedo(&obj.dct, &inverted, params.final_albedo_sigma, params)?;
+    Ok(match multi {
+        Some(multi) => {
+            let fine = final_albedo(&obj.dct, &inverted, params.multi_final_albedo_sigma, params)?;
+            blend(&fine, &albedo, multi)
+        }
+        None => albedo,
+    })
+}
+
+/// The residual layer, Ī·√(Σ_k w_k r_k²/Σ_k w_k) over the observations used at a pixel (`obs`:
+/// each observation's residual r_k = I_k/g_k/Ī − R_k/Ī and where it was used; `weight`: w_k)
+/// where the pixel is `covered`, NaN elsewhere; and the count of observations used at each
+/// pixel.
+fn residual_layers(
+    obs: &[(Array2<f32>, Array2<bool>)],
+    weight: &[Array2<f32>],
+    covered: &Array2<bool>,
+    scale: f64,
+) -> (Array2<f64>, Array2<u8>) {
+    let dim = covered.dim();
+    let mut sq = Array2::<f64>::zeros(dim);
+    let mut sw = Array2::<f64>::zeros(dim);
+    let mut count = Array2::<u8>::zeros(dim);
+    for ((res, used), wk) in obs.iter().zip(weight) {
         Zip::from(&mut sq)
             .and(&mut sw)
             .and(&mut count)
@@ -1323,29 +1391,15 @@ fn fine_stages(
     let mut residual = sq;
     Zip::from(&mut residual)
         .and(&sw)
-        .and(&covered)
+        .and(covered)
         .for_each(|q, &w, &u| {
             *q = if u && w > 0.0 {
-                (*q / w).sqrt() * obj.scale
+                (*q / w).sqrt() * scale
             } else {
                 f64::NAN
             }
         });
-    drop(sw);
-    let photometric = covered;
-    let used_by = obs.into_iter().map(|(_, used)| used).collect();
-    Ok(Fusion {
-        height: z,
-        albedo,
-        residual,
-        photometric,
-        observations: count,
-        used_by,
-        gains: w.gains.clone(),
-        noise_weights: w.noise.clone(),
-        support: obj.support(),
-        stages,
-    })
+    (residual, count)
 }
 
 /// The state at the starting surface, reported to `observe` and logged as iteration 0 (shared
