@@ -496,25 +496,8 @@ pub(super) fn plan(
     let out = &o.output.directory;
     let key = plan_key(wf, &inputs.files()?)?;
     let path = out.join("plan.json");
-    if let Ok(text) = std::fs::read_to_string(&path) {
-        let why = match serde_json::from_str::<Plan>(&text) {
-            Ok(p) if p.key == key => {
-                let reference = p
-                    .reference
-                    .as_ref()
-                    .map(|r| super::reference::load(out, r))
-                    .transpose();
-                match reference {
-                    Ok(reference) => {
-                        progress.note(&format!("plan: reusing {}", path.display()));
-                        return Ok((p, reference, None));
-                    }
-                    Err(e) => e.to_string(),
-                }
-            }
-            _ => format!("{} belongs to other inputs or parameters", path.display()),
-        };
-        progress.note(&format!("plan: {why}; planning anew"));
+    if let Some((p, reference)) = existing(out, &key, progress) {
+        return Ok((p, reference, None));
     }
     progress.stage("planning: grid, swath index, intensity scale");
     let (res, resolution_source) = resolution(o, inputs)?;
@@ -533,81 +516,23 @@ pub(super) fn plan(
         )));
     }
     let pr = projector(&grid.crs)?;
-    let mut swaths = Vec::new();
-    let (mut sum, mut count) = (0.0, 0usize);
-    let mut means = Vec::new();
-    let mut sums = Vec::new();
-    let mut sun_deg = Vec::new();
-    let mut why = Vec::new();
-    for obs in &inputs.obs {
-        let s = ingest::survey(obs, &inputs.solar, o.inputs.wavelength_nm, &grid, &pr)?;
-        sum += s.sum;
-        count += s.count;
-        means.push((s.count > 0).then(|| s.sum / s.count as f64));
-        sums.push(s.sum);
-        sun_deg.push(s.mean_sun().map(|(az, el)| [az, el]));
-        why.push(if s.on_grid == 0 {
-            format!(
-                "{}: no pixel of its swath falls on the grid (region)",
-                obs.label_path.display()
-            )
-        } else {
-            format!(
-                "{}: {} of its pixels fall on the grid, {} refused ({})",
-                obs.label_path.display(),
-                s.on_grid,
-                s.refused.total(),
-                s.refused.describe()
-            )
-        });
-        swaths.push(s.index);
-    }
-    if count == 0 {
-        return Err(Error::Usage(format!(
-            "no usable M3 pixel on the grid ({} × {} px at {} m): {}. Check [region] against the observations' coverage, and the observations' radiance and OBS geometry",
-            grid.rows,
-            grid.cols,
-            grid.spacing,
-            why.join("; ")
-        )));
-    }
-    let centre_lat = pr
-        .inverse(
-            grid.x0 + 0.5 * grid.cols as f64 * grid.spacing,
-            grid.y0 - 0.5 * grid.rows as f64 * grid.spacing,
-        )
-        .map_or(0.0, |(_, lat)| lat);
-    let (dem_resolution_m, dem_resolution_source) = match o.inputs.dem_resolution_m {
-        Some(r) => (r, "[inputs] dem_resolution_m".to_string()),
-        None => inputs.lola[0].effective_resolution(centre_lat),
-    };
-    let factor = dem_resolution_m / grid.spacing;
-    let dem_psf_sigma = o
-        .inputs
-        .dem_psf_sigma_px
-        .unwrap_or(fusion::dem_psf_sigma(factor));
-    let sigma_dem = if o.sigma_dem_given {
-        o.solver.sigma_dem
-    } else {
-        fusion::dem_sigma(factor)
-    };
-    let (dem_track_weight, dem_track_source) = track_weight(
-        o.dem_track_weight_given
-            .then_some(o.solver.dem_track_weight),
-        o.solver.dem_track_weight,
-        inputs.lola[0].resolves_tracks(centre_lat),
-        north_turn_deg(&grid, &pr),
-    );
-    let (dem_track_weight, dem_track_source) = dem_blur_track_weight(
-        (dem_track_weight, dem_track_source),
-        dem_psf_sigma,
-        o.solver.dem_track_sigma_px,
-    );
-    let params = FusionParams {
+    let Surveyed {
+        swaths,
+        sum,
+        count,
+        means,
+        sums,
+        sun_deg,
+    } = survey_all(o, inputs, &grid, &pr)?;
+    let DemTerms {
+        resolution_m: dem_resolution_m,
+        resolution_source: dem_resolution_source,
+        psf_sigma: dem_psf_sigma,
         sigma_dem,
-        dem_track_weight,
-        ..o.solver.clone()
-    };
+        track_weight: dem_track_weight,
+        track_source: dem_track_source,
+        params,
+    } = dem_terms(o, inputs, &grid, &pr);
     let membrane = membrane_note(&params, dem_psf_sigma, inputs.obs.len());
     let reference_factor = super::reference::factor(&grid, &params);
     let halo = o.tiling.halo.unwrap_or_else(|| {
@@ -655,21 +580,7 @@ pub(super) fn plan(
     } else {
         intensity_scale
     };
-    // ν_k = Ī/Ī_k, Ī_k the observation's mean reflectance over its pixels on the grid,
-    // corrected by its gain (fusion::observations::noise_weight); 1 for a single observation.
-    let noise_weights = if inputs.obs.len() > 1 {
-        means
-            .iter()
-            .zip(&gains)
-            .map(|(m, g)| {
-                m.map_or(1.0, |m| {
-                    fusion::observations::noise_weight(intensity_scale, m / g)
-                })
-            })
-            .collect()
-    } else {
-        vec![1.0]
-    };
+    let noise_weights = noise_weights(&means, &gains, intensity_scale);
     std::fs::create_dir_all(out).map_err(|e| Error::io(out, e))?;
     let pixel_size_m: Vec<Option<f64>> = inputs
         .obs
@@ -729,6 +640,197 @@ pub(super) fn plan(
             .as_bytes(),
     )?;
     progress.finish();
+    report(&p, o, inputs, progress);
+    let (reference, ingested) = match built {
+        Some(b) => (Some(b.values), b.ingested),
+        None => (None, None),
+    };
+    Ok((p, reference, ingested))
+}
+
+/// The DEM's widths on the grid and the fusion parameters they set ([`dem_terms`]).
+struct DemTerms {
+    /// The DEM's effective resolution, metres, and where it came from.
+    resolution_m: f64,
+    resolution_source: String,
+    /// σ_B, the DEM's point spread on the grid, and σ_DEM, pixels.
+    psf_sigma: f64,
+    sigma_dem: f64,
+    /// E_DEM's track weight a and why.
+    track_weight: f64,
+    track_source: String,
+    /// `[solver]` with σ_DEM and a.
+    params: FusionParams,
+}
+
+/// The DEM's effective resolution at the region's centre (`[inputs] dem_resolution_m`, or the
+/// product's own), the point spread σ_B and σ_DEM it gives on the grid unless the workflow
+/// sets them ([`fusion::dem_psf_sigma`], [`fusion::dem_sigma`]), and E_DEM's track weight
+/// ([`track_weight`], [`dem_blur_track_weight`]).
+fn dem_terms(o: &Orbital, inputs: &Inputs, grid: &Grid, pr: &crate::grid::Projector) -> DemTerms {
+    let centre_lat = pr
+        .inverse(
+            grid.x0 + 0.5 * grid.cols as f64 * grid.spacing,
+            grid.y0 - 0.5 * grid.rows as f64 * grid.spacing,
+        )
+        .map_or(0.0, |(_, lat)| lat);
+    let (dem_resolution_m, dem_resolution_source) = match o.inputs.dem_resolution_m {
+        Some(r) => (r, "[inputs] dem_resolution_m".to_string()),
+        None => inputs.lola[0].effective_resolution(centre_lat),
+    };
+    let factor = dem_resolution_m / grid.spacing;
+    let dem_psf_sigma = o
+        .inputs
+        .dem_psf_sigma_px
+        .unwrap_or(fusion::dem_psf_sigma(factor));
+    let sigma_dem = if o.sigma_dem_given {
+        o.solver.sigma_dem
+    } else {
+        fusion::dem_sigma(factor)
+    };
+    let (dem_track_weight, dem_track_source) = track_weight(
+        o.dem_track_weight_given
+            .then_some(o.solver.dem_track_weight),
+        o.solver.dem_track_weight,
+        inputs.lola[0].resolves_tracks(centre_lat),
+        north_turn_deg(grid, pr),
+    );
+    let (dem_track_weight, dem_track_source) = dem_blur_track_weight(
+        (dem_track_weight, dem_track_source),
+        dem_psf_sigma,
+        o.solver.dem_track_sigma_px,
+    );
+    let params = FusionParams {
+        sigma_dem,
+        dem_track_weight,
+        ..o.solver.clone()
+    };
+    DemTerms {
+        resolution_m: dem_resolution_m,
+        resolution_source: dem_resolution_source,
+        psf_sigma: dem_psf_sigma,
+        sigma_dem,
+        track_weight: dem_track_weight,
+        track_source: dem_track_source,
+        params,
+    }
+}
+
+/// ν_k = Ī/Ī_k ([`fusion::observations::noise_weight`]), Ī_k each observation's mean
+/// reflectance over its pixels on the grid (`means`) corrected by its gain; 1 for a single
+/// observation, and for one without a pixel on the grid.
+fn noise_weights(means: &[Option<f64>], gains: &[f64], scale: f64) -> Vec<f64> {
+    if means.len() < 2 {
+        return vec![1.0; means.len()];
+    }
+    means
+        .iter()
+        .zip(gains)
+        .map(|(m, g)| m.map_or(1.0, |m| fusion::observations::noise_weight(scale, m / g)))
+        .collect()
+}
+
+/// What the plan's survey of every observation found on the grid ([`survey_all`]).
+struct Surveyed {
+    swaths: Vec<SwathIndex>,
+    /// Σ of the usable reflectances over every observation, and their count.
+    sum: f64,
+    count: usize,
+    /// Per observation: the mean usable reflectance (`None` without a usable pixel), the sum,
+    /// and the mean Sun [azimuth, elevation] in degrees.
+    means: Vec<Option<f64>>,
+    sums: Vec<f64>,
+    sun_deg: Vec<Option<[f64; 2]>>,
+}
+
+/// Survey every observation on the grid ([`ingest::survey`]): its swath index, the sums of Ī
+/// and its mean Sun. An error naming each observation and what became of its pixels when no
+/// usable pixel falls on the grid.
+fn survey_all(
+    o: &Orbital,
+    inputs: &Inputs,
+    grid: &Grid,
+    pr: &crate::grid::Projector,
+) -> Result<Surveyed> {
+    let mut swaths = Vec::new();
+    let (mut sum, mut count) = (0.0, 0usize);
+    let mut means = Vec::new();
+    let mut sums = Vec::new();
+    let mut sun_deg = Vec::new();
+    let mut why = Vec::new();
+    for obs in &inputs.obs {
+        let s = ingest::survey(obs, &inputs.solar, o.inputs.wavelength_nm, grid, pr)?;
+        sum += s.sum;
+        count += s.count;
+        means.push((s.count > 0).then(|| s.sum / s.count as f64));
+        sums.push(s.sum);
+        sun_deg.push(s.mean_sun().map(|(az, el)| [az, el]));
+        why.push(if s.on_grid == 0 {
+            format!(
+                "{}: no pixel of its swath falls on the grid (region)",
+                obs.label_path.display()
+            )
+        } else {
+            format!(
+                "{}: {} of its pixels fall on the grid, {} refused ({})",
+                obs.label_path.display(),
+                s.on_grid,
+                s.refused.total(),
+                s.refused.describe()
+            )
+        });
+        swaths.push(s.index);
+    }
+    if count == 0 {
+        return Err(Error::Usage(format!(
+            "no usable M3 pixel on the grid ({} × {} px at {} m): {}. Check [region] against the observations' coverage, and the observations' radiance and OBS geometry",
+            grid.rows,
+            grid.cols,
+            grid.spacing,
+            why.join("; ")
+        )));
+    }
+    Ok(Surveyed {
+        swaths,
+        sum,
+        count,
+        means,
+        sums,
+        sun_deg,
+    })
+}
+
+/// The plan in `out`'s plan.json when it has the run's `key` and its reference file (if it has
+/// one) matches its checksum, with the reference's values; `None` (saying why) when there is
+/// none, it belongs to other inputs or parameters, or its reference does not load.
+fn existing(out: &Path, key: &str, progress: &Progress) -> Option<(Plan, Option<Array2<f64>>)> {
+    let path = out.join("plan.json");
+    let text = std::fs::read_to_string(&path).ok()?;
+    let why = match serde_json::from_str::<Plan>(&text) {
+        Ok(p) if p.key == key => {
+            let reference = p
+                .reference
+                .as_ref()
+                .map(|r| super::reference::load(out, r))
+                .transpose();
+            match reference {
+                Ok(reference) => {
+                    progress.note(&format!("plan: reusing {}", path.display()));
+                    return Some((p, reference));
+                }
+                Err(e) => e.to_string(),
+            }
+        }
+        _ => format!("{} belongs to other inputs or parameters", path.display()),
+    };
+    progress.note(&format!("plan: {why}; planning anew"));
+    None
+}
+
+/// What the plan says of itself once made: the grid and tiling, Ī, the DEM's widths and track
+/// weight, the membrane, each observation's mean Sun and registration, the coarse reference,
+/// the gains, noise weights and gain trends.
+fn report(p: &Plan, o: &Orbital, inputs: &Inputs, progress: &Progress) {
     progress.note(&format!(
         "plan: {} × {} px at {} m ({}; {}), {} {} of {} px + {} px halo, Ī = {:.5} sr⁻¹ over {} px; DEM resolution {:.0} m ({}), σ_B {:.2} px, σ_DEM {:.2} px",
         p.grid.rows,
@@ -798,11 +900,6 @@ pub(super) fn plan(
             list.join(", ")
         ));
     }
-    let (reference, ingested) = match built {
-        Some(b) => (Some(b.values), b.ingested),
-        None => (None, None),
-    };
-    Ok((p, reference, ingested))
 }
 
 #[cfg(test)]
