@@ -470,18 +470,123 @@ pub(super) fn write_record(out: &Path, record: &RunRecord) -> Result<PathBuf> {
     Ok(path)
 }
 
-/// Blend every tile into the products and write the run record. `files`: the inputs with
-/// their checksums if they were hashed already ([`checksums`]), else they are hashed here,
-/// once every tile is known to be there.
-pub(super) fn mosaic(
-    o: &Orbital,
-    wf: &Workflow,
+/// Rows `b0..b1` of the stored layers ([`TILE_LAYERS`]), blended from every tile that covers
+/// them with the tiles' weights ([`tiling::weight`]): the weighted mean of the finite values,
+/// NaN where no tile has one; the mask and the observation counts rounded to whole numbers,
+/// the residual no-data wherever the mask is not [`MASK_FUSED`].
+fn blend_band(
+    out: &Path,
+    plan: &Plan,
+    heads: &[(TileRecord, u64)],
+    b0: usize,
+    b1: usize,
+) -> Result<[Array2<f64>; 7]> {
+    let (rows, cols) = (plan.grid.rows, plan.grid.cols);
+    let mut acc: Vec<Array2<f64>> = (0..TILE_LAYERS.len())
+        .map(|_| Array2::zeros((b1 - b0, cols)))
+        .collect();
+    let mut wsum = acc.clone();
+    for (t, (rec, data)) in plan.tiles.iter().zip(heads) {
+        let e = rec.ext;
+        let (lo, hi) = (b0.max(e.r0), b1.min(e.r0 + e.rows));
+        if lo >= hi {
+            continue;
+        }
+        let w = Array2::from_shape_fn((hi - lo, e.cols), |(r, c)| {
+            tiling::weight(t, rows, cols, plan.blend as f64, lo + r, e.c0 + c)
+        });
+        let path = tile_path(out, t.id);
+        for k in 0..TILE_LAYERS.len() {
+            let v = read_tile_rows(&path, *data, &e, k, lo - e.r0, hi - e.r0)?;
+            let v = Array2::from_shape_vec((hi - lo, e.cols), v).expect("rows of the tile");
+            let mut a = acc[k].slice_mut(s![lo - b0..hi - b0, e.c0..e.c0 + e.cols]);
+            let mut ws = wsum[k].slice_mut(s![lo - b0..hi - b0, e.c0..e.c0 + e.cols]);
+            Zip::from(&mut a)
+                .and(&mut ws)
+                .and(&v)
+                .and(&w)
+                .for_each(|a, ws, &v, &w| {
+                    if w > 0.0 && v.is_finite() {
+                        *a += w * v as f64;
+                        *ws += w;
+                    }
+                });
+        }
+    }
+    let mut layers: Vec<Array2<f64>> = acc
+        .iter()
+        .zip(&wsum)
+        .map(|(a, w)| {
+            Zip::from(a)
+                .and(w)
+                .map_collect(|&a, &w| if w > 0.0 { a / w } else { f64::NAN })
+        })
+        .collect();
+    // Mask codes: the nearest whole number across a blend (tiles agree on whether an
+    // image sees a pixel, so only 0 and 1 ever meet, and a tie counts as not
+    // photometric); the residual is no-data wherever the code is not 0.
+    layers[3].mapv_inplace(f64::round);
+    let mask = layers[3].clone();
+    Zip::from(&mut layers[2]).and(&mask).for_each(|r, &m| {
+        if m != MASK_FUSED {
+            *r = f64::NAN;
+        }
+    });
+    // Observation counts: the nearest whole number across a blend.
+    layers[6].mapv_inplace(f64::round);
+    Ok(layers.try_into().expect("seven layers"))
+}
+
+/// run.json's record of each observation: its gain and how it was fixed, gain trend, noise
+/// weight, footprint and photometric fraction on the region (`sanity`, `usage`),
+/// registration, pixel size and blur, and mean Sun.
+fn observation_records(
     inputs: &Inputs,
     plan: &Plan,
-    files: Option<Vec<InputFile>>,
-    progress: &Progress,
-) -> Result<(Vec<PathBuf>, PathBuf, Sanity)> {
-    let out = &o.output.directory;
+    sanity: &Sanity,
+    usage: &[Usage],
+    labels: &[String],
+) -> Vec<ObservationRecord> {
+    let blur = plan.blur_px();
+    inputs
+        .obs
+        .iter()
+        .enumerate()
+        .map(|(k, ob)| ObservationRecord {
+            label: ob.label_path.clone(),
+            gain: plan.gains.get(k).copied().unwrap_or(1.0),
+            gain_source: gain_source(
+                k,
+                plan.gain_reference.get(k).copied().flatten(),
+                usage.get(k).copied().unwrap_or(Usage::OffRegion),
+                labels,
+            ),
+            gain_trend: plan.gain_trends.get(k).copied().flatten(),
+            noise_weight: plan.noise_weights.get(k).copied().unwrap_or(1.0),
+            footprint_pixels: sanity.observations.get(k).map_or(0, |o| o.footprint_pixels),
+            photometric_fraction: sanity
+                .observations
+                .get(k)
+                .map_or(0.0, |o| o.photometric_fraction),
+            registration: plan.registration.get(k).cloned(),
+            pixel_size_m: plan.pixel_size_m.get(k).copied().flatten(),
+            blur_px: blur.get(k).copied().unwrap_or(0.0),
+            sun: plan
+                .sun_deg
+                .get(k)
+                .copied()
+                .flatten()
+                .map(|[az, el]| MeanSun {
+                    azimuth_deg: az,
+                    elevation_deg: el,
+                }),
+        })
+        .collect()
+}
+
+/// Every tile of the plan, finished: its record and where its data start
+/// ([`done_tile`]); an error listing the tiles missing, failed or damaged otherwise.
+fn done_tiles(out: &Path, plan: &Plan, progress: &Progress) -> Result<Vec<(TileRecord, u64)>> {
     let found: Vec<Option<(TileRecord, u64)>> = plan
         .tiles
         .iter()
@@ -502,8 +607,80 @@ pub(super) fn mosaic(
             tile_spec(&missing, ", ")
         )));
     }
+    Ok(found.into_iter().flatten().collect())
+}
+
+/// Each product layer's COG writer, with the stored layer ([`TILE_LAYERS`] index) it takes.
+type LayerWriters = Vec<(usize, CogWriter)>;
+
+/// A COG writer for each layer of `[output] layers`, in its order, with the stored layer it
+/// takes ([`stored_index`]), its description, unit and the products' metadata `meta` (a DEM's
+/// with its vertical reference); and the layers' paths.
+fn layer_writers(
+    o: &Orbital,
+    plan: &Plan,
+    meta: &[(&'static str, String)],
+) -> Result<(LayerWriters, Vec<PathBuf>)> {
+    let mut writers = Vec::new();
+    let mut outputs = Vec::new();
+    for &l in &o.output.layers {
+        let k = stored_index(l);
+        let (description, unit) = layer_info(l, true);
+        let description = match (l, &o.photometry) {
+            (Layer::Albedo, ModelSpec::Hapke(_)) => format!(
+                "Hapke single-scattering albedo w at {} nm",
+                o.inputs.wavelength_nm
+            ),
+            _ => description.to_string(),
+        };
+        let mut items = meta.to_vec();
+        if matches!(l, Layer::Dem | Layer::InputDem) {
+            items.extend([
+                ("VERTICAL_REFERENCE", "sphere".to_string()),
+                (
+                    "REFERENCE_RADIUS_M",
+                    format!("{}", crate::grid::MOON_RADIUS_M),
+                ),
+                ("HEIGHT_KIND", "height above reference".to_string()),
+            ]);
+        }
+        let path = o.output.directory.join(format!("{}.tif", l.name()));
+        let info = BandInfo {
+            description: &description,
+            unit,
+            metadata: &items,
+        };
+        writers.push((
+            k,
+            CogWriter::create_as(
+                &path,
+                Some(&plan.grid),
+                plan.grid.cols,
+                plan.grid.rows,
+                &info,
+                Container::Auto,
+                sample_format(l),
+            )?,
+        ));
+        outputs.push(path);
+    }
+    Ok((writers, outputs))
+}
+
+/// Blend every tile into the products and write the run record. `files`: the inputs with
+/// their checksums if they were hashed already ([`checksums`]), else they are hashed here,
+/// once every tile is known to be there.
+pub(super) fn mosaic(
+    o: &Orbital,
+    wf: &Workflow,
+    inputs: &Inputs,
+    plan: &Plan,
+    files: Option<Vec<InputFile>>,
+    progress: &Progress,
+) -> Result<(Vec<PathBuf>, PathBuf, Sanity)> {
+    let out = &o.output.directory;
+    let heads = done_tiles(out, plan, progress)?;
     let (rows, cols) = (plan.grid.rows, plan.grid.cols);
-    let heads: Vec<(TileRecord, u64)> = found.into_iter().flatten().collect();
     let files = match files {
         Some(f) => {
             progress.note(&format!(
@@ -518,49 +695,7 @@ pub(super) fn mosaic(
     // time: the same inputs give the same files wherever they lie and the run writes).
     let key = run_key(wf, &files);
     let meta = product_metadata(o, inputs, plan, &key);
-    let mut writers = Vec::new();
-    let mut outputs = Vec::new();
-    for &l in &o.output.layers {
-        let k = stored_index(l);
-        let (description, unit) = layer_info(l, true);
-        let description = match (l, &o.photometry) {
-            (Layer::Albedo, ModelSpec::Hapke(_)) => format!(
-                "Hapke single-scattering albedo w at {} nm",
-                o.inputs.wavelength_nm
-            ),
-            _ => description.to_string(),
-        };
-        let mut items = meta.clone();
-        if matches!(l, Layer::Dem | Layer::InputDem) {
-            items.extend([
-                ("VERTICAL_REFERENCE", "sphere".to_string()),
-                (
-                    "REFERENCE_RADIUS_M",
-                    format!("{}", crate::grid::MOON_RADIUS_M),
-                ),
-                ("HEIGHT_KIND", "height above reference".to_string()),
-            ]);
-        }
-        let path = out.join(format!("{}.tif", l.name()));
-        let info = BandInfo {
-            description: &description,
-            unit,
-            metadata: &items,
-        };
-        writers.push((
-            k,
-            CogWriter::create_as(
-                &path,
-                Some(&plan.grid),
-                cols,
-                rows,
-                &info,
-                Container::Auto,
-                sample_format(l),
-            )?,
-        ));
-        outputs.push(path);
-    }
+    let (mut writers, mut outputs) = layer_writers(o, plan, &meta)?;
     // Blend band by band: memory is one band of rows, whatever the region's size.
     let mut stats = MetricsAcc::new();
     // Block means of the layers the quick look shows, in TILE_LAYERS order.
@@ -570,59 +705,7 @@ pub(super) fn mosaic(
     progress.steps("mosaic", rows.div_ceil(MOSAIC_BAND) as u64);
     for b0 in (0..rows).step_by(MOSAIC_BAND) {
         let b1 = (b0 + MOSAIC_BAND).min(rows);
-        let mut acc: Vec<Array2<f64>> = (0..TILE_LAYERS.len())
-            .map(|_| Array2::zeros((b1 - b0, cols)))
-            .collect();
-        let mut wsum = acc.clone();
-        for (t, (rec, data)) in plan.tiles.iter().zip(&heads) {
-            let e = rec.ext;
-            let (lo, hi) = (b0.max(e.r0), b1.min(e.r0 + e.rows));
-            if lo >= hi {
-                continue;
-            }
-            let w = Array2::from_shape_fn((hi - lo, e.cols), |(r, c)| {
-                tiling::weight(t, rows, cols, plan.blend as f64, lo + r, e.c0 + c)
-            });
-            let path = tile_path(out, t.id);
-            for k in 0..TILE_LAYERS.len() {
-                let v = read_tile_rows(&path, *data, &e, k, lo - e.r0, hi - e.r0)?;
-                let v = Array2::from_shape_vec((hi - lo, e.cols), v).expect("rows of the tile");
-                let mut a = acc[k].slice_mut(s![lo - b0..hi - b0, e.c0..e.c0 + e.cols]);
-                let mut ws = wsum[k].slice_mut(s![lo - b0..hi - b0, e.c0..e.c0 + e.cols]);
-                Zip::from(&mut a)
-                    .and(&mut ws)
-                    .and(&v)
-                    .and(&w)
-                    .for_each(|a, ws, &v, &w| {
-                        if w > 0.0 && v.is_finite() {
-                            *a += w * v as f64;
-                            *ws += w;
-                        }
-                    });
-            }
-        }
-        let mut layers: Vec<Array2<f64>> = acc
-            .iter()
-            .zip(&wsum)
-            .map(|(a, w)| {
-                Zip::from(a)
-                    .and(w)
-                    .map_collect(|&a, &w| if w > 0.0 { a / w } else { f64::NAN })
-            })
-            .collect();
-        // Mask codes: the nearest whole number across a blend (tiles agree on whether an
-        // image sees a pixel, so only 0 and 1 ever meet, and a tie counts as not
-        // photometric); the residual is no-data wherever the code is not 0.
-        layers[3].mapv_inplace(f64::round);
-        let mask = layers[3].clone();
-        Zip::from(&mut layers[2]).and(&mask).for_each(|r, &m| {
-            if m != MASK_FUSED {
-                *r = f64::NAN;
-            }
-        });
-        // Observation counts: the nearest whole number across a blend.
-        layers[6].mapv_inplace(f64::round);
-        let layers: [Array2<f64>; 7] = layers.try_into().expect("seven layers");
+        let layers = blend_band(out, plan, &heads, b0, b1)?;
         stats.add(&layers);
         for (t, l) in thumbs.iter_mut().zip(&layers) {
             t.add(b0, l.view());
@@ -664,7 +747,6 @@ pub(super) fn mosaic(
     sanity
         .warnings
         .extend(low_sun_warning(&labels, &used, &plan.sun_deg));
-    let blur = plan.blur_px();
     let record = RunRecord {
         tool: "sfsfuse",
         version: crate::BUILD,
@@ -688,40 +770,7 @@ pub(super) fn mosaic(
         tiles: records,
         metrics: stats.finish(),
         sanity: Some(sanity.clone()),
-        observations: inputs
-            .obs
-            .iter()
-            .enumerate()
-            .map(|(k, ob)| ObservationRecord {
-                label: ob.label_path.clone(),
-                gain: plan.gains.get(k).copied().unwrap_or(1.0),
-                gain_source: gain_source(
-                    k,
-                    plan.gain_reference.get(k).copied().flatten(),
-                    usage.get(k).copied().unwrap_or(Usage::OffRegion),
-                    &labels,
-                ),
-                gain_trend: plan.gain_trends.get(k).copied().flatten(),
-                noise_weight: plan.noise_weights.get(k).copied().unwrap_or(1.0),
-                footprint_pixels: sanity.observations.get(k).map_or(0, |o| o.footprint_pixels),
-                photometric_fraction: sanity
-                    .observations
-                    .get(k)
-                    .map_or(0.0, |o| o.photometric_fraction),
-                registration: plan.registration.get(k).cloned(),
-                pixel_size_m: plan.pixel_size_m.get(k).copied().flatten(),
-                blur_px: blur.get(k).copied().unwrap_or(0.0),
-                sun: plan
-                    .sun_deg
-                    .get(k)
-                    .copied()
-                    .flatten()
-                    .map(|[az, el]| MeanSun {
-                        azimuth_deg: az,
-                        elevation_deg: el,
-                    }),
-            })
-            .collect(),
+        observations: observation_records(inputs, plan, &sanity, &usage, &labels),
         outputs: outputs.clone(),
     };
     let path = write_record(out, &record)?;
