@@ -524,19 +524,12 @@ pub(super) fn plan(
         sums,
         sun_deg,
     } = survey_all(o, inputs, &grid, &pr)?;
-    let DemTerms {
-        resolution_m: dem_resolution_m,
-        resolution_source: dem_resolution_source,
-        psf_sigma: dem_psf_sigma,
-        sigma_dem,
-        track_weight: dem_track_weight,
-        track_source: dem_track_source,
-        params,
-    } = dem_terms(o, inputs, &grid, &pr);
-    let membrane = membrane_note(&params, dem_psf_sigma, inputs.obs.len());
-    let reference_factor = super::reference::factor(&grid, &params);
+    let dem = dem_terms(o, inputs, &grid, &pr);
+    let (params, dem_psf_sigma) = (&dem.params, dem.dem_psf_sigma);
+    let membrane = membrane_note(params, dem_psf_sigma, inputs.obs.len());
+    let reference_factor = super::reference::factor(&grid, params);
     let halo = o.tiling.halo.unwrap_or_else(|| {
-        crate::workflow::auto_halo(&params, dem_psf_sigma, reference_factor.is_some())
+        crate::workflow::auto_halo(params, dem_psf_sigma, reference_factor.is_some())
     });
     let n_tiles = grid.rows.div_ceil(o.tiling.tile_size) * grid.cols.div_ceil(o.tiling.tile_size);
     if n_tiles > MAX_TILES {
@@ -555,7 +548,7 @@ pub(super) fn plan(
         &grid,
         &swaths,
         dem_psf_sigma,
-        &params,
+        params,
         intensity_scale,
     )?;
     let shifts = shifts(&registration);
@@ -600,7 +593,7 @@ pub(super) fn plan(
                 noise_weights: &noise_weights,
                 blur_px: &blur,
                 dem_psf_sigma,
-                params: &params,
+                params,
             };
             super::reference::build(o, inputs, &grid, &run, f, &tiles)?
         }
@@ -621,11 +614,11 @@ pub(super) fn plan(
         noise_weights,
         dem_psf_sigma,
         resolution_source,
-        dem_resolution_m,
-        dem_resolution_source,
-        sigma_dem,
-        dem_track_weight,
-        dem_track_source,
+        dem_resolution_m: dem.dem_resolution_m,
+        dem_resolution_source: dem.dem_resolution_source,
+        sigma_dem: dem.sigma_dem,
+        dem_track_weight: dem.dem_track_weight,
+        dem_track_source: dem.dem_track_source,
         membrane,
         swaths,
         reference: built.as_ref().map(|b| b.info.clone()),
@@ -651,14 +644,14 @@ pub(super) fn plan(
 /// The DEM's widths on the grid and the fusion parameters they set ([`dem_terms`]).
 struct DemTerms {
     /// The DEM's effective resolution, metres, and where it came from.
-    resolution_m: f64,
-    resolution_source: String,
+    dem_resolution_m: f64,
+    dem_resolution_source: String,
     /// σ_B, the DEM's point spread on the grid, and σ_DEM, pixels.
-    psf_sigma: f64,
+    dem_psf_sigma: f64,
     sigma_dem: f64,
     /// E_DEM's track weight a and why.
-    track_weight: f64,
-    track_source: String,
+    dem_track_weight: f64,
+    dem_track_source: String,
     /// `[solver]` with σ_DEM and a.
     params: FusionParams,
 }
@@ -706,12 +699,12 @@ fn dem_terms(o: &Orbital, inputs: &Inputs, grid: &Grid, pr: &crate::grid::Projec
         ..o.solver.clone()
     };
     DemTerms {
-        resolution_m: dem_resolution_m,
-        resolution_source: dem_resolution_source,
-        psf_sigma: dem_psf_sigma,
+        dem_resolution_m,
+        dem_resolution_source,
+        dem_psf_sigma,
         sigma_dem,
-        track_weight: dem_track_weight,
-        track_source: dem_track_source,
+        dem_track_weight,
+        dem_track_source,
         params,
     }
 }
