@@ -468,142 +468,174 @@ impl Workflow {
             )))
             }
         };
-        let abs = |p: &mut PathBuf| {
-            if p.is_relative() {
-                *p = normalise(&base.join(&*p));
-            }
+        let check = Check {
+            path,
+            base,
+            table: &table,
         };
-        let fail = |why: String| Error::Usage(format!("{}: {why}", path.display()));
-        // Whether `[solver] KEY` is in the file (serde's defaults hide it).
-        let given = |key: &str| table.get("solver").and_then(|t| t.get(key)).is_some();
         match &mut wf {
-            Workflow::Orbital(o) => {
-                o.inputs.m3.iter_mut().for_each(abs);
-                o.inputs.lola.iter_mut().for_each(abs);
-                abs(&mut o.inputs.solar_spectrum);
-                abs(&mut o.output.directory);
-                if let Some(f) = &mut o.fetch {
-                    abs(&mut f.directory);
-                    for id in &f.products {
-                        crate::fetch::archive::Product::parse(id)
-                            .map_err(|e| fail(format!("[fetch] products: {e}")))?;
-                    }
-                }
-                if o.inputs.m3.is_empty() {
-                    return Err(fail("[inputs] m3 lists no observation".into()));
-                }
-                if o.inputs.lola.is_empty() {
-                    return Err(fail("[inputs] lola lists no DEM".into()));
-                }
-                if !(o.inputs.wavelength_nm.is_finite() && o.inputs.wavelength_nm > 0.0) {
-                    return Err(fail(format!(
-                        "[inputs] wavelength_nm = {} must be positive",
-                        o.inputs.wavelength_nm
-                    )));
-                }
-                if let Some(r) = o.grid.resolution_m.filter(|r| !(r.is_finite() && *r > 0.0)) {
-                    return Err(fail(format!("[grid] resolution_m = {r} must be positive")));
-                }
-                if o.tiling.tile_size < 16 {
-                    return Err(fail(format!(
-                        "[tiling] tile_size = {} must be at least 16",
-                        o.tiling.tile_size
-                    )));
-                }
-                if let Some(r) = &o.region {
-                    if let RegionKind::LonLat(b) = r.kind().map_err(|e| fail(e.to_string()))? {
-                        // Fill in the projection centre: the run record shows it.
-                        let (lon, lat) = b.centre();
-                        o.grid.center_lat.get_or_insert(lat);
-                        o.grid.center_lon.get_or_insert(lon);
-                    } else if (o.grid.center_lat.is_none() || o.grid.center_lon.is_none())
-                        && o.grid.projection != ProjectionKind::Equirectangular
-                    {
-                        return Err(fail("a [region] in map metres needs [grid] center_lat and center_lon: the metres are in that projection".into()));
-                    }
-                }
-                if let (Some(halo), Some(blend)) = (o.tiling.halo, o.tiling.blend) {
-                    if blend > halo {
-                        return Err(fail(format!("[tiling] blend = {blend} must not exceed the halo ({halo} px): tiles have no data beyond it")));
-                    }
-                }
-                if let Some(r) = o.inputs.dem_resolution_m {
-                    if !(r.is_finite() && r > 0.0) {
-                        return Err(fail(format!(
-                            "[inputs] dem_resolution_m = {r} must be a positive number of metres"
-                        )));
-                    }
-                }
-                let r = &o.inputs;
-                if !(r.register_min_px.is_finite() && r.register_min_px >= 0.0) {
-                    return Err(fail(format!(
-                        "[inputs] register_min_px = {} must be a number of pixels ≥ 0",
-                        r.register_min_px
-                    )));
-                }
-                if !(1..=256).contains(&r.register_search_px) {
-                    return Err(fail(format!(
-                        "[inputs] register_search_px = {} must be 1 to 256 pixels",
-                        r.register_search_px
-                    )));
-                }
-                let sel = o.inputs.selection();
-                let ok = (0.0..90.0).contains(&sel.min_incidence_deg)
-                    && sel.max_incidence_deg > sel.min_incidence_deg
-                    && sel.max_incidence_deg <= 90.0;
-                if !ok {
-                    return Err(fail(format!(
-                        "[inputs] min_incidence_deg = {} and max_incidence_deg = {} must satisfy 0 ≤ min < max ≤ 90",
-                        sel.min_incidence_deg, sel.max_incidence_deg
-                    )));
-                }
-                o.sigma_dem_given = given("sigma_dem");
-                o.dem_track_weight_given = given("dem_track_weight");
-                // A membrane the workflow sets is the one it gets: the rule for a coarse DEM
-                // (fusion::coarse_dem_membrane) stays off unless asked for by name.
-                if !given("coarse_dem_membrane")
-                    && ["eta", "edge_membrane_slope", "multi_eta_factor"]
-                        .iter()
-                        .any(|k| given(k))
-                {
-                    o.solver.coarse_dem_membrane = false;
-                }
-                validate_solver(&o.solver).map_err(fail)?;
-                validate_layers(&o.output.layers).map_err(fail)?;
-            }
-            Workflow::Lab(l) => {
-                // A range scan has no altimeter tracks: E_DEM's track weighting is off unless
-                // asked for.
-                if !given("dem_track_weight") {
-                    l.solver.dem_track_weight = 1.0;
-                }
-                abs(&mut l.inputs.image);
-                abs(&mut l.inputs.depth);
-                abs(&mut l.output.directory);
-                if !(l.inputs.pixel_size_m.is_finite() && l.inputs.pixel_size_m > 0.0) {
-                    return Err(fail(format!(
-                        "[inputs] pixel_size_m = {} must be positive",
-                        l.inputs.pixel_size_m
-                    )));
-                }
-                if !(l.inputs.depth_psf_sigma_px.is_finite() && l.inputs.depth_psf_sigma_px >= 0.0)
-                {
-                    return Err(fail(format!(
-                        "[inputs] depth_psf_sigma_px = {} must be ≥ 0",
-                        l.inputs.depth_psf_sigma_px
-                    )));
-                }
-                if !(l.inputs.depth_scale.is_finite() && l.inputs.depth_scale != 0.0) {
-                    return Err(fail(format!(
-                        "[inputs] depth_scale = {} must be a non-zero number",
-                        l.inputs.depth_scale
-                    )));
-                }
-                validate_solver(&l.solver).map_err(fail)?;
-                validate_layers(&l.output.layers).map_err(fail)?;
-            }
+            Workflow::Orbital(o) => check.orbital(o)?,
+            Workflow::Lab(l) => check.lab(l)?,
         }
         Ok(wf)
+    }
+}
+
+/// What the checks of a parsed workflow need: the file's name (for errors), the folder its
+/// relative paths are resolved against, and its table (to tell a `[solver]` key given from
+/// one defaulted).
+struct Check<'a> {
+    path: &'a Path,
+    base: &'a Path,
+    table: &'a toml::Table,
+}
+
+impl Check<'_> {
+    /// `p` resolved against the workflow's folder, when relative.
+    fn abs(&self, p: &mut PathBuf) {
+        if p.is_relative() {
+            *p = normalise(&self.base.join(&*p));
+        }
+    }
+
+    /// A usage error naming the workflow file.
+    fn fail(&self, why: String) -> Error {
+        Error::Usage(format!("{}: {why}", self.path.display()))
+    }
+
+    /// Whether `[solver] KEY` is in the file (serde's defaults hide it).
+    fn given(&self, key: &str) -> bool {
+        self.table.get("solver").and_then(|t| t.get(key)).is_some()
+    }
+
+    /// An orbital workflow's paths resolved and its values checked against each other.
+    fn orbital(&self, o: &mut Orbital) -> Result<()> {
+        o.inputs.m3.iter_mut().for_each(|p| self.abs(p));
+        o.inputs.lola.iter_mut().for_each(|p| self.abs(p));
+        self.abs(&mut o.inputs.solar_spectrum);
+        self.abs(&mut o.output.directory);
+        if let Some(f) = &mut o.fetch {
+            self.abs(&mut f.directory);
+            for id in &f.products {
+                crate::fetch::archive::Product::parse(id)
+                    .map_err(|e| self.fail(format!("[fetch] products: {e}")))?;
+            }
+        }
+        if o.inputs.m3.is_empty() {
+            return Err(self.fail("[inputs] m3 lists no observation".into()));
+        }
+        if o.inputs.lola.is_empty() {
+            return Err(self.fail("[inputs] lola lists no DEM".into()));
+        }
+        if !(o.inputs.wavelength_nm.is_finite() && o.inputs.wavelength_nm > 0.0) {
+            return Err(self.fail(format!(
+                "[inputs] wavelength_nm = {} must be positive",
+                o.inputs.wavelength_nm
+            )));
+        }
+        if let Some(r) = o.grid.resolution_m.filter(|r| !(r.is_finite() && *r > 0.0)) {
+            return Err(self.fail(format!("[grid] resolution_m = {r} must be positive")));
+        }
+        if o.tiling.tile_size < 16 {
+            return Err(self.fail(format!(
+                "[tiling] tile_size = {} must be at least 16",
+                o.tiling.tile_size
+            )));
+        }
+        if let Some(r) = &o.region {
+            if let RegionKind::LonLat(b) = r.kind().map_err(|e| self.fail(e.to_string()))? {
+                // Fill in the projection centre: the run record shows it.
+                let (lon, lat) = b.centre();
+                o.grid.center_lat.get_or_insert(lat);
+                o.grid.center_lon.get_or_insert(lon);
+            } else if (o.grid.center_lat.is_none() || o.grid.center_lon.is_none())
+                && o.grid.projection != ProjectionKind::Equirectangular
+            {
+                return Err(self.fail("a [region] in map metres needs [grid] center_lat and center_lon: the metres are in that projection".into()));
+            }
+        }
+        if let (Some(halo), Some(blend)) = (o.tiling.halo, o.tiling.blend) {
+            if blend > halo {
+                return Err(self.fail(format!("[tiling] blend = {blend} must not exceed the halo ({halo} px): tiles have no data beyond it")));
+            }
+        }
+        if let Some(r) = o.inputs.dem_resolution_m {
+            if !(r.is_finite() && r > 0.0) {
+                return Err(self.fail(format!(
+                    "[inputs] dem_resolution_m = {r} must be a positive number of metres"
+                )));
+            }
+        }
+        let r = &o.inputs;
+        if !(r.register_min_px.is_finite() && r.register_min_px >= 0.0) {
+            return Err(self.fail(format!(
+                "[inputs] register_min_px = {} must be a number of pixels ≥ 0",
+                r.register_min_px
+            )));
+        }
+        if !(1..=256).contains(&r.register_search_px) {
+            return Err(self.fail(format!(
+                "[inputs] register_search_px = {} must be 1 to 256 pixels",
+                r.register_search_px
+            )));
+        }
+        let sel = o.inputs.selection();
+        let ok = (0.0..90.0).contains(&sel.min_incidence_deg)
+            && sel.max_incidence_deg > sel.min_incidence_deg
+            && sel.max_incidence_deg <= 90.0;
+        if !ok {
+            return Err(self.fail(format!(
+                "[inputs] min_incidence_deg = {} and max_incidence_deg = {} must satisfy 0 ≤ min < max ≤ 90",
+                sel.min_incidence_deg, sel.max_incidence_deg
+            )));
+        }
+        o.sigma_dem_given = self.given("sigma_dem");
+        o.dem_track_weight_given = self.given("dem_track_weight");
+        // A membrane the workflow sets is the one it gets: the rule for a coarse DEM
+        // (fusion::coarse_dem_membrane) stays off unless asked for by name.
+        if !self.given("coarse_dem_membrane")
+            && ["eta", "edge_membrane_slope", "multi_eta_factor"]
+                .iter()
+                .any(|k| self.given(k))
+        {
+            o.solver.coarse_dem_membrane = false;
+        }
+        validate_solver(&o.solver).map_err(|e| self.fail(e))?;
+        validate_layers(&o.output.layers).map_err(|e| self.fail(e))?;
+        Ok(())
+    }
+
+    /// A laboratory workflow's paths resolved and its values checked.
+    fn lab(&self, l: &mut Lab) -> Result<()> {
+        // A range scan has no altimeter tracks: E_DEM's track weighting is off unless
+        // asked for.
+        if !self.given("dem_track_weight") {
+            l.solver.dem_track_weight = 1.0;
+        }
+        self.abs(&mut l.inputs.image);
+        self.abs(&mut l.inputs.depth);
+        self.abs(&mut l.output.directory);
+        if !(l.inputs.pixel_size_m.is_finite() && l.inputs.pixel_size_m > 0.0) {
+            return Err(self.fail(format!(
+                "[inputs] pixel_size_m = {} must be positive",
+                l.inputs.pixel_size_m
+            )));
+        }
+        if !(l.inputs.depth_psf_sigma_px.is_finite() && l.inputs.depth_psf_sigma_px >= 0.0) {
+            return Err(self.fail(format!(
+                "[inputs] depth_psf_sigma_px = {} must be ≥ 0",
+                l.inputs.depth_psf_sigma_px
+            )));
+        }
+        if !(l.inputs.depth_scale.is_finite() && l.inputs.depth_scale != 0.0) {
+            return Err(self.fail(format!(
+                "[inputs] depth_scale = {} must be a non-zero number",
+                l.inputs.depth_scale
+            )));
+        }
+        validate_solver(&l.solver).map_err(|e| self.fail(e))?;
+        validate_layers(&l.output.layers).map_err(|e| self.fail(e))?;
+        Ok(())
     }
 }
 
