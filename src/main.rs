@@ -152,67 +152,10 @@ enum Command {
         #[arg(long)]
         json: bool,
     },
-    /// Write the synthetic scene as mission-format products (an M3-like L1B observation, a
-    /// LOLA-like GDR DEM, a solar spectrum table, truth GeoTIFFs) for `workflows/synthetic.toml`.
-    Synth {
-        /// Directory for the products.
-        #[arg(long, default_value = "out/synthetic/products")]
-        out: PathBuf,
-        /// Scene size in pixels (square).
-        #[arg(long, default_value_t = 512)]
-        size: usize,
-        /// Random seed of the scene.
-        #[arg(long, default_value_t = 1)]
-        seed: u64,
-        /// The Sun of each observation as AZIMUTH/ELEVATION in degrees (azimuth clockwise
-        /// from north), e.g. `--sun 110/55 --sun 250/60`: one L1B product set per `--sun`.
-        /// Default: one observation, Sun at 105/30.
-        #[arg(long = "sun", value_parser = sfsfuse::synth::parse_sun)]
-        suns: Vec<(f64, f64)>,
-        /// Radiometric gain of each further observation relative to the first (in `--sun`
-        /// order from the second on; missing ones are 1).
-        #[arg(long = "gain")]
-        gains: Vec<f64>,
-        /// Each observation covers only a strip of the columns, overlapping its neighbours
-        /// by half a strip.
-        #[arg(long)]
-        strips: bool,
-        /// A selenolocation error of each observation as EAST/NORTH metres (in `--sun` order;
-        /// missing ones are 0/0): its LOC backplane puts every pixel that far from where it
-        /// lies, e.g. `--loc-offset 0/0 --loc-offset 150/150`. `run` registers it back
-        /// (docs/science.md, "Registration").
-        #[arg(long = "loc-offset", allow_hyphen_values = true, value_parser = sfsfuse::synth::parse_offset)]
-        loc_offsets: Vec<[f64; 2]>,
-        /// A selenolocation error that drifts along each observation's strip, as EAST/NORTH
-        /// metres (in `--sun` order; missing ones are 0/0): added to `--loc-offset` in
-        /// proportion to the swath line, from none at the first line to all of it at the last,
-        /// as an attitude drift would, e.g. `--loc-drift 840/0`. `run` registers it on
-        /// segments along the strip (docs/science.md, "Registration").
-        #[arg(long = "loc-drift", allow_hyphen_values = true, value_parser = sfsfuse::synth::parse_offset)]
-        loc_drifts: Vec<[f64; 2]>,
-        /// A gain drifting along each observation's strip (in `--sun` order; missing ones
-        /// are 0): its radiance multiplied by exp(T·(l − l_mid)/1000) at swath line l, T the
-        /// change of ln g per 1000 lines, e.g. `--gain-trend 0 --gain-trend 0.2`. `run`
-        /// estimates it where observations overlap (`[inputs] gain_trend`, on by default;
-        /// docs/science.md, "Several observations").
-        #[arg(long = "gain-trend", allow_hyphen_values = true)]
-        gain_trends: Vec<f64>,
-        /// Each observation's detector pixel as F grid pixels (in `--sun` order; missing ones
-        /// are 1): its swath holds F × F block means of the image, as M3's second optical
-        /// period (200 km, ≈ 280 m pixels) sees a region gridded at the first's 140 m, e.g.
-        /// `--pixel-factor 1 --pixel-factor 2` (docs/science.md, "Images coarser than the
-        /// grid").
-        #[arg(long = "pixel-factor")]
-        pixel_factors: Vec<usize>,
-        /// Centre of the scene's stereographic grid as LAT/LON in degrees (default: crater
-        /// Alphonsus, -13.4/357.2). Scenes wider than ≈ 1100 px at 140 m reach longitude 0°
-        /// from Alphonsus, which the LOLA-like writer does not handle: centre them further east.
-        #[arg(long, allow_hyphen_values = true, value_parser = sfsfuse::demo::parse_center)]
-        center: Option<(f64, f64)>,
-        /// Print JSON instead of a table.
-        #[arg(long)]
-        json: bool,
-    },
+    /// Write the synthetic scene as mission-format products (an M3-like L1B observation per
+    /// `--sun`, a LOLA-like GDR DEM, a solar spectrum table, truth GeoTIFFs) for
+    /// `workflows/synthetic.toml` and its siblings.
+    Synth(SynthArgs),
     /// Benchmark the solvers on one synthetic scene and print timings and ratios.
     Bench {
         /// Scene size in pixels (square).
@@ -262,6 +205,176 @@ fn progress_of(p: ProgressArg) -> sfsfuse::progress::Progress {
         ProgressArg::Lines => Mode::Lines,
         ProgressArg::Quiet => Mode::Quiet,
     })
+}
+
+/// `sfsfuse synth`'s options.
+#[derive(clap::Args)]
+struct SynthArgs {
+    /// Directory for the products.
+    #[arg(long, default_value = "out/synthetic/products")]
+    out: PathBuf,
+    /// Scene size in pixels (square).
+    #[arg(long, default_value_t = 512)]
+    size: usize,
+    /// Random seed of the scene.
+    #[arg(long, default_value_t = 1)]
+    seed: u64,
+    /// The Sun of each observation as AZIMUTH/ELEVATION in degrees (azimuth clockwise
+    /// from north), e.g. `--sun 110/55 --sun 250/60`: one L1B product set per `--sun`.
+    /// Default: one observation, Sun at 105/30.
+    #[arg(long = "sun", value_parser = sfsfuse::synth::parse_sun)]
+    suns: Vec<(f64, f64)>,
+    /// Radiometric gain of each further observation relative to the first (in `--sun`
+    /// order from the second on; missing ones are 1).
+    #[arg(long = "gain")]
+    gains: Vec<f64>,
+    /// Each observation covers only a strip of the columns, overlapping its neighbours
+    /// by half a strip.
+    #[arg(long)]
+    strips: bool,
+    /// A selenolocation error of each observation as EAST/NORTH metres (in `--sun` order;
+    /// missing ones are 0/0): its LOC backplane puts every pixel that far from where it
+    /// lies, e.g. `--loc-offset 0/0 --loc-offset 150/150`. `run` registers it back
+    /// (docs/science.md, "Registration").
+    #[arg(long = "loc-offset", allow_hyphen_values = true, value_parser = sfsfuse::synth::parse_offset)]
+    loc_offsets: Vec<[f64; 2]>,
+    /// A selenolocation error that drifts along each observation's strip, as EAST/NORTH
+    /// metres (in `--sun` order; missing ones are 0/0): added to `--loc-offset` in
+    /// proportion to the swath line, from none at the first line to all of it at the last,
+    /// as an attitude drift would, e.g. `--loc-drift 840/0`. `run` registers it on
+    /// segments along the strip (docs/science.md, "Registration").
+    #[arg(long = "loc-drift", allow_hyphen_values = true, value_parser = sfsfuse::synth::parse_offset)]
+    loc_drifts: Vec<[f64; 2]>,
+    /// A gain drifting along each observation's strip (in `--sun` order; missing ones
+    /// are 0): its radiance multiplied by exp(T·(l − l_mid)/1000) at swath line l, T the
+    /// change of ln g per 1000 lines, e.g. `--gain-trend 0 --gain-trend 0.2`. `run`
+    /// estimates it where observations overlap (`[inputs] gain_trend`, on by default;
+    /// docs/science.md, "Several observations").
+    #[arg(long = "gain-trend", allow_hyphen_values = true)]
+    gain_trends: Vec<f64>,
+    /// Each observation's detector pixel as F grid pixels (in `--sun` order; missing ones
+    /// are 1): its swath holds F × F block means of the image, as M3's second optical
+    /// period (200 km, ≈ 280 m pixels) sees a region gridded at the first's 140 m, e.g.
+    /// `--pixel-factor 1 --pixel-factor 2` (docs/science.md, "Images coarser than the
+    /// grid").
+    #[arg(long = "pixel-factor")]
+    pixel_factors: Vec<usize>,
+    /// Centre of the scene's stereographic grid as LAT/LON in degrees (default: crater
+    /// Alphonsus, -13.4/357.2). Scenes wider than ≈ 1100 px at 140 m reach longitude 0°
+    /// from Alphonsus, which the LOLA-like writer does not handle: centre them further east.
+    #[arg(long, allow_hyphen_values = true, value_parser = sfsfuse::demo::parse_center)]
+    center: Option<(f64, f64)>,
+    /// Print JSON instead of a table.
+    #[arg(long)]
+    json: bool,
+}
+
+/// `sfsfuse synth`: the options checked, the scene generated and written as mission-format
+/// products ([`sfsfuse::synth::products::write_observed`]), and what was written reported.
+fn synth(a: SynthArgs) -> Result<(), sfsfuse::Error> {
+    let SynthArgs {
+        out,
+        size,
+        seed,
+        suns,
+        gains,
+        strips,
+        loc_offsets,
+        loc_drifts,
+        gain_trends,
+        pixel_factors,
+        center,
+        json,
+    } = a;
+    if pixel_factors.len() > suns.len().max(1) {
+        return Err(sfsfuse::Error::Usage(format!(
+            "{} --pixel-factor values for {} observation(s): give at most one per --sun",
+            pixel_factors.len(),
+            suns.len().max(1)
+        )));
+    }
+    for (name, n) in [
+        ("--loc-offset", loc_offsets.len()),
+        ("--loc-drift", loc_drifts.len()),
+        ("--gain-trend", gain_trends.len()),
+    ] {
+        if n > suns.len().max(1) {
+            return Err(sfsfuse::Error::Usage(format!(
+                "{n} {name} values for {} observation(s): give at most one per --sun",
+                suns.len().max(1)
+            )));
+        }
+    }
+    if let Some(t) = gain_trends
+        .iter()
+        .find(|t| !(t.is_finite() && t.abs() <= 10.0))
+    {
+        return Err(sfsfuse::Error::Usage(format!(
+            "--gain-trend {t}: a change of ln g per 1000 lines must be a number within ±10"
+        )));
+    }
+    let n = loc_offsets
+        .len()
+        .max(loc_drifts.len())
+        .max(gain_trends.len());
+    let loc_errors: Vec<sfsfuse::synth::products::ProductErrors> = (0..n)
+        .map(|k| sfsfuse::synth::products::ProductErrors {
+            offset_m: loc_offsets.get(k).copied().unwrap_or_default(),
+            drift_m: loc_drifts.get(k).copied().unwrap_or_default(),
+            gain_trend: gain_trends.get(k).copied().unwrap_or_default(),
+        })
+        .collect();
+    if let Some(g) = gains.iter().find(|g| !(g.is_finite() && **g > 0.0)) {
+        return Err(sfsfuse::Error::Usage(format!(
+            "--gain {g}: a gain must be a positive number"
+        )));
+    }
+    if gains.len() >= suns.len().max(1) {
+        return Err(sfsfuse::Error::Usage(format!(
+            "{} --gain values for {} observation(s): give one per --sun after the first",
+            gains.len(),
+            suns.len().max(1)
+        )));
+    }
+    let mut all_gains = vec![1.0];
+    all_gains.extend(&gains);
+    let spec = SceneSpec {
+        size,
+        seed,
+        ..SceneSpec::default()
+    };
+    let spec = if suns.is_empty() {
+        spec
+    } else {
+        spec.with_observations(&suns, &all_gains, strips)
+    };
+    if size < 16 {
+        return Err(sfsfuse::Error::Usage(format!(
+            "--size {size} is too small: use at least 16"
+        )));
+    }
+    let scene = sfsfuse::synth::generate(&spec);
+    let grid = match center {
+        Some((lat, lon)) => sfsfuse::demo::grid_at(&spec, lat, lon)?,
+        None => sfsfuse::demo::demo_grid(&spec)?,
+    };
+    let p =
+        sfsfuse::synth::products::write_observed(&scene, &grid, &out, &loc_errors, &pixel_factors)?;
+    let labels: Vec<String> = p
+        .m3_labels
+        .iter()
+        .map(|l| l.display().to_string())
+        .collect();
+    let table = format!(
+        "M3-like L1B label   {}\nLOLA-like GDR label {}\nsolar spectrum      {}\ntruth DEM           {}\ntruth albedo        {}\n",
+        labels.join("\n                    "),
+        p.lola_label.display(),
+        p.solar_table.display(),
+        p.truth_dem.display(),
+        p.truth_albedo.display()
+    );
+    emit(json, &p, table)?;
+    Ok(())
 }
 
 fn run(cli: Cli) -> Result<(), sfsfuse::Error> {
@@ -417,114 +530,7 @@ fn run(cli: Cli) -> Result<(), sfsfuse::Error> {
             drop(progress);
             emit(json, &s, s.table())?;
         }
-        Command::Synth {
-            out,
-            size,
-            seed,
-            suns,
-            gains,
-            strips,
-            loc_offsets,
-            loc_drifts,
-            gain_trends,
-            pixel_factors,
-            center,
-            json,
-        } => {
-            if pixel_factors.len() > suns.len().max(1) {
-                return Err(sfsfuse::Error::Usage(format!(
-                    "{} --pixel-factor values for {} observation(s): give at most one per --sun",
-                    pixel_factors.len(),
-                    suns.len().max(1)
-                )));
-            }
-            for (name, n) in [
-                ("--loc-offset", loc_offsets.len()),
-                ("--loc-drift", loc_drifts.len()),
-                ("--gain-trend", gain_trends.len()),
-            ] {
-                if n > suns.len().max(1) {
-                    return Err(sfsfuse::Error::Usage(format!(
-                        "{n} {name} values for {} observation(s): give at most one per --sun",
-                        suns.len().max(1)
-                    )));
-                }
-            }
-            if let Some(t) = gain_trends
-                .iter()
-                .find(|t| !(t.is_finite() && t.abs() <= 10.0))
-            {
-                return Err(sfsfuse::Error::Usage(format!(
-                    "--gain-trend {t}: a change of ln g per 1000 lines must be a number within ±10"
-                )));
-            }
-            let n = loc_offsets
-                .len()
-                .max(loc_drifts.len())
-                .max(gain_trends.len());
-            let loc_errors: Vec<sfsfuse::synth::products::ProductErrors> = (0..n)
-                .map(|k| sfsfuse::synth::products::ProductErrors {
-                    offset_m: loc_offsets.get(k).copied().unwrap_or_default(),
-                    drift_m: loc_drifts.get(k).copied().unwrap_or_default(),
-                    gain_trend: gain_trends.get(k).copied().unwrap_or_default(),
-                })
-                .collect();
-            if let Some(g) = gains.iter().find(|g| !(g.is_finite() && **g > 0.0)) {
-                return Err(sfsfuse::Error::Usage(format!(
-                    "--gain {g}: a gain must be a positive number"
-                )));
-            }
-            if gains.len() >= suns.len().max(1) {
-                return Err(sfsfuse::Error::Usage(format!(
-                    "{} --gain values for {} observation(s): give one per --sun after the first",
-                    gains.len(),
-                    suns.len().max(1)
-                )));
-            }
-            let mut all_gains = vec![1.0];
-            all_gains.extend(&gains);
-            let spec = SceneSpec {
-                size,
-                seed,
-                ..SceneSpec::default()
-            };
-            let spec = if suns.is_empty() {
-                spec
-            } else {
-                spec.with_observations(&suns, &all_gains, strips)
-            };
-            if size < 16 {
-                return Err(sfsfuse::Error::Usage(format!(
-                    "--size {size} is too small: use at least 16"
-                )));
-            }
-            let scene = sfsfuse::synth::generate(&spec);
-            let grid = match center {
-                Some((lat, lon)) => sfsfuse::demo::grid_at(&spec, lat, lon)?,
-                None => sfsfuse::demo::demo_grid(&spec)?,
-            };
-            let p = sfsfuse::synth::products::write_observed(
-                &scene,
-                &grid,
-                &out,
-                &loc_errors,
-                &pixel_factors,
-            )?;
-            let labels: Vec<String> = p
-                .m3_labels
-                .iter()
-                .map(|l| l.display().to_string())
-                .collect();
-            let table = format!(
-                "M3-like L1B label   {}\nLOLA-like GDR label {}\nsolar spectrum      {}\ntruth DEM           {}\ntruth albedo        {}\n",
-                labels.join("\n                    "),
-                p.lola_label.display(),
-                p.solar_table.display(),
-                p.truth_dem.display(),
-                p.truth_albedo.display()
-            );
-            emit(json, &p, table)?;
-        }
+        Command::Synth(a) => synth(a)?,
         Command::Bench {
             size,
             json,
