@@ -2,6 +2,7 @@
 //! atomic, checksummed `.sfstile` file; find and verify finished tiles.
 
 use super::*;
+use ndarray::ArrayView2;
 
 /// A finished tile's record (the header of its file, and a row of the run record).
 #[derive(Debug, Clone, Serialize, Deserialize)]
@@ -172,9 +173,7 @@ pub(super) fn run_tile(
     let grid = plan
         .grid
         .window(e.r0 as isize, e.c0 as isize, e.rows, e.cols);
-    let dim = (e.rows, e.cols);
-    // Every observation that reaches the tile, and the DEM; the `image` layer shows the first
-    // observation that covers a pixel.
+    // Every observation that reaches the tile, and the DEM.
     let Ingested { shots, dem } = match ingested {
         Some(i) => i,
         None => ingest_window(
@@ -193,30 +192,85 @@ pub(super) fn run_tile(
         e => e,
     })?;
     let ids: Vec<usize> = shots.iter().map(|(k, _)| *k).collect();
-    let per_obs = |v: &[f64]| {
+    let problem = tile_problem(o, inputs, plan, &grid, &shots, &ids, dem.view());
+    let outcome = fuse_tile(
+        o,
+        plan,
+        reference,
+        tile,
+        &problem,
+        &dem,
+        &ids,
+        inputs.obs.len(),
+    );
+    // The observations' per-pixel radiances and Sun and view vectors have served (the `image`
+    // layer is formed from them now): they go before the layers are assembled.
+    drop(problem);
+    let image = first_image(&shots, (e.rows, e.cols));
+    drop(shots);
+    let layers = match outcome {
+        Ok((f, sanity)) => TileLayers::fused(f, sanity, dem, image),
+        Err(None) => TileLayers::no_image(tile, dem, image, inputs.obs.len()),
+        Err(Some(err)) => return Err(Error::Usage(format!("tile {}: {err}", tile.id))),
+    };
+    write_tile(o, plan, tile, t0, layers)
+}
+
+/// The fusion problem of a tile: its observations (`shots`, whose indices in the workflow are
+/// `ids`) with the plan's intensity scale, gains, noise weights and blurs, and its DEM.
+fn tile_problem<'a>(
+    o: &Orbital,
+    inputs: &'a Inputs,
+    plan: &Plan,
+    grid: &Grid,
+    shots: &'a [(usize, ingest::ImageOnGrid)],
+    ids: &[usize],
+    dem: ArrayView2<'a, f64>,
+) -> Problem<'a> {
+    // The plan's per-observation values, in the order of the tile's observations; an
+    // observation the plan has no value for keeps `missing`.
+    let per_obs = |v: &[f64], missing: f64| -> Vec<f64> {
         ids.iter()
-            .map(|&k| v.get(k).copied().unwrap_or(1.0))
+            .map(|&k| v.get(k).copied().unwrap_or(missing))
             .collect()
     };
-    let problem = Problem {
-        observations: fusion_observations(&shots),
-        dem: dem.view(),
+    Problem {
+        observations: fusion_observations(shots),
+        dem,
         spacing: grid.spacing,
         dem_psf_sigma: plan.dem_psf_sigma,
         model: inputs.model.as_ref(),
         intensity_scale: Some(plan.intensity_scale),
-        gains: Some(per_obs(&plan.gains)),
-        noise_weights: Some(per_obs(&plan.noise_weights)),
-        blur: Some({
-            let blur = plan.blur_px();
-            ids.iter()
-                .map(|&k| blur.get(k).copied().unwrap_or(0.0))
-                .collect()
-        }),
+        gains: Some(per_obs(&plan.gains, 1.0)),
+        noise_weights: Some(per_obs(&plan.noise_weights, 1.0)),
+        blur: Some(per_obs(&plan.blur_px(), 0.0)),
         selection: o.inputs.selection(),
-    };
-    // Without the plan's reference the tile solves every stage on its own window (the halo
-    // then covers the first stage's σ_ρ).
+    }
+}
+
+/// A tile's fusion and the sums of its core for the run's sanity figures; `Err(None)` where
+/// no observation reaches the tile.
+type TileOutcome = std::result::Result<(fusion::Fusion, TileSums), Option<fusion::FusionError>>;
+
+/// Fuse a tile's problem: from the plan's reference on the window where there is one (else
+/// every stage on the window alone; the halo then covers the first stage's σ_ρ), then anchor
+/// the result's large scales to the reference or, without one, to the input DEM
+/// ([`fusion::anchor`]).
+#[allow(clippy::too_many_arguments)]
+fn fuse_tile(
+    o: &Orbital,
+    plan: &Plan,
+    reference: Option<&Array2<f64>>,
+    tile: &Tile,
+    problem: &Problem,
+    dem: &Array2<f64>,
+    ids: &[usize],
+    n_obs: usize,
+) -> TileOutcome {
+    if problem.observations.is_empty() {
+        return Err(None);
+    }
+    let e = tile.ext;
     let params = FusionParams {
         coarse_factor: 1,
         ..plan.solver(&o.solver)
@@ -227,48 +281,40 @@ pub(super) fn run_tile(
         plan.reference
             .as_ref()
             .zip(reference)
-            .map(|(info, r)| start_on(r, info, &e, &dem))
+            .map(|(info, r)| start_on(r, info, &e, dem))
     };
+    let mut f = match start() {
+        Some(z0) => fusion::fuse_from(problem, &params, z0),
+        None => fusion::fuse(problem, &params),
+    }
+    .map_err(|err| match err {
+        fusion::FusionError::NoObservations => None,
+        err => Some(err),
+    })?;
+    let start = start();
+    let level = start.as_ref().unwrap_or(dem);
+    f.height = fusion::anchor(
+        &f.height,
+        level.view(),
+        f.support.view(),
+        plan.halo as f64 / 4.0,
+    );
+    drop(start);
     let core = (
         tile.core.r0 - e.r0,
         tile.core.r0 - e.r0 + tile.core.rows,
         tile.core.c0 - e.c0,
         tile.core.c0 - e.c0 + tile.core.cols,
     );
-    let n_obs = inputs.obs.len();
-    let fused = if problem.observations.is_empty() {
-        Err(fusion::FusionError::NoObservations)
-    } else {
-        match start() {
-            Some(z0) => fusion::fuse_from(&problem, &params, z0),
-            None => fusion::fuse(&problem, &params),
-        }
-    };
-    let outcome = match fused {
-        Ok(mut f) => {
-            // The large scales come from the reference where there is one (the tile's own
-            // window cannot see them), else from the input DEM.
-            let start = start();
-            let level = start.as_ref().unwrap_or(&dem);
-            f.height = fusion::anchor(
-                &f.height,
-                level.view(),
-                f.support.view(),
-                plan.halo as f64 / 4.0,
-            );
-            drop(start);
-            let sanity = TileSums::of_tile(&problem, &f, &f.height, &ids, n_obs, core);
-            Ok((f, sanity))
-        }
-        Err(fusion::FusionError::NoObservations) => Err(None),
-        Err(err) => Err(Some(err)),
-    };
-    // The observations' per-pixel radiances and Sun and view vectors have served (the `image`
-    // layer, the first observation that covers a pixel, is formed from them now): they go
-    // before the layers are assembled.
-    drop(problem);
+    let sanity = TileSums::of_tile(problem, &f, &f.height, ids, n_obs, core);
+    Ok((f, sanity))
+}
+
+/// The `image` layer: at each pixel the reflectance of the first observation that covers it
+/// (NaN where none does).
+fn first_image(shots: &[(usize, ingest::ImageOnGrid)], dim: (usize, usize)) -> Array2<f64> {
     let mut image = Array2::from_elem(dim, f64::NAN);
-    for (_, img) in &shots {
+    for (_, img) in shots {
         Zip::from(&mut image)
             .and(&img.reflectance)
             .for_each(|i, &r| {
@@ -277,56 +323,82 @@ pub(super) fn run_tile(
                 }
             });
     }
-    drop(shots);
-    let (status, layers, stages, photometric, sanity) = match outcome {
-        Ok((f, sanity)) => {
-            let n = f.photometric.iter().filter(|&&b| b).count();
-            let mask = mask_codes(&f.photometric, &image);
-            (
-                "fused",
-                [
-                    f.height,
-                    f.albedo,
-                    f.residual,
-                    mask,
-                    dem,
-                    image,
-                    f.observations.mapv(f64::from),
-                ],
-                f.stages,
-                n,
-                sanity,
-            )
+    image
+}
+
+/// What a tile file holds besides its window and timing: the layers in [`TILE_LAYERS`] order
+/// and what the record says of them.
+struct TileLayers {
+    status: &'static str,
+    layers: [Array2<f64>; 7],
+    stages: Vec<StageReport>,
+    photometric: usize,
+    sanity: TileSums,
+}
+
+impl TileLayers {
+    /// A fused tile's layers.
+    fn fused(f: fusion::Fusion, sanity: TileSums, dem: Array2<f64>, image: Array2<f64>) -> Self {
+        let photometric = f.photometric.iter().filter(|&&b| b).count();
+        let mask = mask_codes(&f.photometric, &image);
+        TileLayers {
+            status: "fused",
+            layers: [
+                f.height,
+                f.albedo,
+                f.residual,
+                mask,
+                dem,
+                image,
+                f.observations.mapv(f64::from),
+            ],
+            stages: f.stages,
+            photometric,
+            sanity,
         }
-        Err(None) => {
-            let nan = Array2::from_elem(dim, f64::NAN);
-            (
-                "no_image",
-                [
-                    dem.clone(),
-                    nan.clone(),
-                    nan,
-                    Array2::from_elem(dim, MASK_NO_IMAGE),
-                    dem,
-                    image,
-                    Array2::zeros(dim),
-                ],
-                Vec::new(),
-                0,
-                TileSums::no_image(tile.core.rows * tile.core.cols, n_obs),
-            )
+    }
+
+    /// A tile no observation reaches: the input DEM, no albedo or residual, every pixel
+    /// [`MASK_NO_IMAGE`].
+    fn no_image(tile: &Tile, dem: Array2<f64>, image: Array2<f64>, n_obs: usize) -> Self {
+        let dim = dem.dim();
+        let nan = Array2::from_elem(dim, f64::NAN);
+        TileLayers {
+            status: "no_image",
+            layers: [
+                dem.clone(),
+                nan.clone(),
+                nan,
+                Array2::from_elem(dim, MASK_NO_IMAGE),
+                dem,
+                image,
+                Array2::zeros(dim),
+            ],
+            stages: Vec::new(),
+            photometric: 0,
+            sanity: TileSums::no_image(tile.core.rows * tile.core.cols, n_obs),
         }
-        Err(Some(err)) => return Err(Error::Usage(format!("tile {}: {err}", tile.id))),
-    };
-    // The layers as little-endian f32, layer after layer: hashed in one pass, then streamed
-    // into the file after its header (no copy of them is assembled in memory).
+    }
+}
+
+/// Write a tile's file atomically: [`TILE_MAGIC`], the record's length and JSON, then the
+/// layers as little-endian f32, layer after layer (hashed in one pass for the record's
+/// checksum, then streamed into the file: no copy of them is assembled in memory).
+fn write_tile(
+    o: &Orbital,
+    plan: &Plan,
+    tile: &Tile,
+    t0: Instant,
+    t: TileLayers,
+) -> Result<TileRecord> {
+    let e = tile.ext;
     let le_bytes = |l: &Array2<f64>, buf: &mut Vec<u8>| {
         buf.clear();
         buf.extend(l.iter().flat_map(|&v| (v as f32).to_le_bytes()));
     };
     let mut hasher = Sha256::new();
     let mut buf = Vec::with_capacity(e.len() * 4);
-    for l in &layers {
+    for l in &t.layers {
         le_bytes(l, &mut buf);
         hasher.update(&buf);
     }
@@ -340,15 +412,16 @@ pub(super) fn run_tile(
         key: plan.key.clone(),
         core: tile.core,
         ext: e,
-        status: status.into(),
-        photometric_pixels: photometric,
-        sanity,
-        iterations: stages
+        status: t.status.into(),
+        photometric_pixels: t.photometric,
+        sanity: t.sanity,
+        iterations: t
+            .stages
             .iter()
             .map(|s| s.iterations.len().saturating_sub(1))
             .sum(),
         seconds: t0.elapsed().as_secs_f64(),
-        stages,
+        stages: t.stages,
     };
     let json = serde_json::to_vec(&record).expect("records serialise");
     let path = tile_path(&o.output.directory, tile.id);
@@ -356,7 +429,7 @@ pub(super) fn run_tile(
         w.write_all(TILE_MAGIC)?;
         w.write_all(&(json.len() as u64).to_le_bytes())?;
         w.write_all(&json)?;
-        for l in &layers {
+        for l in &t.layers {
             le_bytes(l, &mut buf);
             w.write_all(&buf)?;
         }
