@@ -275,159 +275,18 @@ pub fn complex_crater_scale(d: f64) -> f64 {
     }
 }
 
-/// Generate the scene for `spec`.
+/// Generate the scene for `spec`. One random stream draws, in this order, the relief's
+/// waves, the craters, the albedo's patches and texture, the first observation's noise and
+/// the input DEM's errors; each further observation's noise has a stream of its own.
 pub fn generate(spec: &SceneSpec) -> Scene {
     let n = spec.size;
-    let eps = spec.spacing;
-    let extent = n as f64 * eps;
     let mut rng = Rng::new(spec.seed);
-
-    // Smooth relief: waves with wavelengths 25–120 km, a few hundred metres in all.
-    let waves: Vec<Wave> = (0..8)
-        .map(|_| {
-            let lambda = rng.range(25e3, 120e3);
-            let th = rng.range(0.0, std::f64::consts::TAU);
-            let k = std::f64::consts::TAU / lambda;
-            Wave {
-                kx: k * th.cos(),
-                ky: k * th.sin(),
-                phase: rng.range(0.0, std::f64::consts::TAU),
-                amp: rng.range(40.0, 120.0) * lambda / 60e3,
-            }
-        })
-        .collect();
-
-    // Craters: N(>D) ∝ D⁻², 3 px ≤ D ≤ n/5 px, about one crater per 900 px².
-    let (dmin, dmax) = (spec.crater_min_px * eps, (n as f64 / 5.0) * eps);
-    let count = (spec.crater_density * (n * n) as f64 / 1e6).round() as usize;
-    let mut craters: Vec<Crater> = (0..count)
-        .map(|_| {
-            let u = rng.uniform();
-            // Inverse CDF of the truncated Pareto with exponent 2.
-            let d = dmin / (1.0 - u * (1.0 - (dmin / dmax).powi(2))).sqrt();
-            let ratio = 0.2 * rng.range(0.85, 1.05);
-            let complex = complex_crater_scale(d);
-            Crater {
-                x: rng.range(0.0, extent),
-                y: -rng.range(0.0, extent),
-                r: d / 2.0,
-                depth: ratio * d * complex,
-                rim: 0.04 * d * complex,
-            }
-        })
-        .collect();
-    // Big craters first, so that small ones superpose on them.
-    craters.sort_by(|a, b| b.r.total_cmp(&a.r));
-
-    // Albedo. It is built before the subsampled surface below (and draws from `rng` after the
-    // craters, as it always did), so that the texture's temporaries never coexist with that.
-    let mut albedo = Array2::from_elem((n, n), 0.0);
-    let patches: Vec<(f64, f64, f64, f64)> = (0..(n * n / 40000).max(3))
-        .map(|_| {
-            (
-                rng.range(0.0, n as f64),
-                rng.range(0.0, n as f64),
-                rng.range(15.0, 55.0),
-                rng.range(0.06, 0.14),
-            )
-        })
-        .collect();
-    let bright: Vec<&Crater> = craters.iter().filter(|c| c.r * 2.0 >= 6.0 * eps).collect();
-    // The ring is negligible (< 0.05·e⁻¹⁶) beyond t = 4, i.e. (1 + 4·0.6)·r from the centre.
-    let reach = |c: &Crater| c.r * (1.0 + 4.0 * 0.6);
-    albedo
-        .axis_iter_mut(Axis(0))
-        .into_par_iter()
-        .enumerate()
-        .for_each(|(i, mut row)| {
-            let fi = i as f64;
-            let y = -fi * eps;
-            // The bright craters whose rings reach this row, in list order (the sum's order).
-            let near: Vec<&Crater> = bright
-                .iter()
-                .copied()
-                .filter(|c| (y - c.y).abs() <= reach(c))
-                .collect();
-            for (j, w) in row.iter_mut().enumerate() {
-                let fj = j as f64;
-                for &(ci, cj, rad, amp) in &patches {
-                    let d2 = (fi - ci).powi(2) + (fj - cj).powi(2);
-                    // Beyond rad + 1424 px, e^((d − rad)/2) overflows to infinity and the term
-                    // is exactly 0: skipping it changes no bit.
-                    if d2 > (rad + PATCH_ZERO_PX).powi(2) {
-                        continue;
-                    }
-                    let d = d2.sqrt();
-                    // Soft edge about 4 px wide.
-                    *w -= amp / (1.0 + ((d - rad) / 2.0).exp());
-                }
-                let x = fj * eps;
-                for c in &near {
-                    if (x - c.x).abs() > reach(c) {
-                        continue;
-                    }
-                    let d = ((x - c.x).powi(2) + (y - c.y).powi(2)).sqrt();
-                    let t = (d - c.r) / (0.6 * c.r);
-                    if t.abs() < 4.0 {
-                        *w += 0.05 * (-t * t).exp();
-                    }
-                }
-            }
-        });
-    // Fine texture: white noise smoothed over ~1.5 px, σ ≈ 0.01.
+    let waves = relief_waves(&mut rng);
+    let craters = craters(spec, &mut rng);
     let dct = Dct2d::new(n, n);
-    let white = Array2::from_shape_simple_fn((n, n), || rng.normal());
-    let texture = gaussian_filter(&dct, &white, 1.5);
-    let tstd = (texture.iter().map(|x| x * x).sum::<f64>() / (n * n) as f64).sqrt();
-    albedo.zip_mut_with(&texture, |w, t| *w += 0.01 * t / tstd);
-    let mean = albedo.mean().unwrap_or(0.0);
-    albedo.mapv_inplace(|w| (w - mean + 0.44).clamp(0.05, 0.95));
-
-    // Height and analytic slopes on a grid SUB times finer than the pixels; subsample
-    // (SUB/2, SUB/2) of each pixel is its centre (x = j·ε east, y = −i·ε north).
-    let m = n * SUB;
-    let h_sub = eps / SUB as f64;
-    let origin = -((SUB / 2) as f64) * h_sub;
-    let mut height = Array2::zeros((m, m));
-    let mut px = Array2::zeros((m, m));
-    let mut py = Array2::zeros((m, m));
-    Zip::indexed(&mut height)
-        .and(&mut px)
-        .and(&mut py)
-        .par_for_each(|(i, j), h, gx, gy| {
-            let (x, y) = (origin + j as f64 * h_sub, -(origin + i as f64 * h_sub));
-            for w in &waves {
-                let a = w.kx * x + w.ky * y + w.phase;
-                *h += w.amp * a.sin();
-                *gx += w.amp * w.kx * a.cos();
-                *gy += w.amp * w.ky * a.cos();
-            }
-        });
-    // Craters, row by row in parallel; within a row they are added in the (size-sorted) list
-    // order, so the sums do not depend on the thread count.
-    height
-        .axis_iter_mut(Axis(0))
-        .into_par_iter()
-        .zip(px.axis_iter_mut(Axis(0)))
-        .zip(py.axis_iter_mut(Axis(0)))
-        .enumerate()
-        .for_each(|(i, ((mut hrow, mut xrow), mut yrow))| {
-            let y = -(origin + i as f64 * h_sub);
-            for c in &craters {
-                let reach = 3.0 * c.r;
-                if (y - c.y).abs() > reach {
-                    continue;
-                }
-                let j0 = (((c.x - reach - origin) / h_sub).floor().max(0.0) as usize).min(m);
-                let j1 = (((c.x + reach - origin) / h_sub).ceil().max(0.0) as usize + 1).min(m);
-                for j in j0..j1 {
-                    let (h, gx, gy) = c.eval(origin + j as f64 * h_sub - c.x, y - c.y);
-                    hrow[j] += h;
-                    xrow[j] += gx;
-                    yrow[j] += gy;
-                }
-            }
-        });
+    let albedo = albedo(spec, &craters, &dct, &mut rng);
+    let (height, px, py) = subsampled_relief(spec, &waves, &craters);
+    let h_sub = spec.spacing / SUB as f64;
 
     // Rendering: each pixel averages the radiance of its SUB × SUB subsamples, as a detector
     // integrates over its footprint; the albedo is constant over a pixel.
@@ -484,6 +343,174 @@ pub fn generate(spec: &SceneSpec) -> Scene {
         model,
         more,
     }
+}
+
+/// The smooth relief: eight plane waves with wavelengths of 25–120 km and random directions
+/// and phases, a few hundred metres in all (amplitude 40–120 m per 60 km of wavelength).
+fn relief_waves(rng: &mut Rng) -> Vec<Wave> {
+    (0..8)
+        .map(|_| {
+            let lambda = rng.range(25e3, 120e3);
+            let th = rng.range(0.0, std::f64::consts::TAU);
+            let k = std::f64::consts::TAU / lambda;
+            Wave {
+                kx: k * th.cos(),
+                ky: k * th.sin(),
+                phase: rng.range(0.0, std::f64::consts::TAU),
+                amp: rng.range(40.0, 120.0) * lambda / 60e3,
+            }
+        })
+        .collect()
+}
+
+/// The craters, largest first (so that small ones superpose on them): diameters with
+/// N(>D) ∝ D⁻² between `crater_min_px` and n/5 pixels, `crater_density` per 10⁶ px²,
+/// depth/diameter 0.17–0.21 and rim height 0.04·D, both scaled beyond the simple-to-complex
+/// transition by [`complex_crater_scale`].
+fn craters(spec: &SceneSpec, rng: &mut Rng) -> Vec<Crater> {
+    let (n, eps) = (spec.size, spec.spacing);
+    let extent = n as f64 * eps;
+    let (dmin, dmax) = (spec.crater_min_px * eps, (n as f64 / 5.0) * eps);
+    let count = (spec.crater_density * (n * n) as f64 / 1e6).round() as usize;
+    let mut craters: Vec<Crater> = (0..count)
+        .map(|_| {
+            let u = rng.uniform();
+            // Inverse CDF of the truncated Pareto with exponent 2.
+            let d = dmin / (1.0 - u * (1.0 - (dmin / dmax).powi(2))).sqrt();
+            let ratio = 0.2 * rng.range(0.85, 1.05);
+            let complex = complex_crater_scale(d);
+            Crater {
+                x: rng.range(0.0, extent),
+                y: -rng.range(0.0, extent),
+                r: d / 2.0,
+                depth: ratio * d * complex,
+                rim: 0.04 * d * complex,
+            }
+        })
+        .collect();
+    craters.sort_by(|a, b| b.r.total_cmp(&a.r));
+    craters
+}
+
+/// The albedo: 0.44 on average, darker patches (mare-like, 15–55 px radius, 0.06–0.14 darker,
+/// soft edges about 4 px wide), a bright ring (+0.05) around each crater of 6 px or more, and
+/// a fine texture (white noise smoothed over 1.5 px, σ = 0.01); clamped to [0.05, 0.95].
+fn albedo(spec: &SceneSpec, craters: &[Crater], dct: &Dct2d, rng: &mut Rng) -> Array2<f64> {
+    let (n, eps) = (spec.size, spec.spacing);
+    let mut albedo = Array2::from_elem((n, n), 0.0);
+    let patches: Vec<(f64, f64, f64, f64)> = (0..(n * n / 40000).max(3))
+        .map(|_| {
+            (
+                rng.range(0.0, n as f64),
+                rng.range(0.0, n as f64),
+                rng.range(15.0, 55.0),
+                rng.range(0.06, 0.14),
+            )
+        })
+        .collect();
+    let bright: Vec<&Crater> = craters.iter().filter(|c| c.r * 2.0 >= 6.0 * eps).collect();
+    // The ring is negligible (< 0.05·e⁻¹⁶) beyond t = 4, i.e. (1 + 4·0.6)·r from the centre.
+    let reach = |c: &Crater| c.r * (1.0 + 4.0 * 0.6);
+    albedo
+        .axis_iter_mut(Axis(0))
+        .into_par_iter()
+        .enumerate()
+        .for_each(|(i, mut row)| {
+            let fi = i as f64;
+            let y = -fi * eps;
+            // The bright craters whose rings reach this row, in list order (the sum's order).
+            let near: Vec<&Crater> = bright
+                .iter()
+                .copied()
+                .filter(|c| (y - c.y).abs() <= reach(c))
+                .collect();
+            for (j, w) in row.iter_mut().enumerate() {
+                let fj = j as f64;
+                for &(ci, cj, rad, amp) in &patches {
+                    let d2 = (fi - ci).powi(2) + (fj - cj).powi(2);
+                    // Beyond rad + 1424 px, e^((d − rad)/2) overflows to infinity and the term
+                    // is exactly 0: skipping it changes no bit.
+                    if d2 > (rad + PATCH_ZERO_PX).powi(2) {
+                        continue;
+                    }
+                    let d = d2.sqrt();
+                    // Soft edge about 4 px wide.
+                    *w -= amp / (1.0 + ((d - rad) / 2.0).exp());
+                }
+                let x = fj * eps;
+                for c in &near {
+                    if (x - c.x).abs() > reach(c) {
+                        continue;
+                    }
+                    let d = ((x - c.x).powi(2) + (y - c.y).powi(2)).sqrt();
+                    let t = (d - c.r) / (0.6 * c.r);
+                    if t.abs() < 4.0 {
+                        *w += 0.05 * (-t * t).exp();
+                    }
+                }
+            }
+        });
+    // Fine texture: white noise smoothed over ~1.5 px, σ ≈ 0.01.
+    let white = Array2::from_shape_simple_fn((n, n), || rng.normal());
+    let texture = gaussian_filter(dct, &white, 1.5);
+    let tstd = (texture.iter().map(|x| x * x).sum::<f64>() / (n * n) as f64).sqrt();
+    albedo.zip_mut_with(&texture, |w, t| *w += 0.01 * t / tstd);
+    let mean = albedo.mean().unwrap_or(0.0);
+    albedo.mapv_inplace(|w| (w - mean + 0.44).clamp(0.05, 0.95));
+    albedo
+}
+
+/// Height and its analytic slopes (∂z/∂x east, ∂z/∂y north) on a grid SUB times finer than
+/// the pixels: subsample (SUB/2, SUB/2) of each pixel is its centre (x = j·ε east,
+/// y = −i·ε north). The waves, then the craters row by row in parallel, added within a row in
+/// the (size-sorted) list order, so that the sums do not depend on the thread count.
+fn subsampled_relief(
+    spec: &SceneSpec,
+    waves: &[Wave],
+    craters: &[Crater],
+) -> (Array2<f64>, Array2<f64>, Array2<f64>) {
+    let m = spec.size * SUB;
+    let h_sub = spec.spacing / SUB as f64;
+    let origin = -((SUB / 2) as f64) * h_sub;
+    let mut height = Array2::zeros((m, m));
+    let mut px = Array2::zeros((m, m));
+    let mut py = Array2::zeros((m, m));
+    Zip::indexed(&mut height)
+        .and(&mut px)
+        .and(&mut py)
+        .par_for_each(|(i, j), h, gx, gy| {
+            let (x, y) = (origin + j as f64 * h_sub, -(origin + i as f64 * h_sub));
+            for w in waves {
+                let a = w.kx * x + w.ky * y + w.phase;
+                *h += w.amp * a.sin();
+                *gx += w.amp * w.kx * a.cos();
+                *gy += w.amp * w.ky * a.cos();
+            }
+        });
+    height
+        .axis_iter_mut(Axis(0))
+        .into_par_iter()
+        .zip(px.axis_iter_mut(Axis(0)))
+        .zip(py.axis_iter_mut(Axis(0)))
+        .enumerate()
+        .for_each(|(i, ((mut hrow, mut xrow), mut yrow))| {
+            let y = -(origin + i as f64 * h_sub);
+            for c in craters {
+                let reach = 3.0 * c.r;
+                if (y - c.y).abs() > reach {
+                    continue;
+                }
+                let j0 = (((c.x - reach - origin) / h_sub).floor().max(0.0) as usize).min(m);
+                let j1 = (((c.x + reach - origin) / h_sub).ceil().max(0.0) as usize + 1).min(m);
+                for j in j0..j1 {
+                    let (h, gx, gy) = c.eval(origin + j as f64 * h_sub - c.x, y - c.y);
+                    hrow[j] += h;
+                    xrow[j] += gx;
+                    yrow[j] += gy;
+                }
+            }
+        });
+    (height, px, py)
 }
 
 /// NaN outside columns `[first, end)`.
