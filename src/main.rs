@@ -377,21 +377,49 @@ fn synth(a: SynthArgs) -> Result<(), sfsfuse::Error> {
     Ok(())
 }
 
+/// `--threads N`: the global pool's size. Each worker holds a tile's arrays: far more
+/// threads than cores only multiplies memory (100 000 threads never finished starting), so a
+/// count beyond 16 × the cores (at least 64) is refused rather than guessed at.
+fn set_threads(n: usize) -> Result<(), sfsfuse::Error> {
+    let cores = std::thread::available_parallelism().map_or(1, |c| c.get());
+    let cap = (16 * cores).max(64);
+    if n == 0 || n > cap {
+        return Err(sfsfuse::Error::Usage(format!(
+            "--threads {n}: give 1 to {cap} (16 × the {cores} cores here, at least 64); without --threads every core is used"
+        )));
+    }
+    rayon::ThreadPoolBuilder::new()
+        .num_threads(n)
+        .build_global()
+        .map_err(|e| sfsfuse::Error::Usage(format!("--threads {n}: {e}")))?;
+    Ok(())
+}
+
+/// `run --list-tiles`: a line per tile with its core and halo windows and whether it is done.
+fn tile_table(tiles: &[sfsfuse::pipeline::TileStatus]) -> String {
+    tiles
+        .iter()
+        .map(|t| {
+            format!(
+                "{:5}  core rows {}..{} cols {}..{}  with halo rows {}..{} cols {}..{}  {}\n",
+                t.id,
+                t.core.r0,
+                t.core.r0 + t.core.rows,
+                t.core.c0,
+                t.core.c0 + t.core.cols,
+                t.ext.r0,
+                t.ext.r0 + t.ext.rows,
+                t.ext.c0,
+                t.ext.c0 + t.ext.cols,
+                if t.done { "done" } else { "pending" }
+            )
+        })
+        .collect()
+}
+
 fn run(cli: Cli) -> Result<(), sfsfuse::Error> {
     if let Some(n) = cli.threads {
-        // Each worker holds a tile's arrays: far more threads than cores only multiplies
-        // memory (100 000 threads never finished starting). Refuse rather than guess.
-        let cores = std::thread::available_parallelism().map_or(1, |c| c.get());
-        let cap = (16 * cores).max(64);
-        if n == 0 || n > cap {
-            return Err(sfsfuse::Error::Usage(format!(
-                "--threads {n}: give 1 to {cap} (16 × the {cores} cores here, at least 64); without --threads every core is used"
-            )));
-        }
-        rayon::ThreadPoolBuilder::new()
-            .num_threads(n)
-            .build_global()
-            .map_err(|e| sfsfuse::Error::Usage(format!("--threads {n}: {e}")))?;
+        set_threads(n)?;
     }
     match cli.command {
         Command::Demo {
@@ -437,25 +465,7 @@ fn run(cli: Cli) -> Result<(), sfsfuse::Error> {
             let progress = progress_of(progress);
             if list_tiles {
                 let tiles = sfsfuse::pipeline::list_tiles(&wf, &progress)?;
-                let table: String = tiles
-                    .iter()
-                    .map(|t| {
-                        format!(
-                            "{:5}  core rows {}..{} cols {}..{}  with halo rows {}..{} cols {}..{}  {}\n",
-                            t.id,
-                            t.core.r0,
-                            t.core.r0 + t.core.rows,
-                            t.core.c0,
-                            t.core.c0 + t.core.cols,
-                            t.ext.r0,
-                            t.ext.r0 + t.ext.rows,
-                            t.ext.c0,
-                            t.ext.c0 + t.ext.cols,
-                            if t.done { "done" } else { "pending" }
-                        )
-                    })
-                    .collect();
-                emit(json, &tiles, table)?;
+                emit(json, &tiles, tile_table(&tiles))?;
                 return Ok(());
             }
             let req = sfsfuse::pipeline::Request {
