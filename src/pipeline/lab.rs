@@ -63,33 +63,7 @@ pub(super) fn run_lab(l: &Lab, wf: &Workflow, progress: &Progress) -> Result<Run
     let out = &l.output.directory;
     std::fs::create_dir_all(out).map_err(|e| Error::io(out, e))?;
     progress.stage("reading the image and the depth map");
-    let image = read_raster(&l.inputs.image)?;
-    let mut depth = read_raster(&l.inputs.depth)?;
-    if image.dim() != depth.dim() {
-        return Err(Error::Usage(format!(
-            "{} is {:?} pixels but {} is {:?}: the image and the depth map must share one pixel grid",
-            l.inputs.image.display(),
-            image.dim(),
-            l.inputs.depth.display(),
-            depth.dim()
-        )));
-    }
-    if let Some(nd) = l.inputs.depth_nodata {
-        depth.mapv_inplace(|v| if v == nd { f64::NAN } else { v });
-    }
-    depth.mapv_inplace(|v| v * l.inputs.depth_scale);
-    if depth.iter().all(|v| !v.is_finite()) {
-        return Err(Error::Usage(format!(
-            "{}: the depth map has no valid value",
-            l.inputs.depth.display()
-        )));
-    }
-    let filled = fill_holes(&mut depth);
-    if filled > 0 {
-        progress.note(&format!(
-            "depth map: {filled} missing values filled from their neighbours"
-        ));
-    }
+    let (image, depth) = lab_inputs(l, progress)?;
     let model = l.photometry.build();
     if let ModelSpec::Hapke(_) = l.photometry {
         progress.note("lab workflow with the Hapke model: intensities must be bidirectional reflectance (sr⁻¹)");
@@ -122,33 +96,7 @@ pub(super) fn run_lab(l: &Lab, wf: &Workflow, progress: &Progress) -> Result<Run
     ];
     let files = checksums(&[l.inputs.image.clone(), l.inputs.depth.clone()], progress)?;
     let key = run_key(wf, &files);
-    let meta = [
-        ("SFSFUSE_VERSION", crate::BUILD.to_string()),
-        ("RUN_KEY", key.clone()),
-    ];
-    let mut outputs = Vec::new();
-    for &layer in &l.output.layers {
-        let k = stored_index(layer);
-        let (description, unit) = layer_info(layer, false);
-        let path = out.join(format!("{}.tif", layer.name()));
-        let mut w = CogWriter::create_as(
-            &path,
-            None,
-            layers[k].ncols(),
-            layers[k].nrows(),
-            &BandInfo {
-                description,
-                unit,
-                metadata: &meta,
-            },
-            Container::Auto,
-            sample_format(layer),
-        )?;
-        w.push(layers[k].view())?;
-        w.finish()?;
-        outputs.push(path);
-    }
-    let (rows, cols) = image.dim();
+    let outputs = write_lab_layers(l, &layers, &key)?;
     let record = RunRecord {
         tool: "sfsfuse",
         version: crate::BUILD,
@@ -169,30 +117,7 @@ pub(super) fn run_lab(l: &Lab, wf: &Workflow, progress: &Progress) -> Result<Run
         membrane: None,
         reference: None,
         threads: rayon::current_num_threads(),
-        tiles: vec![TileRecord {
-            id: 0,
-            key: String::new(),
-            core: Window {
-                r0: 0,
-                c0: 0,
-                rows,
-                cols,
-            },
-            ext: Window {
-                r0: 0,
-                c0: 0,
-                rows,
-                cols,
-            },
-            status: "fused".into(),
-            photometric_pixels: f.photometric.iter().filter(|&&b| b).count(),
-            sanity: TileSums::default(),
-            // A lab run writes no tile file.
-            layers_sha256: String::new(),
-            iterations: f.iterations(),
-            seconds,
-            stages: f.stages.clone(),
-        }],
+        tiles: vec![lab_tile(&f, image.dim(), seconds)],
         sanity: None,
         observations: Vec::new(),
         metrics: {
@@ -214,4 +139,95 @@ pub(super) fn run_lab(l: &Lab, wf: &Workflow, progress: &Progress) -> Result<Run
         sanity: None,
         seconds: 0.0,
     })
+}
+
+/// A lab run's image and depth map: on one pixel grid, the depth's no-data value made NaN,
+/// scaled to metres by `depth_scale`, and its holes filled from their neighbours
+/// ([`fill_holes`], said through `progress`). A depth map without a valid value is refused.
+fn lab_inputs(l: &Lab, progress: &Progress) -> Result<(Array2<f64>, Array2<f64>)> {
+    let image = read_raster(&l.inputs.image)?;
+    let mut depth = read_raster(&l.inputs.depth)?;
+    if image.dim() != depth.dim() {
+        return Err(Error::Usage(format!(
+            "{} is {:?} pixels but {} is {:?}: the image and the depth map must share one pixel grid",
+            l.inputs.image.display(),
+            image.dim(),
+            l.inputs.depth.display(),
+            depth.dim()
+        )));
+    }
+    if let Some(nd) = l.inputs.depth_nodata {
+        depth.mapv_inplace(|v| if v == nd { f64::NAN } else { v });
+    }
+    depth.mapv_inplace(|v| v * l.inputs.depth_scale);
+    if depth.iter().all(|v| !v.is_finite()) {
+        return Err(Error::Usage(format!(
+            "{}: the depth map has no valid value",
+            l.inputs.depth.display()
+        )));
+    }
+    let filled = fill_holes(&mut depth);
+    if filled > 0 {
+        progress.note(&format!(
+            "depth map: {filled} missing values filled from their neighbours"
+        ));
+    }
+    Ok((image, depth))
+}
+
+/// Write the layers the lab workflow asks for (`layers` in [`TILE_LAYERS`] order) as TIFFs
+/// without georeferencing (a lab object is not on the Moon), each carrying the build and the
+/// run key; their paths in the workflow's order.
+fn write_lab_layers(l: &Lab, layers: &[Array2<f64>; 7], key: &str) -> Result<Vec<PathBuf>> {
+    let meta = [
+        ("SFSFUSE_VERSION", crate::BUILD.to_string()),
+        ("RUN_KEY", key.to_string()),
+    ];
+    let mut outputs = Vec::new();
+    for &layer in &l.output.layers {
+        let k = stored_index(layer);
+        let (description, unit) = layer_info(layer, false);
+        let path = l.output.directory.join(format!("{}.tif", layer.name()));
+        let mut w = CogWriter::create_as(
+            &path,
+            None,
+            layers[k].ncols(),
+            layers[k].nrows(),
+            &BandInfo {
+                description,
+                unit,
+                metadata: &meta,
+            },
+            Container::Auto,
+            sample_format(layer),
+        )?;
+        w.push(layers[k].view())?;
+        w.finish()?;
+        outputs.push(path);
+    }
+    Ok(outputs)
+}
+
+/// The run record's one tile of a lab run: the whole image, fused (a lab run writes no tile
+/// file, so it has no key or checksum).
+fn lab_tile(f: &fusion::Fusion, (rows, cols): (usize, usize), seconds: f64) -> TileRecord {
+    let whole = Window {
+        r0: 0,
+        c0: 0,
+        rows,
+        cols,
+    };
+    TileRecord {
+        id: 0,
+        key: String::new(),
+        core: whole,
+        ext: whole,
+        status: "fused".into(),
+        photometric_pixels: f.photometric.iter().filter(|&&b| b).count(),
+        sanity: TileSums::default(),
+        layers_sha256: String::new(),
+        iterations: f.iterations(),
+        seconds,
+        stages: f.stages.clone(),
+    }
 }
