@@ -239,6 +239,17 @@ pub(super) struct RunGains {
     pub(super) trends: Vec<Option<GainTrend>>,
 }
 
+impl RunGains {
+    /// A single observation's: gain 1, its own reference, no trend.
+    fn one() -> Self {
+        RunGains {
+            gains: vec![1.0],
+            reference: vec![Some(0)],
+            trends: vec![None],
+        }
+    }
+}
+
 /// The gains of the observations, estimated once for the whole run (tiles must agree on them)
 /// by [`fusion::gains::estimate_gains`] on the grid decimated to at most
 /// [`GAIN_PIXELS`], over the input DEM, what each is relative to (input indices), and with
@@ -502,19 +513,7 @@ pub(super) fn plan(
     progress.stage("planning: grid, swath index, intensity scale");
     let (res, resolution_source) = resolution(o, inputs)?;
     let grid = make_grid(o, inputs, res)?;
-    let half_moon = std::f64::consts::PI * crate::grid::MOON_RADIUS_M;
-    let (w, h) = (
-        grid.cols as f64 * grid.spacing,
-        grid.rows as f64 * grid.spacing,
-    );
-    if w > half_moon || h > half_moon {
-        return Err(Error::Usage(format!(
-            "[region]: {:.0} × {:.0} km is more than half the Moon's circumference ({:.0} km) across: not a region one locally metric grid can hold; split it",
-            w / 1e3,
-            h / 1e3,
-            half_moon / 1e3
-        )));
-    }
+    within_half_moon(&grid)?;
     let pr = projector(&grid.crs)?;
     let Surveyed {
         swaths,
@@ -531,14 +530,7 @@ pub(super) fn plan(
     let halo = o.tiling.halo.unwrap_or_else(|| {
         crate::workflow::auto_halo(params, dem_psf_sigma, reference_factor.is_some())
     });
-    let n_tiles = grid.rows.div_ceil(o.tiling.tile_size) * grid.cols.div_ceil(o.tiling.tile_size);
-    if n_tiles > MAX_TILES {
-        return Err(Error::Usage(format!(
-            "[tiling]: {} × {} px in tiles of {} px makes {n_tiles} tiles, more than {MAX_TILES}: raise tile_size or shrink [region]",
-            grid.rows, grid.cols, o.tiling.tile_size
-        )));
-    }
-    let tiles = tiling::layout(grid.rows, grid.cols, o.tiling.tile_size, halo);
+    let tiles = layout_tiles(o, &grid, halo)?;
     let blend = o.tiling.blend.unwrap_or(halo / 4).min(halo);
     let intensity_scale = sum / count as f64;
     progress.stage("planning: registration of the observations");
@@ -560,11 +552,7 @@ pub(super) fn plan(
         progress.stage("planning: radiometric gains where observations overlap");
         run_gains(o, inputs, &grid, (&swaths, &shifts), intensity_scale)?
     } else {
-        RunGains {
-            gains: vec![1.0],
-            reference: vec![Some(0)],
-            trends: vec![None],
-        }
+        RunGains::one()
     };
     // Ī of the tiles' E_I: the mean of I_k/g_k over every observation's pixels on the grid, as
     // `fuse` computes it for itself (the raw mean served the registration and the gains).
@@ -639,6 +627,43 @@ pub(super) fn plan(
         None => (None, None),
     };
     Ok((p, reference, ingested))
+}
+
+/// Refuse a grid wider or taller than half the Moon's circumference: no one locally metric
+/// projection holds such a region.
+fn within_half_moon(grid: &Grid) -> Result<()> {
+    let half_moon = std::f64::consts::PI * crate::grid::MOON_RADIUS_M;
+    let (w, h) = (
+        grid.cols as f64 * grid.spacing,
+        grid.rows as f64 * grid.spacing,
+    );
+    if w > half_moon || h > half_moon {
+        return Err(Error::Usage(format!(
+            "[region]: {:.0} × {:.0} km is more than half the Moon's circumference ({:.0} km) across: not a region one locally metric grid can hold; split it",
+            w / 1e3,
+            h / 1e3,
+            half_moon / 1e3
+        )));
+    }
+    Ok(())
+}
+
+/// The tiles of `[tiling] tile_size` with `halo` over the grid ([`tiling::layout`]); more
+/// than [`MAX_TILES`] are refused, naming what to change.
+fn layout_tiles(o: &Orbital, grid: &Grid, halo: usize) -> Result<Vec<Tile>> {
+    let n_tiles = grid.rows.div_ceil(o.tiling.tile_size) * grid.cols.div_ceil(o.tiling.tile_size);
+    if n_tiles > MAX_TILES {
+        return Err(Error::Usage(format!(
+            "[tiling]: {} × {} px in tiles of {} px makes {n_tiles} tiles, more than {MAX_TILES}: raise tile_size or shrink [region]",
+            grid.rows, grid.cols, o.tiling.tile_size
+        )));
+    }
+    Ok(tiling::layout(
+        grid.rows,
+        grid.cols,
+        o.tiling.tile_size,
+        halo,
+    ))
 }
 
 /// The DEM's widths on the grid and the fusion parameters they set ([`dem_terms`]).
