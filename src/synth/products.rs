@@ -224,7 +224,8 @@ struct Shot<'a> {
 }
 
 /// One M3-like L1B product set (label, RDN + ENVI header, LOC, OBS) named `id`: swath sample
-/// s lies at grid column first + s.
+/// s lies at grid column first + s. Each file is streamed line by line (at 8192² the radiance
+/// cube alone is 23 GB) and written atomically.
 fn write_m3(
     dir: &Path,
     id: &str,
@@ -233,42 +234,114 @@ fn write_m3(
     grid: &Grid,
     geo: &crate::grid::Geographic,
 ) -> Result<PathBuf> {
+    let [c0, c1] = shot.columns.unwrap_or([0, grid.cols]);
+    let (c0, c1) = (c0.min(grid.cols), c1.min(grid.cols));
+    let f = shot.factor.max(1);
+    let swath = Swath {
+        rows: grid.rows / f,
+        cols: (c1 - c0) / f,
+        f,
+        c0,
+    };
+    let name = |part: &str, ext: &str| format!("{id}_V03_{part}.{ext}");
     let wl = pds::m3::band_centres(pds::m3::Mode::Global);
+    write_rdn(&dir.join(name("RDN", "IMG")), &swath, &shot, &wl)?;
+    write_loc(
+        &dir.join(name("LOC", "IMG")),
+        &swath,
+        &shot.loc_error,
+        scene,
+        geo,
+    )?;
+    write_obs(
+        &dir.join(name("OBS", "IMG")),
+        &swath,
+        &shot,
+        scene,
+        grid,
+        geo,
+    )?;
+    let wl_list: Vec<String> = wl.iter().map(|w| format!("{w:.6}")).collect();
+    let (rows, cols) = (swath.rows, swath.cols);
+    let hdr = format!(
+        "ENVI\ndescription = {{SYNTHETIC M3-like radiance written by sfsfuse}}\nsamples = {cols}\nlines = {rows}\nbands = {}\nheader offset = 0\nfile type = ENVI Standard\ndata type = 4\ninterleave = bil\nbyte order = 0\nwavelength = {{\n {} }}\n",
+        wl.len(),
+        wl_list.join(",\n ")
+    );
+    write_atomic(&dir.join(name("RDN", "HDR")), hdr.as_bytes())?;
+    let image_object = |part: &str, bits: u32, bands: usize, extra: &str| {
+        let rb = cols * bands * bits as usize / 8;
+        format!(
+            "OBJECT = {part}_FILE\r\n  ^{part}_IMAGE = \"{file}\"\r\n  RECORD_TYPE = FIXED_LENGTH\r\n  RECORD_BYTES = {rb}\r\n  FILE_RECORDS = {rows}\r\n  OBJECT = {part}_IMAGE\r\n    LINES = {rows}\r\n    LINE_SAMPLES = {cols}\r\n    SAMPLE_TYPE = PC_REAL\r\n    SAMPLE_BITS = {bits}\r\n    BANDS = {bands}\r\n    BAND_STORAGE_TYPE = LINE_INTERLEAVED\r\n{extra}  END_OBJECT = {part}_IMAGE\r\nEND_OBJECT = {part}_FILE\r\n",
+            file = name(part, "IMG"),
+        )
+    };
+    let label = format!(
+        "PDS_VERSION_ID = PDS3\r\n/* SYNTHETIC product written by sfsfuse {ver} (seed {seed}): not mission data */\r\nDATA_SET_ID = \"SFSFUSE-SYNTHETIC-M3-L1B-LIKE\"\r\nPRODUCT_ID = {id}_V03_RDN\r\nRECORD_TYPE = UNDEFINED\r\nINSTRUMENT_ID = M3\r\nTARGET_NAME = MOON\r\nSOLAR_DISTANCE = {SOLAR_DISTANCE} <AU>\r\nINSTRUMENT_MODE_ID = GLOBAL\r\nCH1:SWATH_WIDTH = {cols} <pixel>\r\nCH1:SWATH_LENGTH = {rows} <pixel>\r\n{rdn}OBJECT = RDN_HDR_FILE\r\n  ^RDN_ENVI_HEADER = \"{hdr}\"\r\n  RECORD_TYPE = VARIABLE_LENGTH\r\nEND_OBJECT = RDN_HDR_FILE\r\n{loc}{obs}END\r\n",
+        ver = env!("CARGO_PKG_VERSION"),
+        seed = scene.spec.seed,
+        rdn = image_object("RDN", 32, wl.len(), "    UNIT = \"W/(m^2 um sr)\"\r\n"),
+        hdr = name("RDN", "HDR"),
+        loc = image_object("LOC", 64, 3, "    BAND_NAME = (Longitude, Latitude, Radius)\r\n"),
+        obs = image_object("OBS", 32, 10, ""),
+    );
+    let m3_label = dir.join(name("L1B", "LBL"));
+    write_atomic(&m3_label, label.as_bytes())?;
+    Ok(m3_label)
+}
+
+/// Where a synthetic observation's swath lies on the grid: `rows` lines of `cols` samples,
+/// swath pixel (line a, sample b) covering grid rows a·F.. and columns c0 + b·F.., F = `f` of
+/// each (one detector pixel of F × F grid pixels, [`write_observed`]).
+struct Swath {
+    rows: usize,
+    cols: usize,
+    f: usize,
+    c0: usize,
+}
+
+impl Swath {
+    /// The grid pixels swath pixel (a, b) covers.
+    fn block(&self, a: usize, b: usize) -> impl Iterator<Item = (usize, usize)> {
+        let (f, c0) = (self.f, self.c0);
+        (a * f..(a + 1) * f).flat_map(move |i| (c0 + b * f..c0 + (b + 1) * f).map(move |j| (i, j)))
+    }
+
+    /// The mean of `v` over the grid pixels swath pixel (a, b) covers.
+    fn mean(&self, a: usize, b: usize, v: &dyn Fn(usize, usize) -> f64) -> f64 {
+        self.block(a, b).map(|(i, j)| v(i, j)).sum::<f64>() / (self.f * self.f) as f64
+    }
+
+    /// The grid pixel at the centre of swath pixel (a, b).
+    fn centre(&self, a: usize, b: usize) -> (usize, usize) {
+        (a * self.f + self.f / 2, self.c0 + b * self.f + self.f / 2)
+    }
+}
+
+/// RDN: radiance, LINE_INTERLEAVED (for each line, every band's samples in turn), f32. Each
+/// swath pixel is its block's mean reflectance (times the gain trend exp(T·(l − l_mid)/1000)
+/// at line l), shaped by a smooth, red-sloped lunar spectrum normalised at 1209.57 nm, times
+/// the blackbody solar irradiance at [`SOLAR_DISTANCE`].
+fn write_rdn(path: &Path, swath: &Swath, shot: &Shot, wl: &[f64]) -> Result<()> {
     let band_1209 = wl
         .iter()
         .position(|&w| (w - 1209.57).abs() < 0.01)
         .expect("the global table holds 1209.57 nm");
     let irr: Vec<f64> = wl.iter().map(|&w| blackbody_irradiance(w)).collect();
-    let [c0, c1] = shot.columns.unwrap_or([0, grid.cols]);
-    let (c0, c1) = (c0.min(grid.cols), c1.min(grid.cols));
-    // Swath pixel (line a, sample b) spans grid rows a·F.. and columns c0 + b·F.., F at a time.
-    let f = shot.factor.max(1);
-    let (rows, cols) = (grid.rows / f, (c1 - c0) / f);
-    let block = move |a: usize, b: usize| {
-        (a * f..(a + 1) * f).flat_map(move |i| (c0 + b * f..c0 + (b + 1) * f).map(move |j| (i, j)))
-    };
-    let mean = |a: usize, b: usize, v: &dyn Fn(usize, usize) -> f64| {
-        block(a, b).map(|(i, j)| v(i, j)).sum::<f64>() / (f * f) as f64
-    };
-    let centre = |a: usize, b: usize| (a * f + f / 2, c0 + b * f + f / 2);
-
-    let name = |part: &str, ext: &str| format!("{id}_V03_{part}.{ext}");
-    // Each file is streamed line by line: at 8192² the radiance cube alone is 23 GB.
-    // RDN: LINE_INTERLEAVED = for each line, every band's samples in turn.
-    write_atomic_with(&dir.join(name("RDN", "IMG")), |w| {
+    let (rows, cols) = (swath.rows, swath.cols);
+    write_atomic_with(path, |w| {
         let mut line = Vec::with_capacity(cols * wl.len() * 4);
         let tau = shot.loc_error.gain_trend;
         for i in 0..rows {
             line.clear();
             let mut values: Vec<f64> = (0..cols)
-                .map(|s| mean(i, s, &|i, j| shot.image[(i, j)]))
+                .map(|s| swath.mean(i, s, &|i, j| shot.image[(i, j)]))
                 .collect();
             if tau != 0.0 {
                 let g = (tau * (i as f64 - 0.5 * (rows - 1) as f64) / 1000.0).exp();
                 values.iter_mut().for_each(|v| *v *= g);
             }
             for (b, &wv) in wl.iter().enumerate() {
-                // A smooth, red-sloped lunar spectrum normalised at 1209.57 nm.
                 let shape = (wv / wl[band_1209]).powf(0.6);
                 for v in &values {
                     let r = v * shape;
@@ -278,9 +351,21 @@ fn write_m3(
             w.write_all(&line)?;
         }
         Ok(())
-    })?;
-    // LOC: longitude (east, 0–360), latitude, radius.
-    write_atomic_with(&dir.join(name("LOC", "IMG")), |w| {
+    })
+}
+
+/// LOC: longitude (east, 0–360), latitude and radius of each swath pixel (its block's means;
+/// longitudes averaged about the block's first, so that none wraps at 0/360), f64, with the
+/// selenolocation error `e` added: its offset plus its drift's share at the line.
+fn write_loc(
+    path: &Path,
+    swath: &Swath,
+    e: &ProductErrors,
+    scene: &Scene,
+    geo: &crate::grid::Geographic,
+) -> Result<()> {
+    let (rows, cols) = (swath.rows, swath.cols);
+    write_atomic_with(path, |w| {
         let mut line = Vec::with_capacity(cols * 3 * 8);
         for i in 0..rows {
             line.clear();
@@ -291,21 +376,19 @@ fn write_m3(
                 } else {
                     0.0
                 };
-                let e = shot.loc_error;
                 let [east, north] = [0, 1].map(|c| e.offset_m[c] + t * e.drift_m[c]);
                 for b in 0..cols {
-                    let lat = mean(i, b, &|i, j| geo.lat[(i, j)]);
-                    // Longitudes averaged about the block's first (no wrap at 0/360).
-                    let l0 = geo.lon[block(i, b).next().expect("F ≥ 1")];
+                    let lat = swath.mean(i, b, &|i, j| geo.lat[(i, j)]);
+                    let l0 = geo.lon[swath.block(i, b).next().expect("F ≥ 1")];
                     let lon = l0
-                        + mean(i, b, &|i, j| {
+                        + swath.mean(i, b, &|i, j| {
                             (geo.lon[(i, j)] - l0 + 180.0).rem_euclid(360.0) - 180.0
                         });
                     let v = match band {
                         0 => (lon + (east / (MOON_RADIUS_M * lat.to_radians().cos())).to_degrees())
                             .rem_euclid(360.0),
                         1 => lat + (north / MOON_RADIUS_M).to_degrees(),
-                        _ => MOON_RADIUS_M + mean(i, b, &|i, j| scene.truth_height[(i, j)]),
+                        _ => MOON_RADIUS_M + swath.mean(i, b, &|i, j| scene.truth_height[(i, j)]),
                     };
                     line.extend_from_slice(&v.to_le_bytes());
                 }
@@ -313,8 +396,21 @@ fn write_m3(
             w.write_all(&line)?;
         }
         Ok(())
-    })?;
-    // OBS: grid-frame directions → local east-north-up (inverse of the ingest rotation).
+    })
+}
+
+/// OBS: the ten M3 observation bands at each swath pixel's centre (to-Sun azimuth and zenith,
+/// to-sensor azimuth and zenith, phase, the facet's slope and aspect, cos i; the Sun distance
+/// band 0 and the range 100 km), f32: the grid-frame directions rotated to local
+/// east-north-up by the grid's north bearing (the inverse of the ingest's rotation).
+fn write_obs(
+    path: &Path,
+    swath: &Swath,
+    shot: &Shot,
+    scene: &Scene,
+    grid: &Grid,
+    geo: &crate::grid::Geographic,
+) -> Result<()> {
     let to_enu = |v: [f64; 3], t: f64| {
         let (s, c) = t.sin_cos();
         [v[0] * c - v[1] * s, v[0] * s + v[1] * c, v[2]]
@@ -326,14 +422,15 @@ fn write_m3(
         )
     };
     let (p, q) = crate::fusion::ops::gradient(scene.truth_height.view(), grid.spacing);
-    write_atomic_with(&dir.join(name("OBS", "IMG")), |w| {
+    let (rows, cols) = (swath.rows, swath.cols);
+    write_atomic_with(path, |w| {
         let mut line = Vec::with_capacity(cols * 10 * 4);
         let mut bands: Vec<Vec<f64>> = (0..10).map(|_| Vec::with_capacity(cols)).collect();
         for i in 0..rows {
             line.clear();
             bands.iter_mut().for_each(Vec::clear);
             for b in 0..cols {
-                let (i, j) = centre(i, b);
+                let (i, j) = swath.centre(i, b);
                 let t = geo.bearing[(i, j)];
                 let (s, v) = (to_enu(shot.sun, t), to_enu(scene.view, t));
                 let (saz, sz) = az_zen(s);
@@ -370,33 +467,7 @@ fn write_m3(
             w.write_all(&line)?;
         }
         Ok(())
-    })?;
-    let wl_list: Vec<String> = wl.iter().map(|w| format!("{w:.6}")).collect();
-    let hdr = format!(
-        "ENVI\ndescription = {{SYNTHETIC M3-like radiance written by sfsfuse}}\nsamples = {cols}\nlines = {rows}\nbands = {}\nheader offset = 0\nfile type = ENVI Standard\ndata type = 4\ninterleave = bil\nbyte order = 0\nwavelength = {{\n {} }}\n",
-        wl.len(),
-        wl_list.join(",\n ")
-    );
-    write_atomic(&dir.join(name("RDN", "HDR")), hdr.as_bytes())?;
-    let image_object = |part: &str, bits: u32, bands: usize, extra: &str| {
-        let rb = cols * bands * bits as usize / 8;
-        format!(
-            "OBJECT = {part}_FILE\r\n  ^{part}_IMAGE = \"{file}\"\r\n  RECORD_TYPE = FIXED_LENGTH\r\n  RECORD_BYTES = {rb}\r\n  FILE_RECORDS = {rows}\r\n  OBJECT = {part}_IMAGE\r\n    LINES = {rows}\r\n    LINE_SAMPLES = {cols}\r\n    SAMPLE_TYPE = PC_REAL\r\n    SAMPLE_BITS = {bits}\r\n    BANDS = {bands}\r\n    BAND_STORAGE_TYPE = LINE_INTERLEAVED\r\n{extra}  END_OBJECT = {part}_IMAGE\r\nEND_OBJECT = {part}_FILE\r\n",
-            file = name(part, "IMG"),
-        )
-    };
-    let label = format!(
-        "PDS_VERSION_ID = PDS3\r\n/* SYNTHETIC product written by sfsfuse {ver} (seed {seed}): not mission data */\r\nDATA_SET_ID = \"SFSFUSE-SYNTHETIC-M3-L1B-LIKE\"\r\nPRODUCT_ID = {id}_V03_RDN\r\nRECORD_TYPE = UNDEFINED\r\nINSTRUMENT_ID = M3\r\nTARGET_NAME = MOON\r\nSOLAR_DISTANCE = {SOLAR_DISTANCE} <AU>\r\nINSTRUMENT_MODE_ID = GLOBAL\r\nCH1:SWATH_WIDTH = {cols} <pixel>\r\nCH1:SWATH_LENGTH = {rows} <pixel>\r\n{rdn}OBJECT = RDN_HDR_FILE\r\n  ^RDN_ENVI_HEADER = \"{hdr}\"\r\n  RECORD_TYPE = VARIABLE_LENGTH\r\nEND_OBJECT = RDN_HDR_FILE\r\n{loc}{obs}END\r\n",
-        ver = env!("CARGO_PKG_VERSION"),
-        seed = scene.spec.seed,
-        rdn = image_object("RDN", 32, wl.len(), "    UNIT = \"W/(m^2 um sr)\"\r\n"),
-        hdr = name("RDN", "HDR"),
-        loc = image_object("LOC", 64, 3, "    BAND_NAME = (Longitude, Latitude, Radius)\r\n"),
-        obs = image_object("OBS", 32, 10, ""),
-    );
-    let m3_label = dir.join(name("L1B", "LBL"));
-    write_atomic(&m3_label, label.as_bytes())?;
-    Ok(m3_label)
+    })
 }
 
 /// The LOLA-like DEM: the smallest 64 px/deg window covering the grid with 4 pixels to spare,
