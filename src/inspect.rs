@@ -195,138 +195,150 @@ pub fn inspect(path: &Path) -> Result<Inspection> {
     if is_tiff(&bytes) {
         return inspect_geotiff(path);
     }
-    let label = match pds::parse_label(&bytes) {
-        Ok(l) => l,
-        Err(e) => {
-            if let Some(l) = label_of(path) {
-                return Err(Error::Usage(format!(
-                    "{} is a data file, not a label: inspect its label {} instead",
-                    path.display(),
-                    l.display()
-                )));
-            }
-            let binary = bytes.iter().take(4096).any(|&b| b == 0);
-            if binary {
-                return Err(Error::Usage(format!(
-                    "{} is neither a PDS3 label nor a GeoTIFF (binary data, and no label beside it points to it): give the product's label (.LBL) or a GeoTIFF",
-                    path.display()
-                )));
-            }
-            return Err(Error::Pds(pds::Error::Label {
-                path: path.into(),
-                source: e,
-            }));
-        }
-    };
-    let label_s = path.display().to_string();
+    let label = pds::parse_label(&bytes).map_err(|e| not_a_label(path, &bytes, e))?;
     if label.child("RDN_FILE").is_some() {
-        let o = Observation::open(path)?;
-        let (mut lon, mut lat, mut problem, mut pixel_size_m) = (None, None, None, None);
-        match o.part("LOC") {
-            Ok(loc) => {
-                lon = scan(loc.lines, |f, n| loc.read_band(0, f, n))?;
-                lat = scan(loc.lines, |f, n| loc.read_band(1, f, n))?;
-                pixel_size_m = crate::ingest::ground_sample_distance(&o).ok();
-            }
-            Err(e) => problem = Some(e.to_string()),
-        }
-        let rad = scan(o.rdn.lines, |f, n| o.rdn.read_band(0, f, n))?;
-        let mut ill = [None, None, None, None];
-        let mut obs_problem = None;
-        match o.part("OBS") {
-            Ok(obs) => {
-                // OBS bands: 0 Sun azimuth, 1 Sun zenith, 3 M3 zenith, 4 phase.
-                for (k, band) in [1, 3, 4, 0].into_iter().enumerate() {
-                    ill[k] = scan(obs.lines, |f, n| obs.read_band(band, f, n))?;
-                }
-            }
-            Err(e) => obs_problem = Some(e.to_string()),
-        }
-        let [incidence_deg, emission_deg, phase_deg, sun_azimuth_deg] = ill;
-        return Ok(Inspection::M3 {
-            label: label_s,
-            mode: match o.mode {
-                Mode::Global => "GLOBAL".into(),
-                Mode::Target => "TARGET".into(),
-            },
-            lines: o.rdn.lines,
-            samples: o.rdn.samples,
-            bands: o.rdn.bands,
-            wavelengths_nm: o.wavelengths.clone(),
-            wavelength_source: o.wavelength_source.clone(),
-            solar_distance_au: o.solar_distance_au,
-            longitude_deg: lon,
-            latitude_deg: lat,
-            loc_problem: problem,
-            pixel_size_m,
-            radiance_band0: rad,
-            incidence_deg,
-            emission_deg,
-            phase_deg,
-            sun_azimuth_deg,
-            obs_problem,
-        });
+        return inspect_m3(path);
     }
     if label.find("IMAGE_MAP_PROJECTION").is_some() {
-        let d = LolaDem::open(path)?;
-        let (lines, samples) = (d.lines() as f64, d.samples() as f64);
-        let (projection, lon_range, lat_range) = match d.projection {
-            Projection::SimpleCylindrical {
-                resolution,
-                center_lon,
-                ..
-            } => {
-                let (lon0, lat0) = d.lonlat(-0.5, -0.5);
-                let (lon1, lat1) = d.lonlat(lines - 0.5, samples - 0.5);
-                (
-                    format!(
-                        "simple cylindrical, {resolution} px/deg, centre longitude {center_lon}°"
-                    ),
-                    (lon0.min(lon1), lon0.max(lon1)),
-                    (lat0.min(lat1), lat0.max(lat1)),
-                )
-            }
-            Projection::PolarStereographic { north, scale_m, .. } => {
-                // Latitude runs from the pole to the farthest point of the border (a corner).
-                let corners = [
-                    (-0.5, -0.5),
-                    (-0.5, samples - 0.5),
-                    (lines - 0.5, -0.5),
-                    (lines - 0.5, samples - 0.5),
-                ];
-                let far = corners
-                    .iter()
-                    .map(|&(l, s)| d.lonlat(l, s).1.abs())
-                    .fold(90.0f64, f64::min);
-                let pole = if north { "north" } else { "south" };
-                let lat = if north { (far, 90.0) } else { (-90.0, -far) };
-                (
-                    format!("polar stereographic ({pole} pole), {scale_m} m/pix at the pole"),
-                    (0.0, 360.0),
-                    lat,
-                )
-            }
-        };
-        let heights = scan(d.lines(), |f, n| d.read_heights(f, n))?;
-        return Ok(Inspection::Lola {
-            label: label_s,
-            lines: d.lines(),
-            samples: d.samples(),
-            projection,
-            map_scale_m: d.map_scale_m,
-            radius_m: d.radius_m,
-            longitude_deg: Range {
-                min: lon_range.0,
-                max: lon_range.1,
-            },
-            latitude_deg: Range {
-                min: lat_range.0,
-                max: lat_range.1,
-            },
-            height_m: heights,
-        });
+        return inspect_lola(path);
     }
     Err(Error::Usage(format!("{}: a PDS3 label, but neither an M3 L1B observation (no RDN_FILE object) nor a LOLA GDR (no IMAGE_MAP_PROJECTION)", path.display())))
+}
+
+/// Why `path`, whose first bytes are `bytes`, does not parse as a label: a data file some
+/// label beside it points to (name that label), other binary data, or a label with a syntax
+/// error (`e`, with its byte offset).
+fn not_a_label(path: &Path, bytes: &[u8], e: pds::odl::ParseError) -> Error {
+    if let Some(l) = label_of(path) {
+        return Error::Usage(format!(
+            "{} is a data file, not a label: inspect its label {} instead",
+            path.display(),
+            l.display()
+        ));
+    }
+    let binary = bytes.iter().take(4096).any(|&b| b == 0);
+    if binary {
+        return Error::Usage(format!(
+            "{} is neither a PDS3 label nor a GeoTIFF (binary data, and no label beside it points to it): give the product's label (.LBL) or a GeoTIFF",
+            path.display()
+        ));
+    }
+    Error::Pds(pds::Error::Label {
+        path: path.into(),
+        source: e,
+    })
+}
+
+/// An M3 L1B observation: its mode, size, wavelengths, Sun distance, the ranges of its LOC
+/// longitudes and latitudes, pixel size, first radiance band and OBS angles (what cannot be
+/// read of LOC or OBS is said rather than failing the whole).
+fn inspect_m3(path: &Path) -> Result<Inspection> {
+    let o = Observation::open(path)?;
+    let (mut lon, mut lat, mut problem, mut pixel_size_m) = (None, None, None, None);
+    match o.part("LOC") {
+        Ok(loc) => {
+            lon = scan(loc.lines, |f, n| loc.read_band(0, f, n))?;
+            lat = scan(loc.lines, |f, n| loc.read_band(1, f, n))?;
+            pixel_size_m = crate::ingest::ground_sample_distance(&o).ok();
+        }
+        Err(e) => problem = Some(e.to_string()),
+    }
+    let rad = scan(o.rdn.lines, |f, n| o.rdn.read_band(0, f, n))?;
+    let mut ill = [None, None, None, None];
+    let mut obs_problem = None;
+    match o.part("OBS") {
+        Ok(obs) => {
+            // OBS bands: 0 Sun azimuth, 1 Sun zenith, 3 M3 zenith, 4 phase.
+            for (k, band) in [1, 3, 4, 0].into_iter().enumerate() {
+                ill[k] = scan(obs.lines, |f, n| obs.read_band(band, f, n))?;
+            }
+        }
+        Err(e) => obs_problem = Some(e.to_string()),
+    }
+    let [incidence_deg, emission_deg, phase_deg, sun_azimuth_deg] = ill;
+    Ok(Inspection::M3 {
+        label: path.display().to_string(),
+        mode: match o.mode {
+            Mode::Global => "GLOBAL".into(),
+            Mode::Target => "TARGET".into(),
+        },
+        lines: o.rdn.lines,
+        samples: o.rdn.samples,
+        bands: o.rdn.bands,
+        wavelengths_nm: o.wavelengths.clone(),
+        wavelength_source: o.wavelength_source.clone(),
+        solar_distance_au: o.solar_distance_au,
+        longitude_deg: lon,
+        latitude_deg: lat,
+        loc_problem: problem,
+        pixel_size_m,
+        radiance_band0: rad,
+        incidence_deg,
+        emission_deg,
+        phase_deg,
+        sun_azimuth_deg,
+        obs_problem,
+    })
+}
+
+/// A LOLA GDR: its size, projection, scale, radius and the ranges of its longitudes,
+/// latitudes and heights.
+fn inspect_lola(path: &Path) -> Result<Inspection> {
+    let d = LolaDem::open(path)?;
+    let (lines, samples) = (d.lines() as f64, d.samples() as f64);
+    let (projection, lon_range, lat_range) = match d.projection {
+        Projection::SimpleCylindrical {
+            resolution,
+            center_lon,
+            ..
+        } => {
+            let (lon0, lat0) = d.lonlat(-0.5, -0.5);
+            let (lon1, lat1) = d.lonlat(lines - 0.5, samples - 0.5);
+            (
+                format!("simple cylindrical, {resolution} px/deg, centre longitude {center_lon}°"),
+                (lon0.min(lon1), lon0.max(lon1)),
+                (lat0.min(lat1), lat0.max(lat1)),
+            )
+        }
+        Projection::PolarStereographic { north, scale_m, .. } => {
+            // Latitude runs from the pole to the farthest point of the border (a corner).
+            let corners = [
+                (-0.5, -0.5),
+                (-0.5, samples - 0.5),
+                (lines - 0.5, -0.5),
+                (lines - 0.5, samples - 0.5),
+            ];
+            let far = corners
+                .iter()
+                .map(|&(l, s)| d.lonlat(l, s).1.abs())
+                .fold(90.0f64, f64::min);
+            let pole = if north { "north" } else { "south" };
+            let lat = if north { (far, 90.0) } else { (-90.0, -far) };
+            (
+                format!("polar stereographic ({pole} pole), {scale_m} m/pix at the pole"),
+                (0.0, 360.0),
+                lat,
+            )
+        }
+    };
+    let heights = scan(d.lines(), |f, n| d.read_heights(f, n))?;
+    Ok(Inspection::Lola {
+        label: path.display().to_string(),
+        lines: d.lines(),
+        samples: d.samples(),
+        projection,
+        map_scale_m: d.map_scale_m,
+        radius_m: d.radius_m,
+        longitude_deg: Range {
+            min: lon_range.0,
+            max: lon_range.1,
+        },
+        latitude_deg: Range {
+            min: lat_range.0,
+            max: lat_range.1,
+        },
+        height_m: heights,
+    })
 }
 
 impl Inspection {
