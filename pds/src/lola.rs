@@ -225,55 +225,138 @@ pub fn read_label(path: &Path) -> Result<Label> {
     })
 }
 
+/// `RECORD_BYTES` of the object holding the image (absent: `None`); present, a whole number
+/// of bytes ≥ 1.
+fn record_bytes(path: &Path, holder: &Object) -> Result<Option<u64>> {
+    match optional_number(path, holder, "RECORD_BYTES")? {
+        None => Ok(None),
+        Some(r) if r >= 1.0 && r.fract() == 0.0 => Ok(Some(r as u64)),
+        Some(r) => Err(Error::invalid(
+            path,
+            &at(holder, "RECORD_BYTES"),
+            format!("{r} must be a whole number of bytes ≥ 1"),
+        )),
+    }
+}
+
+/// The IMAGE object's DN → height in metres, as (factor, offset): height = DN·factor + offset,
+/// from `SCALING_FACTOR` (absent: DN are heights; present, not 0), `OFFSET` (absent: 0) and
+/// `UNIT` (the `*_FLOAT` products are in kilometres, the integer ones in metres; absent:
+/// metres). A unit this reader does not know is refused rather than taken as metres.
+fn height_scale(path: &Path, image: &Object) -> Result<(f64, f64)> {
+    let scaling_factor = optional_number(path, image, "SCALING_FACTOR")?.unwrap_or(1.0);
+    if scaling_factor == 0.0 {
+        return Err(Error::invalid(
+            path,
+            &at(image, "SCALING_FACTOR"),
+            "0 would make every height 0",
+        ));
+    }
+    let unit = image
+        .get("UNIT")
+        .and_then(|v| v.as_str())
+        .unwrap_or("METER");
+    let unit_m = match unit.to_ascii_uppercase().as_str() {
+        "METER" | "METERS" | "METRE" | "METRES" | "M" => 1.0,
+        "KILOMETER" | "KILOMETERS" | "KILOMETRE" | "KILOMETRES" | "KM" => 1000.0,
+        other => {
+            return Err(Error::invalid(
+                path,
+                "UNIT",
+                format!("{other} is not a length unit this reader knows"),
+            ))
+        }
+    };
+    let offset = optional_number(path, image, "OFFSET")?.unwrap_or(0.0) * unit_m;
+    Ok((scaling_factor * unit_m, offset))
+}
+
+/// A simple cylindrical (equirectangular) map: `MAP_RESOLUTION` px/deg and the scale positive,
+/// the standard parallel `CENTER_LATITUDE` not a pole, `CENTER_LONGITUDE` within ±360°, and
+/// the projection offsets.
+fn simple_cylindrical(path: &Path, map: &Object, map_scale_m: f64) -> Result<Projection> {
+    let resolution = number(path, map, "MAP_RESOLUTION")?;
+    positive(path, "MAP_RESOLUTION", resolution, "")?;
+    positive(path, "MAP_SCALE", map_scale_m, " m/pix")?;
+    let lat = number(path, map, "CENTER_LATITUDE")?;
+    let center_lat = within(
+        path,
+        map,
+        "CENTER_LATITUDE",
+        lat,
+        -89.999,
+        89.999,
+        "a simple cylindrical projection's standard parallel cannot be a pole",
+    )?;
+    let lon = number(path, map, "CENTER_LONGITUDE")?;
+    let center_lon = within(
+        path,
+        map,
+        "CENTER_LONGITUDE",
+        lon,
+        -360.0,
+        360.0,
+        "longitudes are degrees",
+    )?;
+    Ok(Projection::SimpleCylindrical {
+        resolution,
+        center_lat,
+        center_lon,
+        line_offset: projection_offset(path, map, "LINE_PROJECTION_OFFSET")?,
+        sample_offset: projection_offset(path, map, "SAMPLE_PROJECTION_OFFSET")?,
+    })
+}
+
+/// A polar stereographic map: centred on ±90° (which pole), longitude 0 on the vertical axis
+/// as LOLA's polar products have it, the scale positive, and the projection offsets.
+fn polar_stereographic(
+    path: &Path,
+    map: &Object,
+    map_scale_m: f64,
+    radius_m: f64,
+) -> Result<Projection> {
+    let center_lat = number(path, map, "CENTER_LATITUDE")?;
+    let north = if center_lat == 90.0 {
+        true
+    } else if center_lat == -90.0 {
+        false
+    } else {
+        return Err(Error::invalid(
+            path,
+            "CENTER_LATITUDE",
+            format!("{center_lat}: a polar stereographic product is centred on ±90"),
+        ));
+    };
+    let center_lon = number(path, map, "CENTER_LONGITUDE")?;
+    if center_lon.rem_euclid(360.0) != 0.0 {
+        return Err(Error::invalid(
+            path,
+            "CENTER_LONGITUDE",
+            format!("{center_lon}: LOLA polar products have longitude 0 on the vertical axis; other orientations are not supported"),
+        ));
+    }
+    positive(path, "MAP_SCALE", map_scale_m, " m/pix")?;
+    Ok(Projection::PolarStereographic {
+        north,
+        scale_m: map_scale_m,
+        line_offset: projection_offset(path, map, "LINE_PROJECTION_OFFSET")?,
+        sample_offset: projection_offset(path, map, "SAMPLE_PROJECTION_OFFSET")?,
+        radius_m,
+    })
+}
+
 impl LolaDem {
     /// Open the product described by the label at `path` (detached or attached).
     pub fn open(path: &Path) -> Result<Self> {
         let label = read_label(path)?;
         let holder = label.child("UNCOMPRESSED_FILE").unwrap_or(&label.root);
-        let record_bytes = match optional_number(path, holder, "RECORD_BYTES")? {
-            None => None,
-            Some(r) if r >= 1.0 && r.fract() == 0.0 => Some(r as u64),
-            Some(r) => {
-                return Err(Error::invalid(
-                    path,
-                    &at(holder, "RECORD_BYTES"),
-                    format!("{r} must be a whole number of bytes ≥ 1"),
-                ))
-            }
-        };
+        let record_bytes = record_bytes(path, holder)?;
         let (data, offset) = resolve(path, holder, "IMAGE", record_bytes)?;
         let image = holder
             .child("IMAGE")
             .ok_or_else(|| Error::missing(path, "OBJECT = IMAGE"))?;
         let raster = Raster::from_object(path, image, data, offset)?;
-        // Absent means DN are heights; present, it must be a usable factor (a silent default
-        // would scale every height wrongly).
-        let scaling_factor = optional_number(path, image, "SCALING_FACTOR")?.unwrap_or(1.0);
-        if scaling_factor == 0.0 {
-            return Err(Error::invalid(
-                path,
-                &at(image, "SCALING_FACTOR"),
-                "0 would make every height 0",
-            ));
-        }
-        // The `*_FLOAT` products are in kilometres, the integer ones in metres.
-        let unit = image
-            .get("UNIT")
-            .and_then(|v| v.as_str())
-            .unwrap_or("METER");
-        let unit_m = match unit.to_ascii_uppercase().as_str() {
-            "METER" | "METERS" | "METRE" | "METRES" | "M" => 1.0,
-            "KILOMETER" | "KILOMETERS" | "KILOMETRE" | "KILOMETRES" | "KM" => 1000.0,
-            other => {
-                return Err(Error::invalid(
-                    path,
-                    "UNIT",
-                    format!("{other} is not a length unit this reader knows"),
-                ))
-            }
-        };
-        let scaling_factor = scaling_factor * unit_m;
-        let ref_offset = optional_number(path, image, "OFFSET")?.unwrap_or(0.0) * unit_m;
+        let (scaling_factor, ref_offset) = height_scale(path, image)?;
         let map = label
             .find("IMAGE_MAP_PROJECTION")
             .ok_or_else(|| Error::missing(path, "OBJECT = IMAGE_MAP_PROJECTION"))?;
@@ -286,67 +369,9 @@ impl LolaDem {
         let projection = if kind.eq_ignore_ascii_case("SIMPLE CYLINDRICAL")
             || kind.eq_ignore_ascii_case("EQUIRECTANGULAR")
         {
-            let resolution = number(path, map, "MAP_RESOLUTION")?;
-            positive(path, "MAP_RESOLUTION", resolution, "")?;
-            positive(path, "MAP_SCALE", map_scale_m, " m/pix")?;
-            Projection::SimpleCylindrical {
-                resolution,
-                center_lat: {
-                    let v = number(path, map, "CENTER_LATITUDE")?;
-                    within(
-                        path,
-                        map,
-                        "CENTER_LATITUDE",
-                        v,
-                        -89.999,
-                        89.999,
-                        "a simple cylindrical projection's standard parallel cannot be a pole",
-                    )?
-                },
-                center_lon: {
-                    let v = number(path, map, "CENTER_LONGITUDE")?;
-                    within(
-                        path,
-                        map,
-                        "CENTER_LONGITUDE",
-                        v,
-                        -360.0,
-                        360.0,
-                        "longitudes are degrees",
-                    )?
-                },
-                line_offset: projection_offset(path, map, "LINE_PROJECTION_OFFSET")?,
-                sample_offset: projection_offset(path, map, "SAMPLE_PROJECTION_OFFSET")?,
-            }
+            simple_cylindrical(path, map, map_scale_m)?
         } else if kind.eq_ignore_ascii_case("POLAR STEREOGRAPHIC") {
-            let center_lat = number(path, map, "CENTER_LATITUDE")?;
-            let north = if center_lat == 90.0 {
-                true
-            } else if center_lat == -90.0 {
-                false
-            } else {
-                return Err(Error::invalid(
-                    path,
-                    "CENTER_LATITUDE",
-                    format!("{center_lat}: a polar stereographic product is centred on ±90"),
-                ));
-            };
-            let center_lon = number(path, map, "CENTER_LONGITUDE")?;
-            if center_lon.rem_euclid(360.0) != 0.0 {
-                return Err(Error::invalid(
-                    path,
-                    "CENTER_LONGITUDE",
-                    format!("{center_lon}: LOLA polar products have longitude 0 on the vertical axis; other orientations are not supported"),
-                ));
-            }
-            positive(path, "MAP_SCALE", map_scale_m, " m/pix")?;
-            Projection::PolarStereographic {
-                north,
-                scale_m: map_scale_m,
-                line_offset: projection_offset(path, map, "LINE_PROJECTION_OFFSET")?,
-                sample_offset: projection_offset(path, map, "SAMPLE_PROJECTION_OFFSET")?,
-                radius_m,
-            }
+            polar_stereographic(path, map, map_scale_m, radius_m)?
         } else {
             return Err(Error::invalid(
                 path,
