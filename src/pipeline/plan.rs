@@ -2,6 +2,7 @@
 //! the observations' gains and noise weights, and the DEM's widths.
 
 use super::*;
+use ndarray::ArrayView2;
 
 /// The plan of an orbital run (see the module documentation).
 #[derive(Debug, Clone, Serialize, Deserialize)]
@@ -264,16 +265,7 @@ pub(super) fn run_gains(
     scale: f64,
 ) -> Result<RunGains> {
     let n_obs = inputs.obs.len();
-    let f = ((grid.rows * grid.cols) as f64 / GAIN_PIXELS as f64)
-        .sqrt()
-        .ceil()
-        .max(1.0) as usize;
-    let coarse = Grid {
-        rows: grid.rows.div_ceil(f),
-        cols: grid.cols.div_ceil(f),
-        spacing: grid.spacing * f as f64,
-        ..*grid
-    };
+    let coarse = gain_grid(grid);
     let pr = projector(&coarse.crs)?;
     let geo = coarse.geographic(&pr);
     let placing = Placing {
@@ -315,55 +307,9 @@ pub(super) fn run_gains(
         });
     }
     // The gains (and, asked for, the trends) on `shots` as they are.
-    let estimate =
-        |shots: &[Shot], trend: bool| -> (fusion::gains::GainEstimate, Vec<Option<GainTrend>>) {
-            let views: Vec<fusion::Observation> = shots
-                .iter()
-                .map(|(_, img, _)| fusion::Observation {
-                    image: img.reflectance.view(),
-                    sun: Directions::PerPixel(img.sun.view().into()),
-                    view: Directions::PerPixel(img.view.view().into()),
-                })
-                .collect();
-            let problem = Problem {
-                observations: views,
-                dem: dem.view(),
-                spacing: coarse.spacing,
-                dem_psf_sigma: 0.0,
-                model: inputs.model.as_ref(),
-                intensity_scale: Some(scale),
-                gains: None,
-                noise_weights: None,
-                blur: None,
-                selection: o.inputs.selection(),
-            };
-            let w = fusion::observations::weights(
-                &problem,
-                vec![1.0; problem.observations.len()],
-                scale,
-                None,
-                o.solver.shadow_threshold,
-                0.0,
-                1.0,
-            );
-            let g = fusion::gains::estimate_gains(&problem, &w.usable, dem.view());
-            let t = if trend {
-                let lines: Vec<ndarray::ArrayView2<f32>> = shots
-                    .iter()
-                    .map(|(_, _, l)| l.as_ref().expect("ingested with lines").view())
-                    .collect();
-                fusion::gains::estimate_gain_trends(
-                    &problem,
-                    &w.usable,
-                    dem.view(),
-                    (&g.gains, &g.relative_to),
-                    &lines,
-                )
-            } else {
-                vec![None; shots.len()]
-            };
-            (g, t)
-        };
+    let estimate = |shots: &[Shot], trend: bool| {
+        gains_on(o, inputs, shots, dem.view(), coarse.spacing, scale, trend)
+    };
     let (mut g, t) = estimate(&shots, with_lines);
     if t.iter().any(Option::is_some) {
         // The images divided by their trends, and the gains estimated again on them.
@@ -386,6 +332,81 @@ pub(super) fn run_gains(
         reference,
         trends,
     })
+}
+
+/// The grid the gains are estimated on: `grid` decimated by the smallest whole factor that
+/// leaves at most [`GAIN_PIXELS`] pixels.
+fn gain_grid(grid: &Grid) -> Grid {
+    let f = ((grid.rows * grid.cols) as f64 / GAIN_PIXELS as f64)
+        .sqrt()
+        .ceil()
+        .max(1.0) as usize;
+    Grid {
+        rows: grid.rows.div_ceil(f),
+        cols: grid.cols.div_ceil(f),
+        spacing: grid.spacing * f as f64,
+        ..*grid
+    }
+}
+
+/// The observations' gains over `dem` ([`fusion::gains::estimate_gains`], on their usable
+/// pixels at unit gains and Ī = `scale`) and, where `trend`, their trends along the track
+/// ([`fusion::gains::estimate_gain_trends`]; `shots` then carry their swath lines).
+fn gains_on(
+    o: &Orbital,
+    inputs: &Inputs,
+    shots: &[Shot],
+    dem: ArrayView2<f64>,
+    spacing: f64,
+    scale: f64,
+    trend: bool,
+) -> (fusion::gains::GainEstimate, Vec<Option<GainTrend>>) {
+    let views: Vec<fusion::Observation> = shots
+        .iter()
+        .map(|(_, img, _)| fusion::Observation {
+            image: img.reflectance.view(),
+            sun: Directions::PerPixel(img.sun.view().into()),
+            view: Directions::PerPixel(img.view.view().into()),
+        })
+        .collect();
+    let problem = Problem {
+        observations: views,
+        dem,
+        spacing,
+        dem_psf_sigma: 0.0,
+        model: inputs.model.as_ref(),
+        intensity_scale: Some(scale),
+        gains: None,
+        noise_weights: None,
+        blur: None,
+        selection: o.inputs.selection(),
+    };
+    let w = fusion::observations::weights(
+        &problem,
+        vec![1.0; problem.observations.len()],
+        scale,
+        None,
+        o.solver.shadow_threshold,
+        0.0,
+        1.0,
+    );
+    let g = fusion::gains::estimate_gains(&problem, &w.usable, dem);
+    let t = if trend {
+        let lines: Vec<ArrayView2<f32>> = shots
+            .iter()
+            .map(|(_, _, l)| l.as_ref().expect("ingested with lines").view())
+            .collect();
+        fusion::gains::estimate_gain_trends(
+            &problem,
+            &w.usable,
+            dem,
+            (&g.gains, &g.relative_to),
+            &lines,
+        )
+    } else {
+        vec![None; shots.len()]
+    };
+    (g, t)
 }
 
 /// The grid spacing of an orbital workflow and where it came from.
