@@ -174,6 +174,77 @@ pub fn parse_center(text: &str) -> std::result::Result<(f64, f64), String> {
     Ok((lat, lon.rem_euclid(360.0)))
 }
 
+/// Write the demo's products to `dir`, their paths appended to `outputs`: the fused DEM,
+/// albedo and residual, the input and truth DEMs and the image, each a COG on the demo's grid
+/// ([`demo_grid`]) with the build and the scene in its metadata, then the quick look. Returns
+/// the quick look's error-panel span (metres).
+fn write_products(
+    dir: &Path,
+    spec: &SceneSpec,
+    scene: &Scene,
+    fusion: &crate::fusion::Fusion,
+    error_limit: Option<f64>,
+    outputs: &mut Vec<PathBuf>,
+) -> Result<f64> {
+    let grid = demo_grid(spec)?;
+    let meta = [
+        ("SFSFUSE_VERSION", crate::BUILD.to_string()),
+        ("SFSFUSE_SCENE", format!("synthetic, seed {}", spec.seed)),
+    ];
+    let layers: [(&str, &Array2<f64>, &str, &str); 6] = [
+        (
+            "dem",
+            &fusion.height,
+            "fused height above the 1737.4 km sphere",
+            "m",
+        ),
+        (
+            "albedo",
+            &fusion.albedo,
+            "Hapke single-scattering albedo w",
+            "",
+        ),
+        (
+            "residual",
+            &fusion.residual,
+            "|I - R| at the solution, sr^-1; no data without photometric information",
+            "sr-1",
+        ),
+        (
+            "input_dem",
+            &scene.input_dem,
+            "synthetic LOLA-like input height",
+            "m",
+        ),
+        (
+            "truth_dem",
+            &scene.truth_height,
+            "synthetic truth height",
+            "m",
+        ),
+        (
+            "image",
+            &scene.image,
+            "synthetic image, bidirectional reflectance",
+            "sr-1",
+        ),
+    ];
+    for (stem, a, description, unit) in layers {
+        let path = dir.join(format!("{stem}.tif"));
+        let info = BandInfo {
+            description,
+            unit,
+            metadata: &meta,
+        };
+        write_geotiff(&path, &grid, a.view(), &info)?;
+        outputs.push(path);
+    }
+    let ql = dir.join("quicklook.png");
+    let limit = write_quicklook(&ql, scene, fusion, error_limit)?;
+    outputs.push(ql);
+    Ok(limit)
+}
+
 /// Run the demo on `spec`, writing products to `out` when given; the quick look's error panel
 /// spans ± `error_limit` metres when given (so that quick looks of several runs compare).
 pub fn run(
@@ -208,62 +279,14 @@ pub fn run(
     let mut outputs = Vec::new();
     let mut quicklook_error_limit_m = None;
     if let Some(dir) = out {
-        let grid = demo_grid(spec)?;
-        let meta = [
-            ("SFSFUSE_VERSION", crate::BUILD.to_string()),
-            ("SFSFUSE_SCENE", format!("synthetic, seed {}", spec.seed)),
-        ];
-        let layers: [(&str, &Array2<f64>, &str, &str); 6] = [
-            (
-                "dem",
-                &fusion.height,
-                "fused height above the 1737.4 km sphere",
-                "m",
-            ),
-            (
-                "albedo",
-                &fusion.albedo,
-                "Hapke single-scattering albedo w",
-                "",
-            ),
-            (
-                "residual",
-                &fusion.residual,
-                "|I - R| at the solution, sr^-1; no data without photometric information",
-                "sr-1",
-            ),
-            (
-                "input_dem",
-                &scene.input_dem,
-                "synthetic LOLA-like input height",
-                "m",
-            ),
-            (
-                "truth_dem",
-                &scene.truth_height,
-                "synthetic truth height",
-                "m",
-            ),
-            (
-                "image",
-                &scene.image,
-                "synthetic image, bidirectional reflectance",
-                "sr-1",
-            ),
-        ];
-        for (stem, a, description, unit) in layers {
-            let path = dir.join(format!("{stem}.tif"));
-            let info = BandInfo {
-                description,
-                unit,
-                metadata: &meta,
-            };
-            write_geotiff(&path, &grid, a.view(), &info)?;
-            outputs.push(path);
-        }
-        let ql = dir.join("quicklook.png");
-        quicklook_error_limit_m = Some(write_quicklook(&ql, &scene, &fusion, error_limit)?);
-        outputs.push(ql);
+        quicklook_error_limit_m = Some(write_products(
+            dir,
+            spec,
+            &scene,
+            &fusion,
+            error_limit,
+            &mut outputs,
+        )?);
     }
     let shadow_fraction =
         scene.shadow.iter().filter(|&&s| s).count() as f64 / scene.shadow.len() as f64;
