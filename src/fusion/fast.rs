@@ -186,30 +186,18 @@ fn dot32(a: &Array2<f32>, b: &Array2<f32>) -> f64 {
     ops::sum_row_parts(parts.view())[0]
 }
 
-/// Preconditioned CG for (Dᵀ(H + M)D + 2K + H_Q + H_R)Δ (H_R the relief fields' parts:
-/// −δ·ĝ_s·DCT(2Dᵀ(r∘Du)/ε² + 2h·r∘u) with u = IDCT(ĝ_s·Δ̂) for E_DEM's, −η·2Dᵀ(r_η∘DΔ)/ε² for
-/// the membrane's, [`relief_gradient_into`]) = −g in DCT coefficients (K the tie's
-/// per-pixel weight); returns (Δ, iterations). Without a tie or E_DEM's height part
-/// ([`Objective::dem_height`]) no term sees the mean height, which stays the DEM's; with
-/// either, the mean is solved for too. Each iteration is two transforms and four passes over
-/// the grid: the operator's two (Dᵀ(H + M)D in one, [`ops::weighted_normal_into`]; H_Q with
-/// d̂·A·d̂), the residual update fused with both inner products, and the direction update fused
-/// with the solution's. The step is returned in f32, as the iteration made it (its callers
-/// widen each value exactly where they use it).
-///
-/// The iteration runs in f32 (vectors, operator, transforms; inner products accumulated in
-/// f64): it only has to reach a relative residual of `cg_tolerance` (0.02), far above f32's
-/// rounding, and the transforms and passes are bound by memory traffic, which f32 halves.
-/// The step it returns is checked by the line search on the energy in f64.
-fn newton_step(
+/// The CG's diagonal preconditioner in the DCT basis, M⁻¹ = 1/((a_x·s_x + a_y·s_y)/ε² + H_Q +
+/// 2K̄) per coefficient (a_x, a_y the photometric Hessian's mean diagonal from `hm` and the
+/// blurred observations, s_x, s_y the difference stencil's symbols, H_Q E_DEM's and the
+/// membrane's diagonal at the relief fields' mean δ and η, K̄ the tie's mean weight), formed
+/// in f64 and stored in f32; and whether the mean height is fixed (seen by neither the tie nor
+/// E_DEM's height part, it stays the DEM's: M⁻¹ is then 0 at (0, 0)).
+fn preconditioner(
     obj: &Objective,
-    hm: Array2<[f32; 3]>,
-    fixed: &Fixed,
+    hm: &Array2<[f32; 3]>,
     blurred: &[BlurTerm],
-    g: &Array2<f32>,
-    params: &FusionParams,
-) -> (Array2<f32>, usize) {
-    let (ny, nx) = g.dim();
+) -> (Array2<f32>, bool) {
+    let (ny, nx) = hm.dim();
     let e2 = obj.problem.spacing * obj.problem.spacing;
     let n = hm.len() as f64;
     let (mut ax, mut ay) = hm.iter().fold((0.0, 0.0), |(x, y), h| {
@@ -252,6 +240,34 @@ fn newton_step(
     if fixed_mean {
         minv[(0, 0)] = 0.0; // the mean height is fixed by the DEM
     }
+    (minv, fixed_mean)
+}
+
+/// Preconditioned CG for (Dᵀ(H + M)D + 2K + H_Q + H_R)Δ (H_R the relief fields' parts:
+/// −δ·ĝ_s·DCT(2Dᵀ(r∘Du)/ε² + 2h·r∘u) with u = IDCT(ĝ_s·Δ̂) for E_DEM's, −η·2Dᵀ(r_η∘DΔ)/ε² for
+/// the membrane's, [`relief_gradient_into`]) = −g in DCT coefficients (K the tie's
+/// per-pixel weight); returns (Δ, iterations). Without a tie or E_DEM's height part
+/// ([`Objective::dem_height`]) no term sees the mean height, which stays the DEM's; with
+/// either, the mean is solved for too. Each iteration is two transforms and four passes over
+/// the grid: the operator's two (Dᵀ(H + M)D in one, [`ops::weighted_normal_into`]; H_Q with
+/// d̂·A·d̂), the residual update fused with both inner products, and the direction update fused
+/// with the solution's. The step is returned in f32, as the iteration made it (its callers
+/// widen each value exactly where they use it).
+///
+/// The iteration runs in f32 (vectors, operator, transforms; inner products accumulated in
+/// f64): it only has to reach a relative residual of `cg_tolerance` (0.02), far above f32's
+/// rounding, and the transforms and passes are bound by memory traffic, which f32 halves.
+/// The step it returns is checked by the line search on the energy in f64.
+fn newton_step(
+    obj: &Objective,
+    hm: Array2<[f32; 3]>,
+    fixed: &Fixed,
+    blurred: &[BlurTerm],
+    g: &Array2<f32>,
+    params: &FusionParams,
+) -> (Array2<f32>, usize) {
+    let (ny, nx) = g.dim();
+    let (minv, fixed_mean) = preconditioner(obj, &hm, blurred);
     let mut normal = Normal {
         obj,
         hm,
