@@ -88,27 +88,29 @@ fn band_pixels(grid: &Grid, tiles: &[Tile]) -> usize {
     }
 }
 
-/// Build the reference of block `f` over `grid`, write it to the output directory and return
-/// its record and its values; `Ok(None)` when no DEM reaches the grid at all (the tiles then
-/// say where) or no observation has a usable pixel. When the plan has one tile over the whole
-/// grid (`tiles`), also the full-resolution ingest of its one band: the tile's own would be
-/// the same.
-pub(super) fn build(
+/// Every input block-averaged by `f` over the grid: each observation's image and Sun and view
+/// vectors (NaN where it does not reach) and the DEM.
+struct Coarse {
+    images: Vec<Array2<f64>>,
+    suns: Vec<Array2<[f32; 3]>>,
+    views: Vec<Array2<[f32; 3]>>,
+    dem: Array2<f64>,
+    /// The full-resolution ingest of the one band, where it covers the whole grid and `keep`.
+    kept: Option<Ingested>,
+}
+
+/// [`Coarse`] over `grid`, ingested in bands of whole blocks (so that each band's block means
+/// are the grid's) no larger than a tile's window ([`band_pixels`]). A region the DEM does not
+/// cover fails here, before the reference is solved, as every tile over the gap would.
+fn coarse_inputs(
     o: &Orbital,
     inputs: &Inputs,
     grid: &Grid,
     run: &RunWide,
     f: usize,
     tiles: &[Tile],
-) -> Result<Option<Built>> {
-    let whole = Window {
-        r0: 0,
-        c0: 0,
-        rows: grid.rows,
-        cols: grid.cols,
-    };
-    let keep = tiles.len() == 1 && tiles[0].ext == whole;
-    let t0 = Instant::now();
+    keep: bool,
+) -> Result<Coarse> {
     let (cr, cc) = pyramid::coarse_dim((grid.rows, grid.cols), f);
     let n = inputs.obs.len();
     let mut images = vec![Array2::from_elem((cr, cc), f64::NAN); n];
@@ -116,7 +118,6 @@ pub(super) fn build(
     let mut views = suns.clone();
     let mut dem = Array2::from_elem((cr, cc), f64::NAN);
     let mut kept = None;
-    // Bands of whole blocks, so each band's block means are the grid's.
     let band = (band_pixels(grid, tiles) / (grid.cols * f)).max(1);
     for i0 in (0..cr).step_by(band) {
         let i1 = (i0 + band).min(cr);
@@ -128,8 +129,6 @@ pub(super) fn build(
             trends: run.trends,
         };
         let ingested = ingest_window(o, inputs, placing, &win)?;
-        // A region the DEM does not cover fails here, before the reference is solved, as
-        // every tile over the gap would.
         super::tile::dem_covers(&win, (r0, 0), &ingested.dem).map_err(|e| match e {
             Error::Usage(m) => Error::Usage(format!("the plan's coarse reference: {m}")),
             e => e,
@@ -154,6 +153,45 @@ pub(super) fn build(
             kept = Some(ingested);
         }
     }
+    Ok(Coarse {
+        images,
+        suns,
+        views,
+        dem,
+        kept,
+    })
+}
+
+/// Build the reference of block `f` over `grid`, write it to the output directory and return
+/// its record and its values; `Ok(None)` when no DEM reaches the grid at all (the tiles then
+/// say where) or no observation has a usable pixel. When the plan has one tile over the whole
+/// grid (`tiles`), also the full-resolution ingest of its one band: the tile's own would be
+/// the same.
+pub(super) fn build(
+    o: &Orbital,
+    inputs: &Inputs,
+    grid: &Grid,
+    run: &RunWide,
+    f: usize,
+    tiles: &[Tile],
+) -> Result<Option<Built>> {
+    let whole = Window {
+        r0: 0,
+        c0: 0,
+        rows: grid.rows,
+        cols: grid.cols,
+    };
+    let keep = tiles.len() == 1 && tiles[0].ext == whole;
+    let t0 = Instant::now();
+    let (cr, cc) = pyramid::coarse_dim((grid.rows, grid.cols), f);
+    let Coarse {
+        images,
+        suns,
+        views,
+        mut dem,
+        kept,
+    } = coarse_inputs(o, inputs, grid, run, f, tiles, keep)?;
+    let n = inputs.obs.len();
     fill_holes(&mut dem);
     if !dem.iter().all(|v| v.is_finite()) {
         return Ok(None);
