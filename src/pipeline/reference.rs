@@ -95,7 +95,8 @@ struct Coarse {
     suns: Vec<Array2<[f32; 3]>>,
     views: Vec<Array2<[f32; 3]>>,
     dem: Array2<f64>,
-    /// The full-resolution ingest of the one band, where it covers the whole grid and `keep`.
+    /// The full-resolution ingest of the one band, where it covers the whole grid and so does
+    /// the plan's one tile: the tile's own ingest would be the same.
     kept: Option<Ingested>,
 }
 
@@ -109,8 +110,14 @@ fn coarse_inputs(
     run: &RunWide,
     f: usize,
     tiles: &[Tile],
-    keep: bool,
 ) -> Result<Coarse> {
+    let whole = Window {
+        r0: 0,
+        c0: 0,
+        rows: grid.rows,
+        cols: grid.cols,
+    };
+    let keep = tiles.len() == 1 && tiles[0].ext == whole;
     let (cr, cc) = pyramid::coarse_dim((grid.rows, grid.cols), f);
     let n = inputs.obs.len();
     let mut images = vec![Array2::from_elem((cr, cc), f64::NAN); n];
@@ -175,13 +182,6 @@ pub(super) fn build(
     f: usize,
     tiles: &[Tile],
 ) -> Result<Option<Built>> {
-    let whole = Window {
-        r0: 0,
-        c0: 0,
-        rows: grid.rows,
-        cols: grid.cols,
-    };
-    let keep = tiles.len() == 1 && tiles[0].ext == whole;
     let t0 = Instant::now();
     let (cr, cc) = pyramid::coarse_dim((grid.rows, grid.cols), f);
     let Coarse {
@@ -190,7 +190,7 @@ pub(super) fn build(
         views,
         mut dem,
         kept,
-    } = coarse_inputs(o, inputs, grid, run, f, tiles, keep)?;
+    } = coarse_inputs(o, inputs, grid, run, f, tiles)?;
     let n = inputs.obs.len();
     fill_holes(&mut dem);
     if !dem.iter().all(|v| v.is_finite()) {
