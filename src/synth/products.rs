@@ -98,6 +98,58 @@ pub fn write_observed(
     loc_errors: &[ProductErrors],
     pixel_factors: &[usize],
 ) -> Result<Products> {
+    check_observed(scene, grid, loc_errors, pixel_factors)?;
+    std::fs::create_dir_all(dir).map_err(|e| Error::io(dir, e))?;
+    let pr = grid
+        .crs
+        .projector()
+        .map_err(|e| Error::Usage(e.to_string()))?;
+    let geo = grid.geographic(&pr);
+    // The first observation is the scene's own; observation k ≥ 1 is named for hour k.
+    let first = (scene.image.view(), scene.sun, scene.spec.columns);
+    let more = scene
+        .more
+        .iter()
+        .map(|m| (m.image.view(), m.sun, m.spec.columns));
+    let mut m3_labels = Vec::new();
+    for (k, (image, sun, columns)) in std::iter::once(first).chain(more).enumerate() {
+        let id = if k == 0 {
+            M3_ID.to_string()
+        } else {
+            format!("M3G20991231T{k:02}0000")
+        };
+        let shot = Shot {
+            image,
+            sun,
+            columns,
+            loc_error: loc_errors.get(k).copied().unwrap_or_default(),
+            factor: pixel_factors.get(k).copied().unwrap_or(1),
+        };
+        m3_labels.push(write_m3(dir, &id, shot, scene, grid, &geo)?);
+    }
+    let solar_table = write_solar_table(dir)?;
+    let lola_label = write_lola(scene, grid, &geo, dir)?;
+    let (truth_dem, truth_albedo) = write_truth(scene, grid, dir)?;
+    Ok(Products {
+        m3_label: m3_labels[0].clone(),
+        m3_labels,
+        lola_label,
+        solar_table,
+        truth_dem,
+        truth_albedo,
+        grid: *grid,
+        spec: scene.spec.clone(),
+    })
+}
+
+/// Refuse what [`write_observed`] cannot write: a pixel factor of 0 or wider than the grid, a
+/// LOC error or gain trend that is not a finite number, a scene not the grid's size.
+fn check_observed(
+    scene: &Scene,
+    grid: &Grid,
+    loc_errors: &[ProductErrors],
+    pixel_factors: &[usize],
+) -> Result<()> {
     if let Some(f) = pixel_factors
         .iter()
         .find(|&&f| f == 0 || f > grid.rows.min(grid.cols))
@@ -107,7 +159,6 @@ pub fn write_observed(
             grid.rows, grid.cols
         )));
     }
-    let factor = |k: usize| pixel_factors.get(k).copied().unwrap_or(1);
     if let Some(o) = loc_errors
         .iter()
         .flat_map(|e| e.offset_m.iter().chain(&e.drift_m).chain([&e.gain_trend]))
@@ -117,8 +168,6 @@ pub fn write_observed(
             "a LOC error of {o} m is not a number of metres"
         )));
     }
-    let offset = |k: usize| loc_errors.get(k).copied().unwrap_or_default();
-    std::fs::create_dir_all(dir).map_err(|e| Error::io(dir, e))?;
     let (rows, cols) = scene.image.dim();
     if (rows, cols) != (grid.rows, grid.cols) {
         return Err(Error::Usage(format!(
@@ -126,54 +175,25 @@ pub fn write_observed(
             grid.rows, grid.cols
         )));
     }
-    let pr = grid
-        .crs
-        .projector()
-        .map_err(|e| Error::Usage(e.to_string()))?;
-    let geo = grid.geographic(&pr);
-    let wl = pds::m3::band_centres(pds::m3::Mode::Global);
-    let irr: Vec<f64> = wl.iter().map(|&w| blackbody_irradiance(w)).collect();
-    let mut m3_labels = vec![write_m3(
-        dir,
-        M3_ID,
-        Shot {
-            image: scene.image.view(),
-            sun: scene.sun,
-            columns: scene.spec.columns,
-            loc_error: offset(0),
-            factor: factor(0),
-        },
-        scene,
-        grid,
-        &geo,
-    )?];
-    for (k, m) in scene.more.iter().enumerate() {
-        let id = format!("M3G20991231T{:02}0000", k + 1);
-        m3_labels.push(write_m3(
-            dir,
-            &id,
-            Shot {
-                image: m.image.view(),
-                sun: m.sun,
-                columns: m.spec.columns,
-                loc_error: offset(k + 1),
-                factor: factor(k + 1),
-            },
-            scene,
-            grid,
-            &geo,
-        )?);
-    }
+    Ok(())
+}
 
-    let solar_table = dir.join("M3G_SYNTHETIC_SOLAR_SPEC.TAB");
+/// The solar spectrum table the synthetic radiance was made with: at each M3 global-mode band
+/// centre (nm) the blackbody irradiance at 1 AU ([`blackbody_irradiance`], W/(m² µm)), two
+/// columns per CRLF-ended row as M3's own tables have them.
+fn write_solar_table(dir: &Path) -> Result<PathBuf> {
+    let wl = pds::m3::band_centres(pds::m3::Mode::Global);
     let table: String = wl
         .iter()
-        .zip(&irr)
-        .map(|(w, e)| format!("{w:12.6} {e:12.6}\r\n"))
+        .map(|&w| format!("{w:12.6} {:12.6}\r\n", blackbody_irradiance(w)))
         .collect();
+    let solar_table = dir.join("M3G_SYNTHETIC_SOLAR_SPEC.TAB");
     write_atomic(&solar_table, table.as_bytes())?;
+    Ok(solar_table)
+}
 
-    let lola_label = write_lola(scene, grid, &geo, dir)?;
+/// The truth height and albedo as COGs on the grid (`truth_dem.tif`, `truth_albedo.tif`).
+fn write_truth(scene: &Scene, grid: &Grid, dir: &Path) -> Result<(PathBuf, PathBuf)> {
     let truth_dem = dir.join("truth_dem.tif");
     let truth_albedo = dir.join("truth_albedo.tif");
     let meta = [(
@@ -200,16 +220,7 @@ pub fn write_observed(
             metadata: &meta,
         },
     )?;
-    Ok(Products {
-        m3_label: m3_labels[0].clone(),
-        m3_labels,
-        lola_label,
-        solar_table,
-        truth_dem,
-        truth_albedo,
-        grid: *grid,
-        spec: scene.spec.clone(),
-    })
+    Ok((truth_dem, truth_albedo))
 }
 
 /// One observation to write: its image on the grid, its Sun, the columns its swath covers.
