@@ -433,23 +433,16 @@ fn one_window(
     }
 }
 
-/// The registration of observation `k` estimated on two or more segments along its track
-/// (`found`: each segment's window, estimate, whether it was placed relative to `partner`, and
-/// the swath line it was estimated at), the image moved back by `prior` (its estimates are
-/// what is left: `prior` is added to them).
-fn along_track(
+/// The segments of observation `k` from what was found on each, ordered by swath line: each
+/// at the line it was estimated at (without an estimate, the middle of its window's lines),
+/// its estimate with `prior` (what the image was already moved back by) added.
+fn placed_segments(
     cx: &Context,
     k: usize,
     found: Vec<Found>,
-    partner: Option<usize>,
     prior: &Displacement,
-) -> Registration {
+) -> Vec<Segment> {
     let index = &cx.swaths[k];
-    // The lines the segments' windows hold together.
-    let extent = found
-        .iter()
-        .filter_map(|f| f.extent)
-        .reduce(|(a, b), (c, d)| (a.min(c), b.max(d)));
     let mut segs: Vec<Segment> = found
         .into_iter()
         .map(|f| {
@@ -475,6 +468,45 @@ fn along_track(
         })
         .collect();
     segs.sort_by(|a, b| a.line.total_cmp(&b.line));
+    segs
+}
+
+/// The mean of the segments' estimates (each must have one): the mean displacement, the
+/// smallest correlations, the pixels summed; `None` for no segment.
+fn mean_shift(found: &[&Segment]) -> Option<Shift> {
+    (!found.is_empty()).then(|| {
+        let n = found.len() as f64;
+        let e = |s: &&Segment| s.shift.expect("found");
+        Shift {
+            rows: found.iter().map(|s| e(s).rows).sum::<f64>() / n,
+            cols: found.iter().map(|s| e(s).cols).sum::<f64>() / n,
+            correlation: found.iter().map(|s| e(s).correlation).fold(1.0, f64::min),
+            correlation_in_place: found
+                .iter()
+                .map(|s| e(s).correlation_in_place)
+                .fold(1.0, f64::min),
+            pixels: found.iter().map(|s| e(s).pixels).sum(),
+        }
+    })
+}
+
+/// The registration of observation `k` estimated on two or more segments along its track
+/// (`found`: each segment's window, estimate, whether it was placed relative to `partner`, and
+/// the swath line it was estimated at), the image moved back by `prior` (its estimates are
+/// what is left: `prior` is added to them).
+fn along_track(
+    cx: &Context,
+    k: usize,
+    found: Vec<Found>,
+    partner: Option<usize>,
+    prior: &Displacement,
+) -> Registration {
+    // The lines the segments' windows hold together.
+    let extent = found
+        .iter()
+        .filter_map(|f| f.extent)
+        .reduce(|(a, b), (c, d)| (a.min(c), b.max(d)));
+    let segs = placed_segments(cx, k, found, prior);
     let relative_to = partner.filter(|_| segs.iter().any(|s| s.relative));
     let threshold = |s: &Segment| cx.against(s.relative.then_some(partner).flatten()).1;
     let counts = |s: &&Segment| {
@@ -491,20 +523,7 @@ fn along_track(
     } else {
         strong.clone()
     };
-    let shift = (!found.is_empty()).then(|| {
-        let n = found.len() as f64;
-        let e = |s: &&Segment| s.shift.expect("found");
-        Shift {
-            rows: found.iter().map(|s| e(s).rows).sum::<f64>() / n,
-            cols: found.iter().map(|s| e(s).cols).sum::<f64>() / n,
-            correlation: found.iter().map(|s| e(s).correlation).fold(1.0, f64::min),
-            correlation_in_place: found
-                .iter()
-                .map(|s| e(s).correlation_in_place)
-                .fold(1.0, f64::min),
-            pixels: found.iter().map(|s| e(s).pixels).sum(),
-        }
-    });
+    let shift = mean_shift(&found);
     let displacement = if applied {
         knots(&strong, extent)
     } else {
