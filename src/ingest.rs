@@ -481,6 +481,35 @@ pub fn m3_on_grid(
         .map(|(img, _)| img)
 }
 
+/// Where the samples of swath lines `first..first + n` that can reach `search` (the grid's
+/// reach) fall on `grid`: their fractional grid rows and columns, and the sample they start
+/// at. Only a superset of the samples, found from every 8th ([`grid::swath_sample_superset`]),
+/// is projected: a tile is often narrower than the swath. Each line is moved back by `shift`
+/// at it, by x along the columns and by y along the rows, which run south.
+fn placed_samples(
+    loc: &pds::raw::Raster,
+    (first, n): (usize, usize),
+    search: &Grid,
+    grid: &Grid,
+    pr: &Projector,
+    shift: &Displacement,
+) -> Result<(Array2<f64>, Array2<f64>, usize)> {
+    let lon = read2(loc, 0, first, n)?;
+    let lat = read2(loc, 1, first, n)?;
+    let (c0, c1) =
+        grid::swath_sample_superset(search, pr, lon.view(), lat.view()).unwrap_or((0, lon.ncols()));
+    let cols = s![.., c0..c1];
+    let (mut gr, mut gc) = grid::swath_grid_positions(grid, pr, lon.slice(cols), lat.slice(cols));
+    if !shift.is_none() {
+        for (i, (mut r, mut c)) in gr.rows_mut().into_iter().zip(gc.rows_mut()).enumerate() {
+            let [x, y] = shift.at((first + i) as f64);
+            r += y / grid.spacing;
+            c -= x / grid.spacing;
+        }
+    }
+    Ok((gr, gc, c0))
+}
+
 /// [`m3_on_grid`], and where `with_lines` the swath line (fractional, counted from the
 /// product's first) each grid pixel is resampled at, NaN outside the swath: registration
 /// places its estimates along the track by it, and a gain trend is a function of it. (4 bytes
@@ -516,25 +545,7 @@ pub fn m3_on_grid_with_lines(
     // Only the samples that can reach the grid are projected (those of a superset found from
     // every 8th sample: a tile is often narrower than the swath) and resampled; sample
     // positions still count from the line's first sample.
-    let (gr, gc, c0) = {
-        let lon = read2(&loc, 0, first, n)?;
-        let lat = read2(&loc, 1, first, n)?;
-        let (c0, c1) = grid::swath_sample_superset(&search, pr, lon.view(), lat.view())
-            .unwrap_or((0, lon.ncols()));
-        let cols = s![.., c0..c1];
-        let (mut gr, mut gc) =
-            grid::swath_grid_positions(grid, pr, lon.slice(cols), lat.slice(cols));
-        if !shift.is_none() {
-            // Line by line, in grid pixels: back by x along the columns, and by y along the
-            // rows, which run south.
-            for (i, (mut r, mut c)) in gr.rows_mut().into_iter().zip(gc.rows_mut()).enumerate() {
-                let [x, y] = shift.at((first + i) as f64);
-                r += y / grid.spacing;
-                c -= x / grid.spacing;
-            }
-        }
-        (gr, gc, c0)
-    };
+    let (gr, gc, c0) = placed_samples(&loc, (first, n), &search, grid, pr, shift)?;
     let (s0, s1) = grid::swath_samples(grid, gr.view(), gc.view())
         .map_or((c0, c0 + gr.ncols()), |(a, b)| (c0 + a, c0 + b));
     let within = s![.., s0 - c0..s1 - c0];
@@ -577,6 +588,7 @@ pub fn m3_on_grid_with_lines(
         }
     });
     drop(refl);
+    // The unit vectors of OBS bands `az` and `zen` (degrees) on the grid, in its frame.
     let directions = |az: usize, zen: usize| -> Result<Array2<Vec3f>> {
         let nan3 = [f32::NAN; 3];
         let swath = enu(&read2(&obsr, az, first, n)?, &read2(&obsr, zen, first, n)?);
