@@ -158,9 +158,49 @@ fn attempt(
     if have > 0 {
         req = req.header(RANGE, format!("bytes={have}-"));
     }
-    let mut resp = req.send().map_err(|e| Attempt::Retry(describe(&e)))?;
-    let status = resp.status();
-    let (mut file, start) = match status {
+    let resp = req.send().map_err(|e| Attempt::Retry(describe(&e)))?;
+    let (file, start) = open_part(&resp, have, part, url)?;
+    let total = resp
+        .headers()
+        .get(CONTENT_LENGTH)
+        .and_then(|v| v.to_str().ok())
+        .and_then(|v| v.parse::<u64>().ok())
+        .map(|n| n + start);
+    if let (Some(t), Some(s)) = (total, expect.size) {
+        if t != s {
+            let _ = std::fs::remove_file(part);
+            return Err(Attempt::Fatal(Error::Usage(format!(
+                "{url}: the server offers {t} bytes but the label says {s}: wrong file or damaged archive"
+            ))));
+        }
+    }
+    let name = part
+        .file_name()
+        .map(|n| n.to_string_lossy().trim_end_matches(".part").to_string())
+        .unwrap_or_default();
+    progress.bytes(&name, expect.size.or(total), start);
+    let got = stream_into(resp, file, part, start, progress, transferred)?;
+    if let Some(t) = total.or(expect.size) {
+        if got < t {
+            return Err(Attempt::Retry(format!(
+                "transfer ended after {got} of {t} bytes"
+            )));
+        }
+    }
+    Ok(())
+}
+
+/// The part file to write a response into, and the byte it starts at, by the response's
+/// status: appended to where a resumed (206) response starts exactly at its end (`have`
+/// bytes), otherwise written anew; a refused resume (416), a server error, 408 or 429 is
+/// retried (the part file removed where it cannot be resumed), any other status is fatal.
+fn open_part(
+    resp: &reqwest::blocking::Response,
+    have: u64,
+    part: &Path,
+    url: &str,
+) -> std::result::Result<(std::fs::File, u64), Attempt> {
+    Ok(match resp.status() {
         StatusCode::PARTIAL_CONTENT if have > 0 => {
             // The range must start where the part file ends.
             let ok = resp
@@ -209,26 +249,20 @@ fn attempt(
                 }
             ))))
         }
-    };
-    let total = resp
-        .headers()
-        .get(CONTENT_LENGTH)
-        .and_then(|v| v.to_str().ok())
-        .and_then(|v| v.parse::<u64>().ok())
-        .map(|n| n + start);
-    if let (Some(t), Some(s)) = (total, expect.size) {
-        if t != s {
-            let _ = std::fs::remove_file(part);
-            return Err(Attempt::Fatal(Error::Usage(format!(
-                "{url}: the server offers {t} bytes but the label says {s}: wrong file or damaged archive"
-            ))));
-        }
-    }
-    let name = part
-        .file_name()
-        .map(|n| n.to_string_lossy().trim_end_matches(".part").to_string())
-        .unwrap_or_default();
-    progress.bytes(&name, expect.size.or(total), start);
+    })
+}
+
+/// Stream the response's body into `file` (which holds the first `start` bytes), counting
+/// each chunk in `transferred` and `progress`; returns the bytes the part file then holds. A
+/// transfer cut short is retried (what arrived stays, to be resumed).
+fn stream_into(
+    mut resp: reqwest::blocking::Response,
+    mut file: std::fs::File,
+    part: &Path,
+    start: u64,
+    progress: &Progress,
+    transferred: &mut u64,
+) -> std::result::Result<u64, Attempt> {
     let mut buf = vec![0u8; 1 << 16];
     let mut got = start;
     loop {
@@ -252,14 +286,7 @@ fn attempt(
     file.flush()
         .map_err(|e| Attempt::Fatal(Error::io(part, e)))?;
     progress.finish();
-    if let Some(t) = total.or(expect.size) {
-        if got < t {
-            return Err(Attempt::Retry(format!(
-                "transfer ended after {got} of {t} bytes"
-            )));
-        }
-    }
-    Ok(())
+    Ok(got)
 }
 
 /// A reqwest error in words a user can act on.
