@@ -561,12 +561,19 @@ pub struct Fusion {
 }
 
 impl Fusion {
+    /// The Gauss–Newton (or `paper`) iterations of every stage ([`total_iterations`]).
     pub fn iterations(&self) -> usize {
-        self.stages
-            .iter()
-            .map(|s| s.iterations.len().saturating_sub(1))
-            .sum()
+        total_iterations(&self.stages)
     }
+}
+
+/// The iterations of `stages` in all: each stage's report lists its energy before the first
+/// iteration and after each, so a stage took one fewer than it lists.
+pub fn total_iterations(stages: &[StageReport]) -> usize {
+    stages
+        .iter()
+        .map(|s| s.iterations.len().saturating_sub(1))
+        .sum()
 }
 
 /// The image observation `k` of the problem renders from surface `z` with albedo `rho`:

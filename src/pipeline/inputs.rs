@@ -338,14 +338,17 @@ pub(super) fn ingest_window(
 pub(super) fn fusion_observations(
     shots: &[(usize, ingest::ImageOnGrid)],
 ) -> Vec<fusion::Observation<'_>> {
-    shots
-        .iter()
-        .map(|(_, img)| fusion::Observation {
-            image: img.reflectance.view(),
-            sun: Directions::PerPixel(img.sun.view().into()),
-            view: Directions::PerPixel(img.view.view().into()),
-        })
-        .collect()
+    shots.iter().map(|(_, img)| fusion_view(img)).collect()
+}
+
+/// The fusion's view of one image on the grid: its reflectance and per-pixel Sun and view
+/// vectors.
+pub(super) fn fusion_view(img: &ingest::ImageOnGrid) -> fusion::Observation<'_> {
+    fusion::Observation {
+        image: img.reflectance.view(),
+        sun: Directions::PerPixel(img.sun.view().into()),
+        view: Directions::PerPixel(img.view.view().into()),
+    }
 }
 
 /// The DEM on the grid's points: at each, the first product that covers it (NaN where none).

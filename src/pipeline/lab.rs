@@ -84,19 +84,13 @@ pub(super) fn run_lab(l: &Lab, wf: &Workflow, progress: &Progress) -> Result<Run
     let f = fusion::fuse(&problem, params)?;
     let seconds = t0.elapsed().as_secs_f64();
     progress.finish();
-    let mask = mask_codes(&f.photometric, &image);
-    let layers = [
-        f.height.clone(),
-        f.albedo.clone(),
-        f.residual.clone(),
-        mask,
-        depth.clone(),
-        image.clone(),
-        f.observations.mapv(f64::from),
-    ];
+    drop(problem);
+    let dim = image.dim();
+    let fused = TileLayers::fused(f, TileSums::default(), depth, image);
+    let layers = &fused.layers;
     let files = checksums(&[l.inputs.image.clone(), l.inputs.depth.clone()], progress)?;
     let key = run_key(wf, &files);
-    let outputs = write_lab_layers(l, &layers, &key)?;
+    let outputs = write_lab_layers(l, layers, &key)?;
     let record = RunRecord {
         tool: "sfsfuse",
         version: crate::BUILD,
@@ -117,12 +111,12 @@ pub(super) fn run_lab(l: &Lab, wf: &Workflow, progress: &Progress) -> Result<Run
         membrane: None,
         reference: None,
         threads: rayon::current_num_threads(),
-        tiles: vec![lab_tile(&f, image.dim(), seconds)],
+        tiles: vec![lab_tile(&fused, dim, seconds)],
         sanity: None,
         observations: Vec::new(),
         metrics: {
             let mut m = MetricsAcc::new();
-            m.add(&layers);
+            m.add(layers);
             m.finish()
         },
         outputs: outputs.clone(),
@@ -210,7 +204,7 @@ fn write_lab_layers(l: &Lab, layers: &[Array2<f64>; 7], key: &str) -> Result<Vec
 
 /// The run record's one tile of a lab run: the whole image, fused (a lab run writes no tile
 /// file, so it has no key or checksum).
-fn lab_tile(f: &fusion::Fusion, (rows, cols): (usize, usize), seconds: f64) -> TileRecord {
+fn lab_tile(t: &TileLayers, (rows, cols): (usize, usize), seconds: f64) -> TileRecord {
     let whole = Window {
         r0: 0,
         c0: 0,
@@ -222,12 +216,12 @@ fn lab_tile(f: &fusion::Fusion, (rows, cols): (usize, usize), seconds: f64) -> T
         key: String::new(),
         core: whole,
         ext: whole,
-        status: "fused".into(),
-        photometric_pixels: f.photometric.iter().filter(|&&b| b).count(),
-        sanity: TileSums::default(),
+        status: t.status.into(),
+        photometric_pixels: t.photometric,
+        sanity: t.sanity.clone(),
         layers_sha256: String::new(),
-        iterations: f.iterations(),
+        iterations: fusion::total_iterations(&t.stages),
         seconds,
-        stages: f.stages.clone(),
+        stages: t.stages.clone(),
     }
 }

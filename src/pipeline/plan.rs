@@ -361,16 +361,8 @@ fn gains_on(
     scale: f64,
     trend: bool,
 ) -> (fusion::gains::GainEstimate, Vec<Option<GainTrend>>) {
-    let views: Vec<fusion::Observation> = shots
-        .iter()
-        .map(|(_, img, _)| fusion::Observation {
-            image: img.reflectance.view(),
-            sun: Directions::PerPixel(img.sun.view().into()),
-            view: Directions::PerPixel(img.view.view().into()),
-        })
-        .collect();
     let problem = Problem {
-        observations: views,
+        observations: shots.iter().map(|(_, img, _)| fusion_view(img)).collect(),
         dem,
         spacing,
         dem_psf_sigma: 0.0,

@@ -50,7 +50,7 @@ pub const MASK_NO_IMAGE: f64 = 2.0;
 
 /// The `mask` layer from where the fusion was photometric and the image (NaN where no
 /// observation sees the pixel).
-pub(super) fn mask_codes(photometric: &Array2<bool>, image: &Array2<f64>) -> Array2<f64> {
+fn mask_codes(photometric: &Array2<bool>, image: &Array2<f64>) -> Array2<f64> {
     Zip::from(photometric).and(image).map_collect(|&p, &i| {
         if p {
             MASK_FUSED
@@ -328,17 +328,22 @@ fn first_image(shots: &[(usize, ingest::ImageOnGrid)], dim: (usize, usize)) -> A
 
 /// What a tile file holds besides its window and timing: the layers in [`TILE_LAYERS`] order
 /// and what the record says of them.
-struct TileLayers {
-    status: &'static str,
-    layers: [Array2<f64>; 7],
-    stages: Vec<StageReport>,
-    photometric: usize,
-    sanity: TileSums,
+pub(super) struct TileLayers {
+    pub(super) status: &'static str,
+    pub(super) layers: [Array2<f64>; 7],
+    pub(super) stages: Vec<StageReport>,
+    pub(super) photometric: usize,
+    pub(super) sanity: TileSums,
 }
 
 impl TileLayers {
-    /// A fused tile's layers.
-    fn fused(f: fusion::Fusion, sanity: TileSums, dem: Array2<f64>, image: Array2<f64>) -> Self {
+    /// A fused tile's layers (a lab run's too, with default sums).
+    pub(super) fn fused(
+        f: fusion::Fusion,
+        sanity: TileSums,
+        dem: Array2<f64>,
+        image: Array2<f64>,
+    ) -> Self {
         let photometric = f.photometric.iter().filter(|&&b| b).count();
         let mask = mask_codes(&f.photometric, &image);
         TileLayers {
@@ -415,11 +420,7 @@ fn write_tile(
         status: t.status.into(),
         photometric_pixels: t.photometric,
         sanity: t.sanity,
-        iterations: t
-            .stages
-            .iter()
-            .map(|s| s.iterations.len().saturating_sub(1))
-            .sum(),
+        iterations: fusion::total_iterations(&t.stages),
         seconds: t0.elapsed().as_secs_f64(),
         stages: t.stages,
     };
