@@ -727,9 +727,66 @@ fn unit_at(a: &[Array2<f64>; 3], l: f64, m: f64) -> Option<Vec3> {
     (n.is_finite() && n > 0.0).then(|| [u[0] / n, u[1] / n, u[2] / n])
 }
 
+/// Heights the Moon's surface can have, metres above the 1737.4 km sphere: LOLA puts it between
+/// −9.1 km (the floor of Antoniadi) and +10.8 km (south-east of Engel'gardt); the bounds leave
+/// more than a kilometre either side. A DEM value outside is no height: a wrong
+/// SCALING_FACTOR, OFFSET or UNIT, a radius, or a fill value (docs/formats.md).
+pub const LUNAR_HEIGHT_RANGE_M: [f64; 2] = [-12_000.0, 12_000.0];
+
+/// Lines `first..first + count` of `dem` as heights above the 1737.4 km sphere of the grid's
+/// CRS, metres: DN × SCALING_FACTOR + OFFSET − 1737.4 km where the label gives OFFSET (the
+/// product's reference sphere; 1737.4 km in every LOLA GDR), DN × SCALING_FACTOR where not.
+pub fn lola_heights(dem: &LolaDem, first: usize, count: usize) -> Result<Vec<f64>> {
+    let shift = reference_shift(dem);
+    Ok(dem
+        .read_heights(first, count)?
+        .into_iter()
+        .map(|h| h + shift)
+        .collect())
+}
+
+/// What turns `dem`'s heights into heights above the 1737.4 km sphere: OFFSET − 1737.4 km, 0
+/// without OFFSET.
+pub fn reference_shift(dem: &LolaDem) -> f64 {
+    dem.offset.map_or(0.0, |o| o - grid::MOON_RADIUS_M)
+}
+
+/// Refuses `heights` (rows of a DEM starting at 0-based `origin` = (line, sample) of `file`)
+/// where a finite one lies outside [`LUNAR_HEIGHT_RANGE_M`], naming the first such pixel
+/// (counted from 1), its value and how many there are. NaN (no data) passes.
+pub fn check_lunar_heights(
+    file: &std::path::Path,
+    heights: ArrayView2<f64>,
+    origin: (usize, usize),
+) -> Result<()> {
+    let [lo, hi] = LUNAR_HEIGHT_RANGE_M;
+    let outside = |h: f64| h.is_finite() && !(lo..=hi).contains(&h);
+    let count = heights.iter().filter(|&&h| outside(h)).count();
+    let Some(((i, j), &h)) = heights.indexed_iter().find(|(_, &h)| outside(h)) else {
+        return Ok(());
+    };
+    Err(Error::Usage(format!(
+        "{}: line {}, sample {}: height {h} m is not on the Moon (its surface lies within \
+         −9.1 … +10.8 km of the 1737.4 km sphere; accepted {lo} … {hi} m), and {} more pixel(s) \
+         the grid needs are outside too: check the label's SCALING_FACTOR, OFFSET and UNIT, \
+         whether the file holds radii rather than heights, and whether a fill value marks \
+         missing data (declare it as no data)",
+        file.display(),
+        origin.0 + i + 1,
+        origin.1 + j + 1,
+        count - 1
+    )))
+}
+
 /// Heights of `dem` at every centre of the grid whose geography is `geo`, metres above the
-/// 1737.4 km sphere; NaN outside the product or where its support touches no data.
-pub fn lola_on_grid(dem: &LolaDem, geo: &Geographic, method: Interpolation) -> Result<Array2<f64>> {
+/// 1737.4 km sphere ([`lola_heights`]); NaN outside the product or where its support touches
+/// no data; `None` when no grid pixel falls on the product. A height the grid needs outside
+/// [`LUNAR_HEIGHT_RANGE_M`] is refused, as is a product that cannot be read.
+pub fn lola_on_grid(
+    dem: &LolaDem,
+    geo: &Geographic,
+    method: Interpolation,
+) -> Result<Option<Array2<f64>>> {
     let dim = geo.lon.dim();
     let mut pos_l = Array2::from_elem(dim, f64::NAN);
     let mut pos_s = pos_l.clone();
@@ -749,25 +806,23 @@ pub fn lola_on_grid(dem: &LolaDem, geo: &Geographic, method: Interpolation) -> R
     }
     let lines = dem.lines() as f64;
     if lmin > lmax || lmax < -0.5 || lmin > lines - 0.5 {
-        return Err(Error::Usage(format!(
-            "{}: the grid lies outside this DEM (no grid pixel falls on it)",
-            dem.label_path.display()
-        )));
+        return Ok(None);
     }
     let first = (lmin.floor() - 2.0).clamp(0.0, lines - 1.0) as usize;
     let end = ((lmax.ceil() + 3.0).clamp(1.0, lines)) as usize;
-    let window = dem.read_heights(first, end - first)?;
+    let window = lola_heights(dem, first, end - first)?;
     let window = Array2::from_shape_vec((end - first, dem.samples()), window)
         .map_err(|e| Error::Usage(e.to_string()))?;
+    check_lunar_heights(&dem.raster.path, window.view(), (first, 0))?;
     let wrap = match dem.projection {
         Projection::SimpleCylindrical { resolution, .. } => {
             (dem.samples() as f64 - 360.0 * resolution).abs() < 1e-6
         }
         Projection::PolarStereographic { .. } => false,
     };
-    Ok(Zip::from(&pos_l).and(&pos_s).par_map_collect(|&l, &s| {
-        grid::interpolate(window.view(), l - first as f64, s, method, wrap)
-    }))
+    Ok(Some(Zip::from(&pos_l).and(&pos_s).par_map_collect(
+        |&l, &s| grid::interpolate(window.view(), l - first as f64, s, method, wrap),
+    )))
 }
 
 /// A DEM in a (Geo)TIFF file: heights in metres above the 1737.4 km sphere, on the grid its
@@ -911,12 +966,13 @@ impl GeoTiffDem {
 }
 
 /// Heights of a GeoTIFF DEM at every centre of the grid whose geography is `geo` (as
-/// [`lola_on_grid`]: NaN outside the DEM or where the support touches no data).
+/// [`lola_on_grid`]: NaN outside the DEM or where the support touches no data, `None` when no
+/// grid pixel falls on it, heights outside [`LUNAR_HEIGHT_RANGE_M`] refused).
 pub fn geotiff_on_grid(
     dem: &GeoTiffDem,
     geo: &Geographic,
     method: Interpolation,
-) -> Result<Array2<f64>> {
+) -> Result<Option<Array2<f64>>> {
     use crate::export::GeoTiffCrs;
     let pr = match dem.crs {
         GeoTiffCrs::Projected(c) => Some(c.projector().map_err(|e| Error::Usage(e.to_string()))?),
@@ -954,19 +1010,17 @@ pub fn geotiff_on_grid(
     }
     let (hh, ww) = (dem.height as f64, dem.width as f64);
     if r_lo > r_hi || r_hi < -0.5 || r_lo > hh - 0.5 || c_hi < -0.5 || c_lo > ww - 0.5 {
-        return Err(Error::Usage(format!(
-            "{}: the grid lies outside this DEM (no grid pixel falls on it)",
-            dem.path.display()
-        )));
+        return Ok(None);
     }
     let r0 = (r_lo.floor() - 2.0).clamp(0.0, hh - 1.0) as usize;
     let r1 = (r_hi.ceil() + 3.0).clamp(1.0, hh) as usize;
     let c0 = (c_lo.floor() - 2.0).clamp(0.0, ww - 1.0) as usize;
     let c1 = (c_hi.ceil() + 3.0).clamp(1.0, ww) as usize;
     let window = dem.window(r0, r1, c0, c1)?;
-    Ok(Zip::from(&pos_r).and(&pos_c).par_map_collect(|&r, &c| {
-        grid::interpolate(window.view(), r - r0 as f64, c - c0 as f64, method, false)
-    }))
+    check_lunar_heights(&dem.path, window.view(), (r0, c0))?;
+    Ok(Some(Zip::from(&pos_r).and(&pos_c).par_map_collect(
+        |&r, &c| grid::interpolate(window.view(), r - r0 as f64, c - c0 as f64, method, false),
+    )))
 }
 
 #[cfg(test)]

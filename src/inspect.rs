@@ -321,7 +321,12 @@ fn inspect_lola(path: &Path) -> Result<Inspection> {
             )
         }
     };
-    let heights = scan(d.lines(), |f, n| d.read_heights(f, n))?;
+    // Heights above the 1737.4 km sphere, as a run reads them (`ingest::lola_heights`).
+    let shift = crate::ingest::reference_shift(&d);
+    let heights = scan(d.lines(), |f, n| {
+        d.read_heights(f, n)
+            .map(|h| h.into_iter().map(|h| h + shift).collect())
+    })?;
     Ok(Inspection::Lola {
         label: path.display().to_string(),
         lines: d.lines(),

@@ -32,7 +32,7 @@ fn ldem4_on_its_own_grid_gives_its_own_heights() {
             .window(r0 as isize, c0 as isize, 20, 40);
         let geo = g.geographic(&pr);
         for method in [Interpolation::Bilinear, Interpolation::Bicubic] {
-            let h = lola_on_grid(&dem, &geo, method).unwrap();
+            let h = lola_on_grid(&dem, &geo, method).unwrap().unwrap();
             for ((r, c), v) in h.indexed_iter() {
                 let want = dn[(r0 + r) * 1440 + (c0 + c) % 1440] * 0.5;
                 if r0 == 0 && r < 2 {
@@ -71,7 +71,9 @@ fn antoniadi_is_the_deepest_point_of_a_local_grid() {
     let (g, crs) = antoniadi_grid();
     let pr = crs.projector().unwrap();
     let geo = g.geographic(&pr);
-    let h = lola_on_grid(&dem, &geo, Interpolation::Bicubic).unwrap();
+    let h = lola_on_grid(&dem, &geo, Interpolation::Bicubic)
+        .unwrap()
+        .unwrap();
     assert!(h.iter().all(|v| v.is_finite()));
     let ((r, c), min) = h.indexed_iter().fold(
         ((0, 0), f64::MAX),
@@ -277,6 +279,125 @@ fn a_grid_outside_the_product_is_refused_with_its_name() {
     assert!(e.contains("RDN_IMAGE BANDS"), "{e}");
 }
 
+/// The Antoniadi grid's heights from LDEM_4 with its label edited by `label` and pixel
+/// (`line`, `sample`) (0-based) of its data set to DN `dn`, in `dir`.
+fn edited_ldem4_on_antoniadi(
+    dir: &std::path::Path,
+    label: impl Fn(&str) -> String,
+    pixel: Option<(usize, usize, i16)>,
+) -> sfsfuse::Result<Option<ndarray::Array2<f64>>> {
+    let data = test_data().unwrap().join("lola_ldem4");
+    std::fs::create_dir_all(dir).unwrap();
+    let text = std::fs::read_to_string(data.join("LDEM_4.LBL")).unwrap();
+    std::fs::write(dir.join("LDEM_4.LBL"), label(&text)).unwrap();
+    let mut img = std::fs::read(data.join("LDEM_4.IMG")).unwrap();
+    if let Some((line, sample, dn)) = pixel {
+        let at = 2 * (line * 1440 + sample);
+        img[at..at + 2].copy_from_slice(&dn.to_le_bytes());
+    }
+    std::fs::write(dir.join("LDEM_4.IMG"), img).unwrap();
+    let dem = LolaDem::open(&dir.join("LDEM_4.LBL")).unwrap();
+    let (g, crs) = antoniadi_grid();
+    lola_on_grid(
+        &dem,
+        &g.geographic(&crs.projector().unwrap()),
+        Interpolation::Bicubic,
+    )
+}
+
+/// Heights are taken above the 1737.4 km sphere of the grid's CRS whatever the product's
+/// reference sphere (OFFSET), and a value no lunar surface can have — here LDEM_4's deepest
+/// pixel overwritten with the int16 fill −32768 (−16 384 m) — is refused naming the data
+/// file, the pixel (1-based, as PDS counts) and its value; so is a GeoTIFF holding radii.
+#[test]
+fn dem_values_that_are_not_lunar_heights_are_refused_by_pixel() {
+    let dir = std::env::temp_dir().join(format!("sfsfuse-lunar-heights-{}", std::process::id()));
+    let same = |t: &str| t.to_string();
+    let want = edited_ldem4_on_antoniadi(&dir, same, None)
+        .unwrap()
+        .unwrap();
+    // OFFSET 1737.0 km: heights 400 m lower above 1737.4 km; no OFFSET: DN × 0.5 as they are.
+    let lower = edited_ldem4_on_antoniadi(
+        &dir,
+        |t: &str| {
+            t.replace(
+                "OFFSET                = 1737400.",
+                "OFFSET                = 1737000.",
+            )
+        },
+        None,
+    )
+    .unwrap()
+    .unwrap();
+    let no_offset = edited_ldem4_on_antoniadi(
+        &dir,
+        |t: &str| t.replace("OFFSET                = 1737400.", ""),
+        None,
+    )
+    .unwrap()
+    .unwrap();
+    for ((w, l), n) in want.iter().zip(&lower).zip(&no_offset) {
+        assert!((w - 400.0 - l).abs() < 1e-6, "{w} {l}");
+        assert_eq!(w, n);
+    }
+    // MANIFEST: LDEM_4's minimum at 70.375°S 187.625°E is line 642, sample 751 (1-based).
+    let err = edited_ldem4_on_antoniadi(&dir, same, Some((641, 750, i16::MIN)))
+        .unwrap_err()
+        .to_string();
+    assert!(
+        err.contains("LDEM_4.IMG")
+            && err.contains("line 642, sample 751")
+            && err.contains("height -16384 m is not on the Moon")
+            && err.contains("0 more pixel(s)"),
+        "{err}"
+    );
+    // The same pixel at −12 000 m, a kilometre deeper than any point on the Moon, passes the
+    // bound exactly; one DN deeper does not.
+    let edge = edited_ldem4_on_antoniadi(&dir, same, Some((641, 750, -24000)));
+    assert!(edge.is_ok(), "{edge:?}");
+    let err = edited_ldem4_on_antoniadi(&dir, same, Some((641, 750, -24001)))
+        .unwrap_err()
+        .to_string();
+    assert!(err.contains("height -12000.5 m"), "{err}");
+    // A GeoTIFF of radii (height + 1737.4 km) instead of heights.
+    use sfsfuse::export::{write_geotiff, BandInfo};
+    use sfsfuse::ingest::{geotiff_on_grid, GeoTiffDem};
+    let dem = LolaDem::open(&test_data().unwrap().join("lola_ldem4/LDEM_4.LBL")).unwrap();
+    let s = 2.0 * std::f64::consts::PI * 1_737_400.0 / 360.0 / 4.0;
+    let eqc = Grid::new(
+        Crs::Equirectangular { lon_0: 180.0 },
+        720,
+        1440,
+        -720.0 * s,
+        360.0 * s,
+        s,
+    )
+    .unwrap();
+    let radii = ndarray::Array2::from_shape_vec((720, 1440), dem.read_heights(0, 720).unwrap())
+        .unwrap()
+        + 1_737_400.0;
+    let tif = dir.join("radii.tif");
+    let info = BandInfo {
+        description: "LDEM_4 radii",
+        unit: "m",
+        metadata: &[],
+    };
+    write_geotiff(&tif, &eqc, radii.view(), &info).unwrap();
+    let (g, crs) = antoniadi_grid();
+    let err = geotiff_on_grid(
+        &GeoTiffDem::open(&tif).unwrap(),
+        &g.geographic(&crs.projector().unwrap()),
+        Interpolation::Bicubic,
+    )
+    .unwrap_err()
+    .to_string();
+    assert!(
+        err.contains("radii.tif") && err.contains("is not on the Moon"),
+        "{err}"
+    );
+    std::fs::remove_dir_all(&dir).unwrap();
+}
+
 /// A DEM given as a GeoTIFF: LDEM_4 written as a COG on its own equirectangular lattice, and
 /// GDAL's strip-organised LZW copy of it, give the same heights on a local grid as the PDS
 /// product; a GeoTIFF on the Earth is refused.
@@ -320,7 +441,9 @@ fn ldem4_geotiff(
     .unwrap();
     let (g, crs) = antoniadi_grid();
     let geo = g.geographic(&crs.projector().unwrap());
-    let want = lola_on_grid(&dem, &geo, Interpolation::Bicubic).unwrap();
+    let want = lola_on_grid(&dem, &geo, Interpolation::Bicubic)
+        .unwrap()
+        .unwrap();
     (tif, geo, want, s)
 }
 
@@ -340,7 +463,9 @@ fn resample_like_the_pds_product(
             f.display(),
             d.pixel_m()
         );
-        let got = geotiff_on_grid(&d, geo, Interpolation::Bicubic).unwrap();
+        let got = geotiff_on_grid(&d, geo, Interpolation::Bicubic)
+            .unwrap()
+            .unwrap();
         let worst = got
             .iter()
             .zip(want)

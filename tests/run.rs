@@ -885,6 +885,28 @@ fn impossible_geometry_and_radiance_are_refused_by_cause() {
     }
 }
 
+/// A LOLA product whose data are a fill value (the int16 −32768, −16 384 m) is refused through
+/// `run`, naming its data file and the first pixel the grid needs, and nothing is written:
+/// no lunar surface lies so deep (docs/formats.md).
+#[test]
+fn a_dem_of_fill_values_is_refused() {
+    let src = scene_products(256, 10);
+    let dir = scratch("fill");
+    let p = support::copy_products(src, &dir.join("products"));
+    let img = p.lola_label.with_extension("IMG");
+    let len = std::fs::metadata(&img).unwrap().len() as usize;
+    std::fs::write(&img, i16::MIN.to_le_bytes().repeat(len / 2)).unwrap();
+    let out = dir.join("out");
+    let err = run_err(&write_workflow(&dir, &workflow(&p, &out, 512, "")));
+    assert!(
+        err.contains(&img.display().to_string())
+            && err.contains("sample 1: height -16384 m is not on the Moon"),
+        "{err}"
+    );
+    assert!(!out.join("dem.tif").exists());
+    std::fs::remove_dir_all(&dir).unwrap();
+}
+
 /// A TARGET-mode solar table with a GLOBAL-mode observation is refused with both names.
 #[test]
 fn a_solar_table_of_the_other_mode_is_refused() {

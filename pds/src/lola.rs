@@ -1,8 +1,9 @@
 //! LRO LOLA GDR DEMs (LRO-L-LOLA-4-GDR): `LDEM_*` labels with an `^IMAGE` pointer, an `IMAGE`
 //! object and an `IMAGE_MAP_PROJECTION` (docs/formats.md).
 //!
-//! Height above the 1737.4 km sphere = DN × SCALING_FACTOR (in the IMAGE's UNIT, converted to
-//! metres); radius = that + OFFSET.
+//! Height above the reference sphere = DN × SCALING_FACTOR (in the IMAGE's UNIT, converted to
+//! metres); radius = that + OFFSET, the reference sphere's radius (1737.4 km in every LOLA
+//! GDR).
 //! Simple cylindrical pixel centres, 1-based LINE/SAMPLE (DSMAP.CAT):
 //! lon = CENTER_LONGITUDE + (SAMPLE − SAMPLE_PROJECTION_OFFSET − 1)/MAP_RESOLUTION,
 //! lat = CENTER_LATITUDE − (LINE − LINE_PROJECTION_OFFSET − 1)/MAP_RESOLUTION.
@@ -54,8 +55,9 @@ pub struct LolaDem {
     /// Metres per DN: SCALING_FACTOR × the IMAGE UNIT in metres (METER or KILOMETER; absent
     /// = METER).
     pub scaling_factor: f64,
-    /// Reference radius (OFFSET), converted to metres.
-    pub offset: f64,
+    /// Reference radius (OFFSET), converted to metres: radius = DN × [`Self::scaling_factor`] +
+    /// OFFSET. `None` when the label gives none.
+    pub offset: Option<f64>,
     pub projection: Projection,
     /// MAP_SCALE in metres per pixel, whatever unit the label used.
     pub map_scale_m: f64,
@@ -239,11 +241,11 @@ fn record_bytes(path: &Path, holder: &Object) -> Result<Option<u64>> {
     }
 }
 
-/// The IMAGE object's DN → height in metres, as (factor, offset): height = DN·factor + offset,
-/// from `SCALING_FACTOR` (absent: DN are heights; present, not 0), `OFFSET` (absent: 0) and
+/// The IMAGE object's DN → radius in metres, as (factor, offset): radius = DN·factor + offset,
+/// from `SCALING_FACTOR` (absent: DN are heights; present, not 0), `OFFSET` (absent: `None`) and
 /// `UNIT` (the `*_FLOAT` products are in kilometres, the integer ones in metres; absent:
 /// metres). A unit this reader does not know is refused rather than taken as metres.
-fn height_scale(path: &Path, image: &Object) -> Result<(f64, f64)> {
+fn height_scale(path: &Path, image: &Object) -> Result<(f64, Option<f64>)> {
     let scaling_factor = optional_number(path, image, "SCALING_FACTOR")?.unwrap_or(1.0);
     if scaling_factor == 0.0 {
         return Err(Error::invalid(
@@ -267,7 +269,7 @@ fn height_scale(path: &Path, image: &Object) -> Result<(f64, f64)> {
             ))
         }
     };
-    let offset = optional_number(path, image, "OFFSET")?.unwrap_or(0.0) * unit_m;
+    let offset = optional_number(path, image, "OFFSET")?.map(|o| o * unit_m);
     Ok((scaling_factor * unit_m, offset))
 }
 
@@ -404,7 +406,7 @@ impl LolaDem {
         self.raster.read_band(0, first, count)
     }
 
-    /// Heights above the reference sphere (DN × SCALING_FACTOR), metres.
+    /// Heights above the reference sphere of radius [`Self::offset`] (DN × SCALING_FACTOR), metres.
     pub fn read_heights(&self, first: usize, count: usize) -> Result<Vec<f64>> {
         Ok(self
             .read_dn(first, count)?

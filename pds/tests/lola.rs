@@ -84,7 +84,7 @@ fn truncated_and_mislabelled_products_are_reported() {
     .unwrap();
     let km = LolaDem::open(&dir.join("LDEM_4.LBL")).unwrap();
     assert_eq!(km.scaling_factor, 500.0);
-    assert_eq!(km.offset, 1_737_400_000.0);
+    assert_eq!(km.offset, Some(1_737_400_000.0));
     std::fs::write(
         dir.join("LDEM_4.LBL"),
         label.replace(

@@ -157,7 +157,7 @@ impl Dem {
         &self,
         geo: &crate::grid::Geographic,
         method: crate::grid::Interpolation,
-    ) -> Result<Array2<f64>> {
+    ) -> Result<Option<Array2<f64>>> {
         match self {
             Dem::Pds(d) => ingest::lola_on_grid(d, geo, method),
             Dem::GeoTiff(d) => ingest::geotiff_on_grid(d, geo, method),
@@ -327,7 +327,7 @@ pub(super) fn ingest_window(
     let geo = window.geographic(&pr);
     // The DEM first: the observations need only the bearings, and the longitudes and
     // latitudes are freed before their swath arrays are read.
-    let dem = dem_on(o, inputs, &geo);
+    let dem = dem_on(o, inputs, &geo)?;
     let crate::grid::Geographic { lon, lat, bearing } = geo;
     drop((lon, lat));
     let shots = observations_on(o, inputs, placing, window, &pr, bearing.view())?;
@@ -352,10 +352,16 @@ pub(super) fn fusion_view(img: &ingest::ImageOnGrid) -> fusion::Observation<'_> 
 }
 
 /// The DEM on the grid's points: at each, the first product that covers it (NaN where none).
-pub(super) fn dem_on(o: &Orbital, inputs: &Inputs, geo: &crate::grid::Geographic) -> Array2<f64> {
+/// A product the grid does not reach is skipped; one that cannot be read, or whose heights
+/// are not the Moon's ([`ingest::LUNAR_HEIGHT_RANGE_M`]), is an error.
+pub(super) fn dem_on(
+    o: &Orbital,
+    inputs: &Inputs,
+    geo: &crate::grid::Geographic,
+) -> Result<Array2<f64>> {
     let mut dem = Array2::from_elem(geo.lon.dim(), f64::NAN);
     for d in &inputs.lola {
-        let Ok(h) = d.on_grid(geo, o.grid.dem_interpolation) else {
+        let Some(h) = d.on_grid(geo, o.grid.dem_interpolation)? else {
             continue;
         };
         Zip::from(&mut dem).and(&h).for_each(|a, &b| {
@@ -364,5 +370,5 @@ pub(super) fn dem_on(o: &Orbital, inputs: &Inputs, geo: &crate::grid::Geographic
             }
         });
     }
-    dem
+    Ok(dem)
 }

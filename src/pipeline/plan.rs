@@ -282,7 +282,7 @@ pub(super) fn run_gains(
         (&pr, geo.bearing.view()),
         with_lines,
     )?;
-    let mut dem = dem_on(o, inputs, &geo);
+    let mut dem = dem_on(o, inputs, &geo)?;
     fill_holes(&mut dem);
     let mut gains = vec![1.0; n_obs];
     let mut trends = vec![None; n_obs];

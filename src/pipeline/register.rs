@@ -264,7 +264,7 @@ impl Context<'_> {
         let (o, inputs) = (self.o, self.inputs);
         let pr = projector(&win.crs)?;
         let geo = win.geographic(&pr);
-        let dem = dem_on(o, inputs, &geo);
+        let dem = dem_on(o, inputs, &geo)?;
         let ingest = |k: usize, shift: &Displacement| {
             ingest::m3_on_grid_with_lines(
                 &inputs.obs[k],
