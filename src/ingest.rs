@@ -175,6 +175,10 @@ pub struct Refusals {
     /// OBS phase disagrees with the angle between the Sun and M3 vectors by more than
     /// [`MAX_PHASE_MISMATCH_DEG`], or the geometry is not finite.
     pub geometry: usize,
+    /// OBS's to-Sun distance (band 6, an offset from SOLAR_DISTANCE) is not finite or more
+    /// than [`MAX_SUN_DISTANCE_OFFSET_AU`] from it.
+    #[serde(default)]
+    pub sun_distance: usize,
 }
 
 impl Refusals {
@@ -186,11 +190,17 @@ impl Refusals {
             Cause::SunBelow => self.sun_below_horizon += 1,
             Cause::ViewBelow => self.view_below_horizon += 1,
             Cause::Geometry => self.geometry += 1,
+            Cause::SunDistance => self.sun_distance += 1,
         }
     }
 
     pub fn total(&self) -> usize {
-        self.dark + self.radiance + self.sun_below_horizon + self.view_below_horizon + self.geometry
+        self.dark
+            + self.radiance
+            + self.sun_below_horizon
+            + self.view_below_horizon
+            + self.geometry
+            + self.sun_distance
     }
 
     /// The causes with their counts, largest first, for messages.
@@ -213,6 +223,10 @@ impl Refusals {
                 self.geometry,
                 "OBS phase inconsistent with its Sun and M3 directions",
             ),
+            (
+                self.sun_distance,
+                "OBS to-Sun distance (band 6) more than 0.001 AU off the label's SOLAR_DISTANCE",
+            ),
         ];
         v.sort_by_key(|x| std::cmp::Reverse(x.0));
         v.iter()
@@ -231,6 +245,12 @@ pub const MAX_REFLECTANCE: f64 = 1.5 / std::f64::consts::PI;
 /// dark-level error: I/F ≥ −0.06, ten times M3's noise at 1.2 µm); below it the radiance is
 /// not a measurement (the `linerateNotConstant` crop has −368 W/(m² µm sr), I/F ≈ −2.4).
 pub const DARK_FLOOR: f64 = -0.02;
+/// Largest accepted |OBS band 6|, AU: the pixel's to-Sun distance less the label's
+/// SOLAR_DISTANCE. The vendored crops stay within 3·10⁻⁷ AU; a point of the near side is at
+/// most a lunar radius (1.2·10⁻⁵ AU) off the centre, and the Moon's distance from the Sun
+/// changes by less than 5·10⁻⁴ AU a day. A larger offset scales the reflectance by d²
+/// (3 AU: ×16) and is not a geometry.
+pub const MAX_SUN_DISTANCE_OFFSET_AU: f64 = 1e-3;
 /// Largest accepted difference between OBS phase (band 5) and the angle between OBS's Sun and
 /// M3 directions (bands 1–4), degrees. They agree to 1e-5° on real products.
 pub const MAX_PHASE_MISMATCH_DEG: f64 = 1.0;
@@ -244,6 +264,7 @@ pub enum Cause {
     SunBelow,
     ViewBelow,
     Geometry,
+    SunDistance,
 }
 
 /// The guard rails of one swath pixel: reflectance `r` (sr⁻¹, from the radiance), OBS to-Sun
@@ -347,9 +368,13 @@ fn reflectance_lines(
             } else {
                 f64::NAN
             };
-            *c = check_pixel(
-                v, geo[0][ij], geo[1][ij], geo[2][ij], geo[3][ij], geo[4][ij],
-            );
+            *c = if dd.abs() <= MAX_SUN_DISTANCE_OFFSET_AU {
+                check_pixel(
+                    v, geo[0][ij], geo[1][ij], geo[2][ij], geo[3][ij], geo[4][ij],
+                )
+            } else {
+                Cause::SunDistance
+            };
             match *c {
                 Cause::Ok => *r = v,
                 Cause::Dark => *r = 0.0,

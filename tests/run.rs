@@ -832,7 +832,8 @@ fn a_region_wider_than_the_swath_keeps_the_input_dem_off_the_image() {
     std::fs::remove_dir_all(&dir).unwrap();
 }
 
-/// Impossible geometry or radiance is refused with the observation and the cause named.
+/// Impossible geometry, Sun distance or radiance is refused with the observation and the cause
+/// named.
 #[test]
 fn impossible_geometry_and_radiance_are_refused_by_cause() {
     use support::{copy_products, edit_bil};
@@ -869,6 +870,19 @@ fn impossible_geometry_and_radiance_are_refused_by_cause() {
             "nan",
             Box::new(move |p| edit_bil(&part_file(p, "RDN"), 85, n, |_, _, _, _| f32::NAN)),
             "radiance NaN",
+        ),
+        (
+            // Band 6 (0-based 5) 3 AU off SOLAR_DISTANCE: every reflectance ×16 otherwise.
+            "sun-distance",
+            Box::new(move |p| {
+                edit_bil(
+                    &part_file(p, "OBS"),
+                    10,
+                    n,
+                    |_, b, _, v| if b == 5 { 3.0 } else { v },
+                )
+            }),
+            "OBS to-Sun distance (band 6) more than 0.001 AU off",
         ),
     ];
     for (name, edit, want) in cases {

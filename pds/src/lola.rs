@@ -84,7 +84,7 @@ fn optional_number(path: &Path, obj: &Object, key: &str) -> Result<Option<f64>> 
         _ => Err(Error::invalid(
             path,
             &at(obj, key),
-            format!("{v:?} is not a finite number"),
+            format!("{v} is not a finite number"),
         )),
     }
 }
@@ -146,7 +146,7 @@ fn metres(path: &Path, obj: &Object, key: &str, default_unit: &str) -> Result<f6
     let v = obj.get(key).ok_or_else(|| Error::missing(path, key))?;
     let x = v
         .as_f64()
-        .ok_or_else(|| Error::invalid(path, key, format!("{v:?} is not a number")))?;
+        .ok_or_else(|| Error::invalid(path, key, format!("{v} is not a number")))?;
     let unit = v.unit().unwrap_or(default_unit).to_ascii_lowercase();
     match unit.split('/').next().unwrap_or("") {
         "km" => Ok(x * 1000.0),

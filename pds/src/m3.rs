@@ -91,7 +91,7 @@ impl Observation {
                 Error::invalid(
                     path,
                     &label.root.at("SOLAR_DISTANCE"),
-                    format!("{sd:?} is not a lunar Sun distance in AU (0.5 to 1.5)"),
+                    format!("{sd} is not a lunar Sun distance in AU (0.5 to 1.5)"),
                 )
             })?;
         if let Some(u) = sd.unit().filter(|u| !u.eq_ignore_ascii_case("AU")) {
@@ -208,7 +208,7 @@ fn part_of(path: &Path, label: &Label, part: &str) -> Result<Raster> {
             _ => Err(Error::invalid(
                 path,
                 &format!("{} in {file_obj}", holder.at(key)),
-                format!("{v:?} is not a positive integer"),
+                format!("{v} is not a positive integer"),
             )),
         }
     };

@@ -69,6 +69,31 @@ impl Value {
     }
 }
 
+/// The value as ODL writes it (`-1 <AU>`, `"text"`, `(1, 2)`), for messages.
+impl fmt::Display for Value {
+    fn fmt(&self, f: &mut fmt::Formatter<'_>) -> fmt::Result {
+        let list = |f: &mut fmt::Formatter<'_>, v: &[Value], open: &str, close: &str| {
+            f.write_str(open)?;
+            for (i, x) in v.iter().enumerate() {
+                if i > 0 {
+                    f.write_str(", ")?;
+                }
+                write!(f, "{x}")?;
+            }
+            f.write_str(close)
+        };
+        match self {
+            Value::Integer(i) => write!(f, "{i}"),
+            Value::Real(r) => write!(f, "{r}"),
+            Value::Text(s) => write!(f, "\"{s}\""),
+            Value::Symbol(s) => f.write_str(s),
+            Value::Sequence(v) => list(f, v, "(", ")"),
+            Value::Set(v) => list(f, v, "{", "}"),
+            Value::WithUnit(v, u) => write!(f, "{v} <{u}>"),
+        }
+    }
+}
+
 /// Where a pointer (`^NAME = …`) points.
 #[derive(Debug, Clone, PartialEq)]
 pub enum Pointer {
@@ -667,6 +692,22 @@ mod tests {
         );
         assert_eq!(l.pointer("table").unwrap().unwrap(), Pointer::Bytes(2904));
         assert_eq!(l.get("G").unwrap().as_i64(), Some(31));
+        // Messages show values as ODL writes them (a quoted string's folded line break stays
+        // folded; a literal loses its quotes).
+        let shown: Vec<String> = ["A", "B", "C", "D", "CH1:E"]
+            .iter()
+            .map(|k| l.get(k).unwrap().to_string())
+            .collect();
+        assert_eq!(
+            shown,
+            [
+                "1737400 <m>",
+                "\"two lines\"",
+                "(1, 2.5, N/A)",
+                "{X, \"Y\"}",
+                "304 <pixel>"
+            ]
+        );
         let outer = l.child("outer").unwrap();
         assert_eq!(
             outer.child("G1").unwrap().get("H").unwrap().as_i64(),

@@ -99,7 +99,7 @@ fn positive(label: &Path, obj: &Object, key: &str) -> Result<usize> {
     let at = obj.at(key);
     let n = v
         .as_i64()
-        .ok_or_else(|| Error::invalid(label, &at, format!("{v:?} is not an integer")))?;
+        .ok_or_else(|| Error::invalid(label, &at, format!("{v} is not an integer")))?;
     if n <= 0 {
         return Err(Error::invalid(label, &at, format!("{n} must be positive")));
     }
@@ -128,7 +128,7 @@ impl Raster {
                 Error::invalid(
                     label,
                     &obj.at("SAMPLE_BITS"),
-                    format!("{v:?} is not an integer"),
+                    format!("{v} is not an integer"),
                 )
             })?,
         };
