@@ -751,6 +751,15 @@ directory = "out"
             e.contains("w.toml") && e.contains("multi_albedo_passes") && e.contains("at least 1"),
             "{e}"
         );
+        // No albedo stage: no surface solve at all, the DEM would come out unchanged.
+        let bad = lab.replace("[output]", "[solver]\nalbedo_sigmas = []\n[output]");
+        let e = Workflow::parse(&bad, Path::new("w.toml"), Path::new("."))
+            .unwrap_err()
+            .to_string();
+        assert!(
+            e.contains("w.toml") && e.contains("albedo_sigmas is empty"),
+            "{e}"
+        );
         assert_eq!(FusionParams::default().dem_track_weight, 0.1);
     }
 

@@ -480,11 +480,20 @@ fn bad_workflows_fail_with_the_file_and_the_key() {
             && e.contains("expected f64"),
         "{e}"
     );
-    // A region wider than half the Moon, and a plan of too many tiles, are refused.
+    // A region fewer than 3 pixels tall, a region wider than half the Moon (3 pixels tall),
+    // and a plan of too many tiles, are refused.
+    let thin = workflow(p, &out, 128, "").replace("y_max = 17920", "y_max = -17780");
+    let wf = write_workflow(&dir, &thin);
+    let o = sfsfuse().arg("run").arg(&wf).output().unwrap();
+    let e = String::from_utf8_lossy(&o.stderr);
+    assert!(
+        !o.status.success() && e.contains("at 140 m a pixel, the region is 1 × 256 pixels"),
+        "{e}"
+    );
     let huge = workflow(p, &out, 128, "")
         .replace("x_min = -17920", "x_min = -3000000")
         .replace("x_max = 17920", "x_max = 3000000")
-        .replace("y_max = 17920", "y_max = -17780");
+        .replace("y_max = 17920", "y_max = -17500");
     let wf = write_workflow(&dir, &huge);
     let o = sfsfuse().arg("run").arg(&wf).output().unwrap();
     let e = String::from_utf8_lossy(&o.stderr);

@@ -499,6 +499,8 @@ pub enum FusionError {
         value: f64,
         why: &'static str,
     },
+    #[error("albedo_sigmas is empty: list at least one σ_ρ (the default is [100, 10, 4]); each is a stage of surface solves, and with none the DEM would pass through unchanged")]
+    NoAlbedoStages,
     #[error("per-pixel direction array is {got:?} pixels, the grid {want:?}")]
     DirectionShape {
         got: (usize, usize),

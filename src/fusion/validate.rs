@@ -265,6 +265,9 @@ pub fn validate_params(params: &FusionParams) -> Result<(), FusionError> {
             why: "delta and eta cannot both be 0: nothing would fix relief across the Sun",
         });
     }
+    if params.albedo_sigmas.is_empty() {
+        return Err(FusionError::NoAlbedoStages);
+    }
     if let Some(&s) = params
         .albedo_sigmas
         .iter()

@@ -526,6 +526,7 @@ pub(super) fn plan(
     progress.stage("planning: grid, swath index, intensity scale");
     let (res, resolution_source) = resolution(o, inputs)?;
     let grid = make_grid(o, inputs, res)?;
+    at_least_three_pixels(&grid)?;
     within_half_moon(&grid)?;
     let pr = projector(&grid.crs)?;
     let Surveyed {
@@ -640,6 +641,18 @@ pub(super) fn plan(
         None => (None, None),
     };
     Ok((p, reference, ingested))
+}
+
+/// Refuse a grid of fewer than 3 pixels along a side (fusion's smallest, `FusionError::TooSmall`),
+/// naming the spacing: the region is then smaller than a few pixels of it.
+fn at_least_three_pixels(grid: &Grid) -> Result<()> {
+    if grid.rows < 3 || grid.cols < 3 {
+        return Err(Error::Usage(format!(
+            "[grid]/[region]: at {} m a pixel, the region is {} × {} pixels; fusion needs at least 3 × 3: use a finer resolution_m or a larger region",
+            grid.spacing, grid.rows, grid.cols
+        )));
+    }
+    Ok(())
 }
 
 /// Refuse a grid wider or taller than half the Moon's circumference: no one locally metric
