@@ -633,10 +633,34 @@ impl Check<'_> {
                 l.inputs.depth_scale
             )));
         }
+        for (what, d) in [
+            ("light", l.illumination.light),
+            ("view", l.illumination.view),
+        ] {
+            check_direction(what, d).map_err(|e| self.fail(e))?;
+        }
         validate_solver(&l.solver).map_err(|e| self.fail(e))?;
         validate_layers(&l.output.layers).map_err(|e| self.fail(e))?;
         Ok(())
     }
+}
+
+/// `[illumination] what` must stand above the object's plane (zenith 0 ≤ z < 90°) with a finite
+/// azimuth: a light at or below it lights nothing, a camera there sees nothing.
+fn check_direction(what: &str, d: Direction) -> std::result::Result<(), String> {
+    if !(d.zenith_deg.is_finite() && (0.0..90.0).contains(&d.zenith_deg)) {
+        return Err(format!(
+            "[illumination] {what} zenith_deg = {} must be at least 0 and below 90 (above the object's plane)",
+            d.zenith_deg
+        ));
+    }
+    if !d.azimuth_deg.is_finite() {
+        return Err(format!(
+            "[illumination] {what} azimuth_deg = {} must be a finite number of degrees",
+            d.azimuth_deg
+        ));
+    }
+    Ok(())
 }
 
 /// `a/./b/../c` → `a/c`, lexically (no file system access; a leading `..` is kept).
@@ -738,6 +762,27 @@ directory = "out"
         assert_eq!(weight(lab), 1.0);
         let given = lab.replace("[output]", "[solver]\ndem_track_weight = 0.2\n[output]");
         assert_eq!(weight(&given), 0.2);
+        for (light, want) in [
+            (
+                "zenith_deg = 95.0, azimuth_deg = 120.0",
+                "light zenith_deg = 95 must be at least 0 and below 90",
+            ),
+            (
+                "zenith_deg = nan, azimuth_deg = 120.0",
+                "light zenith_deg = NaN",
+            ),
+            (
+                "zenith_deg = 50.0, azimuth_deg = inf",
+                "light azimuth_deg = inf",
+            ),
+        ] {
+            let bad = lab.replace("zenith_deg = 50.0, azimuth_deg = 120.0", light);
+            assert_ne!(bad, lab);
+            let e = Workflow::parse(&bad, Path::new("w.toml"), Path::new("."))
+                .unwrap_err()
+                .to_string();
+            assert!(e.contains("w.toml") && e.contains(want), "{e}");
+        }
         let bad = lab.replace("[output]", "[solver]\nmax_iterations = 0\n[output]");
         let e = Workflow::parse(&bad, Path::new("w.toml"), Path::new("."))
             .unwrap_err()
