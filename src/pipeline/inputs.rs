@@ -173,13 +173,33 @@ impl Dem {
     }
 
     /// Whether this DEM shows its altimeter tracks at latitude `lat` (degrees): a gridded LOLA
-    /// product (PRODUCT_ID or file name `LDEM…`) whose pixels are finer than the gap between
-    /// tracks ([`LOLA_TRACK_GAP_M`] × cos(latitude)). Then each track is a strip of pixels
-    /// and its offset a stripe, which E_DEM's track weighting is for; coarser pixels average
-    /// several tracks.
+    /// product (PRODUCT_ID or file name `LDEM…`) whose pixels are narrower east–west than the
+    /// gap between tracks there ([`LOLA_TRACK_GAP_M`] × cos(latitude)). Then each track is a
+    /// strip of pixels and its offset a stripe, which E_DEM's track weighting is for; wider
+    /// pixels average several tracks. A simple cylindrical product's pixels narrow with
+    /// cos(latitude) as the gaps do, so the answer is its MAP_SCALE against 600 m at every
+    /// latitude (LDEM_64 and finer: yes; LDEM_16 and coarser: no); a polar stereographic
+    /// product's pixels keep their MAP_SCALE.
     pub(super) fn resolves_tracks(&self, lat: f64) -> bool {
         self.product_id().is_some_and(|id| id.starts_with("LDEM"))
-            && self.pixel_m() < LOLA_TRACK_GAP_M * lat.to_radians().cos().abs()
+            && self.pixel_east_m(lat) < LOLA_TRACK_GAP_M * lat.to_radians().cos().abs()
+    }
+
+    /// East–west width of a pixel at latitude `lat` (degrees), metres: 2πR·cos(lat)/(360·
+    /// MAP_RESOLUTION) for a simple cylindrical product (px/deg of longitude), MAP_SCALE for a
+    /// polar stereographic one (its scale at the pole; a pixel 12° from it covers 1 % less
+    /// ground) and a GeoTIFF.
+    fn pixel_east_m(&self, lat: f64) -> f64 {
+        match self {
+            Dem::Pds(d) => match d.projection {
+                pds::lola::Projection::SimpleCylindrical { resolution, .. } => {
+                    2.0 * std::f64::consts::PI * d.radius_m * lat.to_radians().cos().abs()
+                        / (360.0 * resolution)
+                }
+                pds::lola::Projection::PolarStereographic { .. } => d.map_scale_m,
+            },
+            Dem::GeoTiff(d) => d.pixel_m(),
+        }
     }
 
     /// A PDS product's PRODUCT_ID (else its label's file name), upper case; `None` for a
@@ -371,4 +391,44 @@ pub(super) fn dem_on(
         });
     }
     Ok(dem)
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    /// LDEM_4's label with MAP_RESOLUTION `res` px/deg (and its MAP_SCALE), in a scratch
+    /// directory beside a link to its data.
+    fn ldem(res: f64) -> Dem {
+        let data = std::path::Path::new(env!("CARGO_MANIFEST_DIR")).join("tests/data/lola_ldem4");
+        let dir = std::env::temp_dir().join(format!("sfsfuse-ldem-{res}-{}", std::process::id()));
+        std::fs::create_dir_all(&dir).unwrap();
+        let scale = 2.0 * std::f64::consts::PI * 1_737_400.0 / 360.0 / res;
+        let label = std::fs::read_to_string(data.join("LDEM_4.LBL"))
+            .unwrap()
+            .replace("= 4 <pix/deg>", &format!("= {res} <pix/deg>"))
+            .replace("= 7580.84 <m/pix>", &format!("= {scale:.2} <m/pix>"));
+        std::fs::write(dir.join("LDEM_4.LBL"), label).unwrap();
+        let img = dir.join("LDEM_4.IMG");
+        if !img.exists() {
+            std::os::unix::fs::symlink(data.join("LDEM_4.IMG"), &img).unwrap();
+        }
+        let d = LolaDem::open(&dir.join("LDEM_4.LBL")).unwrap();
+        std::fs::remove_dir_all(&dir).unwrap();
+        Dem::Pds(d)
+    }
+
+    /// A simple cylindrical pixel narrows east–west with cos(latitude) as the gaps between
+    /// LOLA's tracks do: 64 px/deg (474 m at the equator, under the 600-m gap) resolves the
+    /// tracks at every latitude, 16 and 4 px/deg (1.9 and 7.6 km) at none. (The rule compared
+    /// the equator's 474 m with the gap at the latitude before, and turned the weighting off
+    /// above 38°.)
+    #[test]
+    fn a_simple_cylindrical_lola_grid_resolves_its_tracks_at_every_latitude_or_none() {
+        for lat in [0.0, 30.0, 45.0, -60.0, 80.0] {
+            assert!(ldem(64.0).resolves_tracks(lat), "64 px/deg at {lat}°");
+            assert!(!ldem(16.0).resolves_tracks(lat), "16 px/deg at {lat}°");
+            assert!(!ldem(4.0).resolves_tracks(lat), "4 px/deg at {lat}°");
+        }
+    }
 }

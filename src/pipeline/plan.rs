@@ -192,7 +192,7 @@ pub fn track_weight(
     if !tracks {
         return (
             1.0,
-            "the DEM is not a gridded LOLA product (LDEM) with pixels finer than the gap between tracks: no track offsets weighed".into(),
+            "the DEM is not a gridded LOLA product (LDEM) with pixels narrower east–west than the gap between its tracks: no track offsets weighed".into(),
         );
     }
     if turn_deg > MAX_TRACK_TURN_DEG {
