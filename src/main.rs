@@ -24,171 +24,195 @@ struct Cli {
 #[derive(Subcommand)]
 enum Command {
     /// Run the built-in job: fuse a synthetic lunar scene with known truth and score the result.
-    Demo {
-        /// Directory for the products (DEM, albedo, residual, quick-look).
-        #[arg(long, default_value = "out/demo")]
-        out: PathBuf,
-        /// Scene size in pixels (square).
-        #[arg(long, default_value_t = 512)]
-        size: usize,
-        /// Random seed of the scene.
-        #[arg(long, default_value_t = 1)]
-        seed: u64,
-        /// z-solver.
-        #[arg(long, value_enum, default_value_t = SolverKind::Fast)]
-        solver: SolverKind,
-        /// Observations of the scene, each under its own Sun (azimuths 105°, 225°, 345°, 45°,
-        /// 165°, 285°; elevations 25–35°), with independent noise, fused together.
-        #[arg(long, default_value_t = 1, value_parser = clap::value_parser!(u8).range(1..=6))]
-        observations: u8,
-        /// Each observation covers only a strip of the columns, overlapping its neighbours
-        /// by half a strip.
-        #[arg(long)]
-        strips: bool,
-        /// The quick look's error panel spans ± this many metres (default: the 99th
-        /// percentile of |fused − true|), so that quick looks of several runs compare.
-        #[arg(long, value_name = "METRES")]
-        error_limit: Option<f64>,
-        /// Print the report as JSON instead of a table.
-        #[arg(long)]
-        json: bool,
-    },
+    Demo(DemoArgs),
     /// Describe a PDS product (M3 L1B or LOLA GDR label): kind, size, bands, extent, ranges.
-    Inspect {
-        /// The product's PDS3 label.
-        path: PathBuf,
-        /// Print JSON instead of a table.
-        #[arg(long)]
-        json: bool,
-    },
+    Inspect(InspectArgs),
     /// Run a workflow file: M3 + LOLA (or a lab image + range scan) in, fused GeoTIFFs out.
     /// Tiles already finished are skipped, so an interrupted run resumes where it stopped.
-    Run {
-        /// The workflow (TOML; docs/workflows.md).
-        workflow: PathBuf,
-        /// Run only these tiles, e.g. `3`, `0,4` or `2-5`, and no mosaic (cluster tasks).
-        #[arg(long)]
-        tile: Option<String>,
-        /// Only blend finished tiles into the products and write the run record.
-        #[arg(long, conflicts_with = "tile")]
-        mosaic: bool,
-        /// List the tiles (id, core and halo windows, done or not) and exit.
-        #[arg(long, conflicts_with_all = ["tile", "mosaic"])]
-        list_tiles: bool,
-        /// Progress display: bars on a terminal (auto), log lines, or nothing.
-        #[arg(long, value_enum, default_value_t = ProgressArg::Auto)]
-        progress: ProgressArg,
-        /// Print the summary as JSON.
-        #[arg(long)]
-        json: bool,
-    },
+    Run(RunArgs),
     /// Download M3 L1B observations, LOLA GDR DEMs and M3 solar spectra from the PDS by
     /// product ID: resumable, retried, verified against the label, cached.
-    Fetch {
-        /// Product IDs: M3G20090106T113423, LDEM_64, M3G20110224_RFL_SOLAR_SPEC, …
-        #[arg(required = true)]
-        ids: Vec<String>,
-        /// Target directory (default: $SFSFUSE_CACHE, else $XDG_CACHE_HOME/sfsfuse, else
-        /// ~/.cache/sfsfuse).
-        #[arg(long)]
-        to: Option<PathBuf>,
-        /// Root of the M3 volumes (default: the PDS Imaging Node).
-        #[arg(long)]
-        m3_base: Option<String>,
-        /// The LOLA `lola_gdr` directory (default: the PDS Geosciences Node).
-        #[arg(long)]
-        lola_base: Option<String>,
-        /// md5sum-style manifest URL(s) to verify downloads against.
-        #[arg(long)]
-        checksums: Vec<String>,
-        /// Attempts per file.
-        #[arg(long)]
-        retries: Option<u32>,
-        /// Seconds without progress before a request is abandoned.
-        #[arg(long)]
-        timeout: Option<f64>,
-        /// Progress display.
-        #[arg(long, value_enum, default_value_t = ProgressArg::Auto)]
-        progress: ProgressArg,
-        /// Print JSON instead of a table.
-        #[arg(long)]
-        json: bool,
-    },
+    Fetch(FetchArgs),
     /// Submit a workflow's tiles to a cluster: an array job of tile batches and a mosaic job
     /// that runs after it (docs/cluster.md). Resubmitting submits only missing tiles.
-    Submit {
-        /// The workflow (its output directory must be on a file system the nodes share).
-        workflow: PathBuf,
-        #[arg(long, value_enum, default_value_t = sfsfuse::cluster::Scheduler::Slurm)]
-        scheduler: sfsfuse::cluster::Scheduler,
-        /// Array tasks running at once.
-        #[arg(long)]
-        max_parallel: Option<usize>,
-        /// Tiles per array task.
-        #[arg(long, default_value_t = 1)]
-        tiles_per_task: usize,
-        /// Partition (SLURM) or queue (PBS).
-        #[arg(long)]
-        partition: Option<String>,
-        /// CPUs (and threads) per task.
-        #[arg(long, default_value_t = 1)]
-        cpus_per_task: usize,
-        /// Wall-clock limit per task, e.g. 02:00:00.
-        #[arg(long)]
-        time: Option<String>,
-        /// Memory per task, e.g. 8G.
-        #[arg(long)]
-        mem: Option<String>,
-        /// When the mosaic job starts: after the array in any case (it then checks every tile
-        /// and lists missing ones), or only if every task succeeded.
-        #[arg(long, value_enum, default_value_t = sfsfuse::cluster::Dependency::Afterany)]
-        dependency: sfsfuse::cluster::Dependency,
-        /// Print the scripts; submit nothing.
-        #[arg(long)]
-        dry_run: bool,
-        #[arg(long, value_enum, default_value_t = ProgressArg::Auto)]
-        progress: ProgressArg,
-        /// Print JSON instead of a table.
-        #[arg(long)]
-        json: bool,
-    },
+    Submit(SubmitArgs),
     /// Write the synthetic scene as mission-format products (an M3-like L1B observation per
     /// `--sun`, a LOLA-like GDR DEM, a solar spectrum table, truth GeoTIFFs) for
     /// `workflows/synthetic.toml` and its siblings.
     Synth(SynthArgs),
     /// Benchmark the solvers on one synthetic scene and print timings and ratios.
-    Bench {
-        /// Scene size in pixels (square).
-        #[arg(long, default_value_t = 1024)]
-        size: usize,
-        /// Sweep limit for the `paper` solver.
-        #[arg(long, default_value_t = 20000)]
-        paper_sweeps: usize,
-        /// Time limit for the `paper` solver, seconds: the paper/fast ratio is then a lower
-        /// bound.
-        #[arg(long, default_value_t = 40.0)]
-        paper_seconds: f64,
-        /// Progress display.
-        #[arg(long, value_enum, default_value_t = ProgressArg::Auto)]
-        progress: ProgressArg,
-        /// Benchmark `sfsfuse run` instead: one tile against tiles of `--tile` px.
-        #[arg(long)]
-        pipeline: bool,
-        /// Tile size for `--pipeline`.
-        #[arg(long, default_value_t = 512)]
-        tile: usize,
-        /// For `--pipeline`: run each (one tile, tiled) this many times, alternately, and
-        /// compare their fastest runs (the ones the machine disturbed least).
-        #[arg(long, default_value_t = 3, value_parser = clap::value_parser!(u32).range(1..=20))]
-        repeat: u32,
-        /// Benchmark the fusion's cost against the number of observations instead: one scene
-        /// seen by 1 … N observations (at most 6).
-        #[arg(long, conflicts_with = "pipeline", value_parser = clap::value_parser!(u8).range(1..=6))]
-        observations: Option<u8>,
-        /// Print JSON instead of a table.
-        #[arg(long)]
-        json: bool,
-    },
+    Bench(BenchArgs),
+}
+
+/// `sfsfuse demo`'s options.
+#[derive(clap::Args)]
+struct DemoArgs {
+    /// Directory for the products (DEM, albedo, residual, quick-look).
+    #[arg(long, default_value = "out/demo")]
+    out: PathBuf,
+    /// Scene size in pixels (square).
+    #[arg(long, default_value_t = 512)]
+    size: usize,
+    /// Random seed of the scene.
+    #[arg(long, default_value_t = 1)]
+    seed: u64,
+    /// z-solver.
+    #[arg(long, value_enum, default_value_t = SolverKind::Fast)]
+    solver: SolverKind,
+    /// Observations of the scene, each under its own Sun (azimuths 105°, 225°, 345°, 45°,
+    /// 165°, 285°; elevations 25–35°), with independent noise, fused together.
+    #[arg(long, default_value_t = 1, value_parser = clap::value_parser!(u8).range(1..=6))]
+    observations: u8,
+    /// Each observation covers only a strip of the columns, overlapping its neighbours
+    /// by half a strip.
+    #[arg(long)]
+    strips: bool,
+    /// The quick look's error panel spans ± this many metres (default: the 99th
+    /// percentile of |fused − true|), so that quick looks of several runs compare.
+    #[arg(long, value_name = "METRES")]
+    error_limit: Option<f64>,
+    /// Print the report as JSON instead of a table.
+    #[arg(long)]
+    json: bool,
+}
+
+/// `sfsfuse inspect`'s options.
+#[derive(clap::Args)]
+struct InspectArgs {
+    /// The product's PDS3 label.
+    path: PathBuf,
+    /// Print JSON instead of a table.
+    #[arg(long)]
+    json: bool,
+}
+
+/// `sfsfuse run`'s options.
+#[derive(clap::Args)]
+struct RunArgs {
+    /// The workflow (TOML; docs/workflows.md).
+    workflow: PathBuf,
+    /// Run only these tiles, e.g. `3`, `0,4` or `2-5`, and no mosaic (cluster tasks).
+    #[arg(long)]
+    tile: Option<String>,
+    /// Only blend finished tiles into the products and write the run record.
+    #[arg(long, conflicts_with = "tile")]
+    mosaic: bool,
+    /// List the tiles (id, core and halo windows, done or not) and exit.
+    #[arg(long, conflicts_with_all = ["tile", "mosaic"])]
+    list_tiles: bool,
+    /// Progress display: bars on a terminal (auto), log lines, or nothing.
+    #[arg(long, value_enum, default_value_t = ProgressArg::Auto)]
+    progress: ProgressArg,
+    /// Print the summary as JSON.
+    #[arg(long)]
+    json: bool,
+}
+
+/// `sfsfuse fetch`'s options.
+#[derive(clap::Args)]
+struct FetchArgs {
+    /// Product IDs: M3G20090106T113423, LDEM_64, M3G20110224_RFL_SOLAR_SPEC, …
+    #[arg(required = true)]
+    ids: Vec<String>,
+    /// Target directory (default: $SFSFUSE_CACHE, else $XDG_CACHE_HOME/sfsfuse, else
+    /// ~/.cache/sfsfuse).
+    #[arg(long)]
+    to: Option<PathBuf>,
+    /// Root of the M3 volumes (default: the PDS Imaging Node).
+    #[arg(long)]
+    m3_base: Option<String>,
+    /// The LOLA `lola_gdr` directory (default: the PDS Geosciences Node).
+    #[arg(long)]
+    lola_base: Option<String>,
+    /// md5sum-style manifest URL(s) to verify downloads against.
+    #[arg(long)]
+    checksums: Vec<String>,
+    /// Attempts per file.
+    #[arg(long)]
+    retries: Option<u32>,
+    /// Seconds without progress before a request is abandoned.
+    #[arg(long)]
+    timeout: Option<f64>,
+    /// Progress display.
+    #[arg(long, value_enum, default_value_t = ProgressArg::Auto)]
+    progress: ProgressArg,
+    /// Print JSON instead of a table.
+    #[arg(long)]
+    json: bool,
+}
+
+/// `sfsfuse submit`'s options.
+#[derive(clap::Args)]
+struct SubmitArgs {
+    /// The workflow (its output directory must be on a file system the nodes share).
+    workflow: PathBuf,
+    #[arg(long, value_enum, default_value_t = sfsfuse::cluster::Scheduler::Slurm)]
+    scheduler: sfsfuse::cluster::Scheduler,
+    /// Array tasks running at once.
+    #[arg(long)]
+    max_parallel: Option<usize>,
+    /// Tiles per array task.
+    #[arg(long, default_value_t = 1)]
+    tiles_per_task: usize,
+    /// Partition (SLURM) or queue (PBS).
+    #[arg(long)]
+    partition: Option<String>,
+    /// CPUs (and threads) per task.
+    #[arg(long, default_value_t = 1)]
+    cpus_per_task: usize,
+    /// Wall-clock limit per task, e.g. 02:00:00.
+    #[arg(long)]
+    time: Option<String>,
+    /// Memory per task, e.g. 8G.
+    #[arg(long)]
+    mem: Option<String>,
+    /// When the mosaic job starts: after the array in any case (it then checks every tile
+    /// and lists missing ones), or only if every task succeeded.
+    #[arg(long, value_enum, default_value_t = sfsfuse::cluster::Dependency::Afterany)]
+    dependency: sfsfuse::cluster::Dependency,
+    /// Print the scripts; submit nothing.
+    #[arg(long)]
+    dry_run: bool,
+    #[arg(long, value_enum, default_value_t = ProgressArg::Auto)]
+    progress: ProgressArg,
+    /// Print JSON instead of a table.
+    #[arg(long)]
+    json: bool,
+}
+
+/// `sfsfuse bench`'s options.
+#[derive(clap::Args)]
+struct BenchArgs {
+    /// Scene size in pixels (square).
+    #[arg(long, default_value_t = 1024)]
+    size: usize,
+    /// Sweep limit for the `paper` solver.
+    #[arg(long, default_value_t = 20000)]
+    paper_sweeps: usize,
+    /// Time limit for the `paper` solver, seconds: the paper/fast ratio is then a lower
+    /// bound.
+    #[arg(long, default_value_t = 40.0)]
+    paper_seconds: f64,
+    /// Progress display.
+    #[arg(long, value_enum, default_value_t = ProgressArg::Auto)]
+    progress: ProgressArg,
+    /// Benchmark `sfsfuse run` instead: one tile against tiles of `--tile` px.
+    #[arg(long)]
+    pipeline: bool,
+    /// Tile size for `--pipeline`.
+    #[arg(long, default_value_t = 512)]
+    tile: usize,
+    /// For `--pipeline`: run each (one tile, tiled) this many times, alternately, and
+    /// compare their fastest runs (the ones the machine disturbed least).
+    #[arg(long, default_value_t = 3, value_parser = clap::value_parser!(u32).range(1..=20))]
+    repeat: u32,
+    /// Benchmark the fusion's cost against the number of observations instead: one scene
+    /// seen by 1 … N observations (at most 6).
+    #[arg(long, conflicts_with = "pipeline", value_parser = clap::value_parser!(u8).range(1..=6))]
+    observations: Option<u8>,
+    /// Print JSON instead of a table.
+    #[arg(long)]
+    json: bool,
 }
 
 #[derive(Clone, Copy, clap::ValueEnum)]
@@ -422,169 +446,128 @@ fn run(cli: Cli) -> Result<(), sfsfuse::Error> {
         set_threads(n)?;
     }
     match cli.command {
-        Command::Demo {
-            out,
-            size,
-            seed,
-            solver,
-            observations,
-            strips,
-            error_limit,
-            json,
-        } => {
-            let spec = SceneSpec {
-                size,
-                seed,
-                ..SceneSpec::default()
-            }
-            .with_observations(
-                &sfsfuse::synth::DEMO_SUNS[..observations as usize],
-                &[],
-                strips,
-            );
-            let params = match solver {
-                SolverKind::Fast => FusionParams::default(),
-                SolverKind::Paper => FusionParams::paper(),
-            };
-            let report = sfsfuse::demo::run(&spec, &params, Some(&out), error_limit)?;
-            emit(json, &report, report.table())?;
-        }
-        Command::Inspect { path, json } => {
-            let i = sfsfuse::inspect::inspect(&path)?;
-            emit(json, &i, i.table())?;
-        }
-        Command::Run {
-            workflow,
-            tile,
-            mosaic,
-            list_tiles,
-            progress,
-            json,
-        } => {
-            let wf = sfsfuse::workflow::Workflow::load(&workflow)?;
-            let progress = progress_of(progress);
-            if list_tiles {
-                let tiles = sfsfuse::pipeline::list_tiles(&wf, &progress)?;
-                emit(json, &tiles, tile_table(&tiles))?;
-                return Ok(());
-            }
-            let req = sfsfuse::pipeline::Request {
-                tiles: tile
-                    .map(|t| sfsfuse::pipeline::parse_tiles(&t))
-                    .transpose()?,
-                mosaic_only: mosaic,
-            };
-            let summary = sfsfuse::pipeline::run(&wf, &req, &progress)?;
-            drop(progress);
-            emit(json, &summary, summary.table())?;
-        }
-        Command::Fetch {
-            ids,
-            to,
-            m3_base,
-            lola_base,
-            checksums,
-            retries,
-            timeout,
-            progress,
-            json,
-        } => {
-            let mut src = sfsfuse::fetch::archive::Sources::default();
-            if let Some(b) = m3_base {
-                src.m3_base = b;
-            }
-            if let Some(b) = lola_base {
-                src.lola_base = b;
-            }
-            src.checksums = checksums;
-            if let Some(r) = retries {
-                src.retries = r;
-            }
-            if let Some(t) = timeout {
-                src.timeout_s = t;
-            }
-            let dir = to.unwrap_or_else(sfsfuse::fetch::default_dir);
-            let progress = progress_of(progress);
-            let fetched = sfsfuse::fetch::fetch(&ids, &dir, &src, &progress)?;
-            drop(progress);
-            emit(json, &fetched, sfsfuse::fetch::table(&fetched))?;
-        }
-        Command::Submit {
-            workflow,
-            scheduler,
-            max_parallel,
-            tiles_per_task,
-            partition,
-            cpus_per_task,
-            time,
-            mem,
-            dependency,
-            dry_run,
-            progress,
-            json,
-        } => {
-            let wf = sfsfuse::workflow::Workflow::load(&workflow)?;
-            let opts = sfsfuse::cluster::Options {
-                scheduler,
-                max_parallel,
-                tiles_per_task,
-                partition,
-                cpus_per_task,
-                time,
-                mem,
-                dependency,
-                dry_run,
-            };
-            let progress = progress_of(progress);
-            let s = sfsfuse::cluster::submit(&workflow, &wf, &opts, &progress)?;
-            drop(progress);
-            emit(json, &s, s.table())?;
-        }
-        Command::Synth(a) => synth(a)?,
-        Command::Bench {
-            size,
-            json,
-            observations: Some(n),
-            progress,
-            ..
-        } => {
-            let progress = progress_of(progress);
-            let report = sfsfuse::bench::run_observations(size, n as usize, &progress)?;
-            drop(progress);
-            emit(json, &report, report.table())?;
-        }
-        Command::Bench {
-            size,
-            json,
-            pipeline: true,
-            tile,
-            repeat,
-            ..
-        } => {
-            let report = sfsfuse::bench::run_pipeline(size, tile, repeat as usize)?;
-            emit(json, &report, report.table())?;
-        }
-        Command::Bench {
-            size,
-            paper_sweeps,
-            paper_seconds,
-            json,
-            pipeline: false,
-            progress,
-            ..
-        } => {
-            if !(paper_seconds.is_finite() && paper_seconds > 0.0) {
-                return Err(sfsfuse::Error::Usage(format!(
-                    "--paper-seconds {paper_seconds}: give a positive number of seconds"
-                )));
-            }
-            let progress = progress_of(progress);
-            let report = sfsfuse::bench::run(size, paper_sweeps, paper_seconds, &progress)?;
-            drop(progress);
-            emit(json, &report, report.table())?;
-        }
+        Command::Demo(a) => demo(a),
+        Command::Inspect(a) => inspect(a),
+        Command::Run(a) => run_workflow(a),
+        Command::Fetch(a) => fetch(a),
+        Command::Submit(a) => submit(a),
+        Command::Synth(a) => synth(a),
+        Command::Bench(a) => bench(a),
     }
-    Ok(())
+}
+
+/// `sfsfuse demo`: the demo scene with the asked observations, fused and scored.
+fn demo(a: DemoArgs) -> Result<(), sfsfuse::Error> {
+    let spec = SceneSpec {
+        size: a.size,
+        seed: a.seed,
+        ..SceneSpec::default()
+    }
+    .with_observations(
+        &sfsfuse::synth::DEMO_SUNS[..a.observations as usize],
+        &[],
+        a.strips,
+    );
+    let params = match a.solver {
+        SolverKind::Fast => FusionParams::default(),
+        SolverKind::Paper => FusionParams::paper(),
+    };
+    let report = sfsfuse::demo::run(&spec, &params, Some(&a.out), a.error_limit)?;
+    emit(a.json, &report, report.table())
+}
+
+/// `sfsfuse inspect`.
+fn inspect(a: InspectArgs) -> Result<(), sfsfuse::Error> {
+    let i = sfsfuse::inspect::inspect(&a.path)?;
+    emit(a.json, &i, i.table())
+}
+
+/// `sfsfuse run`: the tile list, some tiles, the mosaic only, or the whole run.
+fn run_workflow(a: RunArgs) -> Result<(), sfsfuse::Error> {
+    let wf = sfsfuse::workflow::Workflow::load(&a.workflow)?;
+    let progress = progress_of(a.progress);
+    if a.list_tiles {
+        let tiles = sfsfuse::pipeline::list_tiles(&wf, &progress)?;
+        return emit(a.json, &tiles, tile_table(&tiles));
+    }
+    let req = sfsfuse::pipeline::Request {
+        tiles: a
+            .tile
+            .map(|t| sfsfuse::pipeline::parse_tiles(&t))
+            .transpose()?,
+        mosaic_only: a.mosaic,
+    };
+    let summary = sfsfuse::pipeline::run(&wf, &req, &progress)?;
+    drop(progress);
+    emit(a.json, &summary, summary.table())
+}
+
+/// `sfsfuse fetch`: the archive's defaults overridden by the options given.
+fn fetch(a: FetchArgs) -> Result<(), sfsfuse::Error> {
+    let mut src = sfsfuse::fetch::archive::Sources::default();
+    if let Some(b) = a.m3_base {
+        src.m3_base = b;
+    }
+    if let Some(b) = a.lola_base {
+        src.lola_base = b;
+    }
+    src.checksums = a.checksums;
+    if let Some(r) = a.retries {
+        src.retries = r;
+    }
+    if let Some(t) = a.timeout {
+        src.timeout_s = t;
+    }
+    let dir = a.to.unwrap_or_else(sfsfuse::fetch::default_dir);
+    let progress = progress_of(a.progress);
+    let fetched = sfsfuse::fetch::fetch(&a.ids, &dir, &src, &progress)?;
+    drop(progress);
+    emit(a.json, &fetched, sfsfuse::fetch::table(&fetched))
+}
+
+/// `sfsfuse submit`.
+fn submit(a: SubmitArgs) -> Result<(), sfsfuse::Error> {
+    let wf = sfsfuse::workflow::Workflow::load(&a.workflow)?;
+    let opts = sfsfuse::cluster::Options {
+        scheduler: a.scheduler,
+        max_parallel: a.max_parallel,
+        tiles_per_task: a.tiles_per_task,
+        partition: a.partition,
+        cpus_per_task: a.cpus_per_task,
+        time: a.time,
+        mem: a.mem,
+        dependency: a.dependency,
+        dry_run: a.dry_run,
+    };
+    let progress = progress_of(a.progress);
+    let s = sfsfuse::cluster::submit(&a.workflow, &wf, &opts, &progress)?;
+    drop(progress);
+    emit(a.json, &s, s.table())
+}
+
+/// `sfsfuse bench`: the cost against the number of observations, the pipeline's tiles
+/// against one tile, or the solvers against each other.
+fn bench(a: BenchArgs) -> Result<(), sfsfuse::Error> {
+    if let Some(n) = a.observations {
+        let progress = progress_of(a.progress);
+        let report = sfsfuse::bench::run_observations(a.size, n as usize, &progress)?;
+        drop(progress);
+        return emit(a.json, &report, report.table());
+    }
+    if a.pipeline {
+        let report = sfsfuse::bench::run_pipeline(a.size, a.tile, a.repeat as usize)?;
+        return emit(a.json, &report, report.table());
+    }
+    if !(a.paper_seconds.is_finite() && a.paper_seconds > 0.0) {
+        return Err(sfsfuse::Error::Usage(format!(
+            "--paper-seconds {}: give a positive number of seconds",
+            a.paper_seconds
+        )));
+    }
+    let progress = progress_of(a.progress);
+    let report = sfsfuse::bench::run(a.size, a.paper_sweeps, a.paper_seconds, &progress)?;
+    drop(progress);
+    emit(a.json, &report, report.table())
 }
 
 /// Print a report as JSON or as its table. A reader that has gone away (`sfsfuse … | head`)
