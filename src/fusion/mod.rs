@@ -980,27 +980,7 @@ fn albedo_stages(
         .last()
         .copied()
         .filter(|_| multi.is_some());
-    // A stage before the last only hands the next its surface: it stops on
-    // `stage_step_tolerance`, unless the next stage's membrane weights depend on where it
-    // stops (an edge-aware membrane, by default where several observations overlap). Where a
-    // threshold stops it depends on the window (the largest change over it), so a tile and the
-    // whole region would then weigh the next stage's membrane differently (two strips through
-    // `run`: 0.89 m apart); such a stage takes exactly `EDGE_STAGE_STEPS` steps instead, the
-    // same in every window (0.17 m; docs/science.md, "Several observations").
-    let edge_aware = params.edge_membrane_slope > 0.0
-        || (multi.is_some() && params.multi_edge_membrane_slope > 0.0);
-    let early = if edge_aware {
-        FusionParams {
-            step_tolerance: 0.0,
-            max_iterations: EDGE_STAGE_STEPS.min(params.max_iterations),
-            ..params.clone()
-        }
-    } else {
-        FusionParams {
-            step_tolerance: params.step_tolerance.max(params.stage_step_tolerance),
-            ..params.clone()
-        }
-    };
+    let early = early_stage_params(params, multi.is_some());
     // The last stage's albedo, kept for the final albedo's sharpened images only where an
     // observation is coarser than the grid (otherwise not held past its stage).
     let keep_rho = pr.any_blurred();
@@ -1026,42 +1006,86 @@ fn albedo_stages(
         });
     }
     if let (Some(last), Some(multi)) = (multi_stage, multi) {
-        // Every pass but the last hands the next its surface, from which the next inverts its
-        // albedo and weighs its membrane: a fixed number of steps, the same in every window
-        // (one: a second step moves the results by less than 1 mm).
-        let passes = params.multi_albedo_passes;
-        let handing_on = FusionParams {
+        // The passes' albedo replaces the configured stages' (there is at least one pass).
+        drop(last_rho.take());
+        last_rho = overlap_passes(pr, obj, params, z, (last, multi), keep_rho, stages)?;
+    }
+    Ok(last_rho)
+}
+
+/// The parameters of a stage before the last. Such a stage only hands the next its surface:
+/// it stops on `stage_step_tolerance`, unless the next stage's membrane weights depend on where
+/// it stops (an edge-aware membrane, by default where several observations overlap:
+/// `overlap`). Where a threshold stops it depends on the window (the largest change over it),
+/// so a tile and the whole region would then weigh the next stage's membrane differently (two
+/// strips through `run`: 0.89 m apart); such a stage takes exactly `EDGE_STAGE_STEPS` steps
+/// instead, the same in every window (0.17 m; docs/science.md, "Several observations").
+fn early_stage_params(params: &FusionParams, overlap: bool) -> FusionParams {
+    let edge_aware =
+        params.edge_membrane_slope > 0.0 || (overlap && params.multi_edge_membrane_slope > 0.0);
+    if edge_aware {
+        FusionParams {
             step_tolerance: 0.0,
-            max_iterations: PASS_STEPS.min(params.max_iterations),
+            max_iterations: EDGE_STAGE_STEPS.min(params.max_iterations),
             ..params.clone()
-        };
-        for pass in 0..passes {
-            let t0 = Instant::now();
-            let maps = albedo_maps(
-                pr,
-                &obj.weights,
-                &obj.dct,
-                z.view(),
-                &[params.multi_albedo_sigma, last],
-            )?;
-            let rho = blend(&maps[0], &maps[1], multi);
-            drop(maps);
-            obj.set_membrane_weights(z.view(), rho.view(), MembraneRule::of(params));
-            let pass_params = if pass + 1 < passes && params.solver == SolverKind::Fast {
-                &handing_on
-            } else {
-                params
-            };
-            let iterations = minimise(obj, z, rho.view(), pass_params, &mut |_| {});
-            if keep_rho {
-                last_rho = Some(rho);
-            }
-            stages.push(StageReport {
-                sigma_rho: params.multi_albedo_sigma,
-                iterations,
-                seconds: t0.elapsed().as_secs_f64(),
-            });
         }
+    } else {
+        FusionParams {
+            step_tolerance: params.step_tolerance.max(params.stage_step_tolerance),
+            ..params.clone()
+        }
+    }
+}
+
+/// The last stage where observations overlap, `multi_albedo_passes` times: the albedo at
+/// `multi_albedo_sigma` blended by the multi-coverage `multi` with the one at `last` (the last
+/// configured σ_ρ), the membrane weighed on it, the surface solved. Every pass but the last
+/// hands the next its surface, from which the next inverts its albedo and weighs its membrane:
+/// a fixed number of steps, the same in every window (one: a second step moves the results by
+/// less than 1 mm). Appends each pass's report to `stages`; returns the last pass's albedo
+/// where `keep_rho`.
+fn overlap_passes(
+    pr: &Problem,
+    obj: &mut Objective,
+    params: &FusionParams,
+    z: &mut Array2<f64>,
+    (last, multi): (f64, &Array2<f64>),
+    keep_rho: bool,
+    stages: &mut Vec<StageReport>,
+) -> Result<Option<Array2<f64>>, FusionError> {
+    let passes = params.multi_albedo_passes;
+    let handing_on = FusionParams {
+        step_tolerance: 0.0,
+        max_iterations: PASS_STEPS.min(params.max_iterations),
+        ..params.clone()
+    };
+    let mut last_rho = None;
+    for pass in 0..passes {
+        let t0 = Instant::now();
+        let maps = albedo_maps(
+            pr,
+            &obj.weights,
+            &obj.dct,
+            z.view(),
+            &[params.multi_albedo_sigma, last],
+        )?;
+        let rho = blend(&maps[0], &maps[1], multi);
+        drop(maps);
+        obj.set_membrane_weights(z.view(), rho.view(), MembraneRule::of(params));
+        let pass_params = if pass + 1 < passes && params.solver == SolverKind::Fast {
+            &handing_on
+        } else {
+            params
+        };
+        let iterations = minimise(obj, z, rho.view(), pass_params, &mut |_| {});
+        if keep_rho {
+            last_rho = Some(rho);
+        }
+        stages.push(StageReport {
+            sigma_rho: params.multi_albedo_sigma,
+            iterations,
+            seconds: t0.elapsed().as_secs_f64(),
+        });
     }
     Ok(last_rho)
 }
