@@ -69,8 +69,12 @@ pub enum Inspection {
         radius_m: f64,
         longitude_deg: Range,
         latitude_deg: Range,
-        /// Heights above the reference sphere (DN × SCALING_FACTOR), metres.
+        /// Heights above the 1737.4 km sphere (DN × SCALING_FACTOR + OFFSET − 1737.4 km,
+        /// `ingest::lola_heights`), metres.
         height_m: Option<Range>,
+        /// Why the heights cannot be the Moon's, if they cannot (outside
+        /// `ingest::LUNAR_HEIGHT_RANGE_M`; `run` refuses them).
+        height_problem: Option<String>,
     },
     #[serde(rename = "GeoTIFF")]
     GeoTiff {
@@ -281,6 +285,17 @@ fn inspect_m3(path: &Path) -> Result<Inspection> {
     })
 }
 
+/// Why a LOLA product's height range cannot be the Moon's: an end outside
+/// [`crate::ingest::LUNAR_HEIGHT_RANGE_M`], which `run` refuses.
+fn not_lunar(h: &Range) -> Option<String> {
+    let [lo, hi] = crate::ingest::LUNAR_HEIGHT_RANGE_M;
+    (h.min < lo || h.max > hi).then(|| {
+        format!(
+            "heights outside {lo} … {hi} m are not the Moon's (its surface lies within −9.1 … +10.8 km of the 1737.4 km sphere): a fill value, radii instead of heights, or a wrong SCALING_FACTOR, OFFSET or UNIT; `run` refuses such pixels"
+        )
+    })
+}
+
 /// A LOLA GDR: its size, projection, scale, radius and the ranges of its longitudes,
 /// latitudes and heights.
 fn inspect_lola(path: &Path) -> Result<Inspection> {
@@ -342,6 +357,7 @@ fn inspect_lola(path: &Path) -> Result<Inspection> {
             min: lat_range.0,
             max: lat_range.1,
         },
+        height_problem: heights.as_ref().and_then(not_lunar),
         height_m: heights,
     })
 }
@@ -354,15 +370,47 @@ impl Inspection {
                 .unwrap_or_else(|| "—".into())
         };
         match self {
-            Inspection::M3 { label, mode, lines, samples, bands, wavelengths_nm, wavelength_source, solar_distance_au, longitude_deg, latitude_deg, loc_problem, pixel_size_m, radiance_band0, incidence_deg, emission_deg, phase_deg, sun_azimuth_deg, obs_problem } => {
+            Inspection::M3 {
+                label,
+                mode,
+                lines,
+                samples,
+                bands,
+                wavelengths_nm,
+                wavelength_source,
+                solar_distance_au,
+                longitude_deg,
+                latitude_deg,
+                loc_problem,
+                pixel_size_m,
+                radiance_band0,
+                incidence_deg,
+                emission_deg,
+                phase_deg,
+                sun_azimuth_deg,
+                obs_problem,
+            } => {
                 let mut s = format!("{label}\n  kind           M3 Level 1B, {mode} mode\n  size           {lines} lines × {samples} samples × {bands} bands\n");
                 let wl = if wavelengths_nm.len() > 6 {
-                    format!("{:.2} … {:.2} nm", wavelengths_nm[0], wavelengths_nm[wavelengths_nm.len() - 1])
+                    format!(
+                        "{:.2} … {:.2} nm",
+                        wavelengths_nm[0],
+                        wavelengths_nm[wavelengths_nm.len() - 1]
+                    )
                 } else {
-                    wavelengths_nm.iter().map(|w| format!("{w:.2}")).collect::<Vec<_>>().join(", ") + " nm"
+                    wavelengths_nm
+                        .iter()
+                        .map(|w| format!("{w:.2}"))
+                        .collect::<Vec<_>>()
+                        .join(", ")
+                        + " nm"
                 };
                 s += &format!("  wavelengths    {wl} ({wavelength_source})\n  Sun distance   {solar_distance_au} AU\n");
-                s += &format!("  longitude      {}°E\n  latitude       {}°\n", r(longitude_deg), r(latitude_deg));
+                s += &format!(
+                    "  longitude      {}°E\n  latitude       {}°\n",
+                    r(longitude_deg),
+                    r(latitude_deg)
+                );
                 if let Some(p) = loc_problem {
                     s += &format!("  LOC            {p}\n");
                 }
@@ -382,7 +430,16 @@ impl Inspection {
                 }
                 s
             }
-            Inspection::GeoTiff { path, width, height, crs, pixel_m, geotransform, nodata, metadata } => {
+            Inspection::GeoTiff {
+                path,
+                width,
+                height,
+                crs,
+                pixel_m,
+                geotransform,
+                nodata,
+                metadata,
+            } => {
                 let mut s = format!(
                     "{path}\n  kind           GeoTIFF\n  size           {width} × {height} px\n  CRS            {crs}\n  pixel          {pixel_m:.3} m\n  origin         ({}, {}) (upper-left corner)\n  no-data        {}\n",
                     geotransform[0],
@@ -394,10 +451,27 @@ impl Inspection {
                 }
                 s
             }
-            Inspection::Lola { label, lines, samples, projection, map_scale_m, radius_m, longitude_deg, latitude_deg, height_m } => format!(
-                "{label}\n  kind           LOLA GDR DEM\n  size           {lines} lines × {samples} samples\n  projection     {projection}\n  scale          {map_scale_m} m/px on a {radius_m} m sphere\n  longitude      {:.4} … {:.4}°E\n  latitude       {:.4} … {:.4}°\n  height         {} m above the reference sphere\n",
-                longitude_deg.min, longitude_deg.max, latitude_deg.min, latitude_deg.max, r(height_m)
-            ),
+            Inspection::Lola {
+                label,
+                lines,
+                samples,
+                projection,
+                map_scale_m,
+                radius_m,
+                longitude_deg,
+                latitude_deg,
+                height_m,
+                height_problem,
+            } => {
+                let mut s = format!(
+                    "{label}\n  kind           LOLA GDR DEM\n  size           {lines} lines × {samples} samples\n  projection     {projection}\n  scale          {map_scale_m} m/px on a {radius_m} m sphere\n  longitude      {:.4} … {:.4}°E\n  latitude       {:.4} … {:.4}°\n  height         {} m above the 1737.4 km sphere\n",
+                    longitude_deg.min, longitude_deg.max, latitude_deg.min, latitude_deg.max, r(height_m)
+                );
+                if let Some(p) = height_problem {
+                    s += &format!("  warning        {p}\n");
+                }
+                s
+            }
         }
     }
 }

@@ -187,8 +187,32 @@ fn inspect_describes_real_products() {
     // MANIFEST.md: DN −17757 … 21008, heights are DN × 0.5 m.
     assert_eq!(r["height_m"]["min"], -8878.5);
     assert_eq!(r["height_m"]["max"], 10504.0);
+    assert_eq!(r["height_problem"], serde_json::Value::Null);
     assert_eq!(r["longitude_deg"]["min"], 0.0);
     assert_eq!(r["latitude_deg"]["max"], 90.0);
+    // The same label over data that are all the int16 fill (−16 384 m): described, with a
+    // warning that `run` refuses such heights.
+    let dir = scratch("inspect-fill");
+    std::fs::create_dir_all(&dir).unwrap();
+    std::fs::copy(data.join("lola_ldem4/LDEM_4.LBL"), dir.join("LDEM_4.LBL")).unwrap();
+    std::fs::write(
+        dir.join("LDEM_4.IMG"),
+        i16::MIN.to_le_bytes().repeat(720 * 1440),
+    )
+    .unwrap();
+    let o = sfsfuse()
+        .arg("inspect")
+        .arg(dir.join("LDEM_4.LBL"))
+        .output()
+        .unwrap();
+    let text = String::from_utf8_lossy(&o.stdout);
+    assert!(o.status.success(), "{text}");
+    assert!(
+        text.contains("-16384.0000 … -16384.0000 m above the 1737.4 km sphere")
+            && text.contains("warning        heights outside -12000 … 12000 m are not the Moon's"),
+        "{text}"
+    );
+    std::fs::remove_dir_all(&dir).unwrap();
 
     let o = sfsfuse()
         .args(["inspect", "--json"])
