@@ -85,8 +85,15 @@ pub struct OrbitalInputs {
     /// the 1737.4 km sphere on the Moon sphere CRS (docs/workflows.md). Where several cover a
     /// pixel, the first listed is used.
     pub lola: Vec<PathBuf>,
-    /// M3 solar spectrum table (`M3G20110224_RFL_SOLAR_SPEC.TAB` for global mode).
-    pub solar_spectrum: PathBuf,
+    /// M3 solar spectrum table (`M3G20110224_RFL_SOLAR_SPEC.TAB` for global mode), or a list
+    /// of one per instrument mode where GLOBAL and TARGET observations are mixed
+    /// (`["…/M3G20110224_RFL_SOLAR_SPEC.TAB", "…/M3T20110224_RFL_SOLAR_SPEC.TAB"]`): each
+    /// observation takes the table of its INSTRUMENT_MODE_ID.
+    #[serde(
+        deserialize_with = "one_or_more_paths",
+        serialize_with = "one_or_more_paths_out"
+    )]
+    pub solar_spectrum: Vec<PathBuf>,
     /// Wavelength of the reflectance used for shape from shading, nm (bands are blended
     /// linearly to reach it).
     #[serde(default = "default_wavelength")]
@@ -409,6 +416,36 @@ fn one() -> f64 {
     1.0
 }
 
+/// A path, or a non-empty list of paths.
+fn one_or_more_paths<'de, D: serde::Deserializer<'de>>(
+    d: D,
+) -> std::result::Result<Vec<PathBuf>, D::Error> {
+    #[derive(Deserialize)]
+    #[serde(untagged)]
+    enum OneOrMore {
+        One(PathBuf),
+        More(Vec<PathBuf>),
+    }
+    match OneOrMore::deserialize(d).map_err(|_| {
+        serde::de::Error::custom("expected a file name, or a list of them (one table per M3 mode)")
+    })? {
+        OneOrMore::One(p) => Ok(vec![p]),
+        OneOrMore::More(v) if !v.is_empty() => Ok(v),
+        OneOrMore::More(_) => Err(serde::de::Error::custom("the list is empty: give a table")),
+    }
+}
+
+/// One path as a string, several as a list (a workflow of one table keeps its run key).
+fn one_or_more_paths_out<S: serde::Serializer>(
+    v: &[PathBuf],
+    s: S,
+) -> std::result::Result<S::Ok, S::Error> {
+    match v {
+        [one] => one.serialize(s),
+        more => more.serialize(s),
+    }
+}
+
 /// A direction as zenith/azimuth in degrees (azimuth clockwise from image up), in the image
 /// frame: x right, y up, z towards the camera.
 #[derive(Debug, Clone, Copy, PartialEq, Serialize, Deserialize)]
@@ -512,7 +549,7 @@ impl Check<'_> {
     fn orbital(&self, o: &mut Orbital) -> Result<()> {
         o.inputs.m3.iter_mut().for_each(|p| self.abs(p));
         o.inputs.lola.iter_mut().for_each(|p| self.abs(p));
-        self.abs(&mut o.inputs.solar_spectrum);
+        o.inputs.solar_spectrum.iter_mut().for_each(|p| self.abs(p));
         self.abs(&mut o.output.directory);
         if let Some(f) = &mut o.fetch {
             self.abs(&mut f.directory);
@@ -832,6 +869,38 @@ directory = "out"
         assert_eq!(normalise(Path::new("../a/b/../c")), Path::new("../a/c"));
         assert_eq!(o.inputs.lola[0], Path::new("/abs/LDEM_64.LBL"));
         assert_eq!(o.output.directory, Path::new("/data/run/out"));
+        assert_eq!(
+            o.inputs.solar_spectrum,
+            [Path::new("/data/run/cal/solar.tab")]
+        );
+        // One table is written back as a string (the run key of such a workflow does not
+        // change), one per mode as a list, each resolved.
+        let json = serde_json::to_value(&o.inputs).unwrap();
+        assert_eq!(json["solar_spectrum"], "/data/run/cal/solar.tab");
+        let two = MINIMAL.replace(
+            "solar_spectrum = \"cal/solar.tab\"",
+            "solar_spectrum = [\"cal/M3G.TAB\", \"/t/M3T.TAB\"]",
+        );
+        let Workflow::Orbital(t) =
+            Workflow::parse(&two, Path::new("w.toml"), Path::new("/r")).unwrap()
+        else {
+            panic!()
+        };
+        assert_eq!(
+            t.inputs.solar_spectrum,
+            [Path::new("/r/cal/M3G.TAB"), Path::new("/t/M3T.TAB")]
+        );
+        assert_eq!(
+            serde_json::to_value(&t.inputs).unwrap()["solar_spectrum"],
+            serde_json::json!(["/r/cal/M3G.TAB", "/t/M3T.TAB"])
+        );
+        for (bad, want) in [("[]", "the list is empty"), ("3", "or a list of them")] {
+            let text = MINIMAL.replace("\"cal/solar.tab\"", bad);
+            let e = Workflow::parse(&text, Path::new("w.toml"), Path::new("/r"))
+                .unwrap_err()
+                .to_string();
+            assert!(e.contains("w.toml") && e.contains(want), "{e}");
+        }
         assert_eq!(o.inputs.wavelength_nm, 1209.6);
         // The grid spacing comes from the observation unless given.
         assert_eq!(o.grid.resolution_m, None);

@@ -1,5 +1,5 @@
 //! The run's opened inputs: M3 observations, DEM products (LOLA GDR or GeoTIFF) with their
-//! effective resolution, the solar table (checked against the observations' mode), the model.
+//! effective resolution, the solar tables (one per observation by its mode), the model.
 
 use super::*;
 
@@ -7,7 +7,10 @@ use super::*;
 pub(super) struct Inputs {
     pub(super) obs: Vec<Observation>,
     pub(super) lola: Vec<Dem>,
-    pub(super) solar: SolarSpectrum,
+    /// The solar tables of `[inputs] solar_spectrum`.
+    pub(super) solar: Vec<SolarSpectrum>,
+    /// Each observation's table in `solar` ([`solar_per_observation`]).
+    pub(super) solar_of: Vec<usize>,
     pub(super) model: Box<dyn ReflectanceModel>,
 }
 
@@ -26,8 +29,13 @@ impl Inputs {
             .map(|p| Observation::open(p))
             .collect::<std::result::Result<_, _>>()?;
         check_distinct(&obs)?;
-        let solar = SolarSpectrum::read(&o.inputs.solar_spectrum)?;
-        check_solar_mode(&solar, &obs)?;
+        let solar: Vec<SolarSpectrum> = o
+            .inputs
+            .solar_spectrum
+            .iter()
+            .map(|p| SolarSpectrum::read(p))
+            .collect::<std::result::Result<_, _>>()?;
+        let solar_of = solar_per_observation(&solar, &obs)?;
         Ok(Inputs {
             obs,
             lola: o
@@ -37,8 +45,14 @@ impl Inputs {
                 .map(|p| Dem::open(p))
                 .collect::<Result<_>>()?,
             solar,
+            solar_of,
             model: o.photometry.build(),
         })
+    }
+
+    /// Observation `k`'s solar table.
+    pub(super) fn solar(&self, k: usize) -> &SolarSpectrum {
+        &self.solar[self.solar_of[k]]
     }
 
     /// Every file the run reads.
@@ -57,7 +71,7 @@ impl Inputs {
                 Dem::GeoTiff(d) => v.push(d.path.clone()),
             }
         }
-        v.push(self.solar.path.clone());
+        v.extend(self.solar.iter().map(|s| s.path.clone()));
         v.dedup();
         Ok(v)
     }
@@ -104,32 +118,61 @@ pub(super) fn check_distinct(obs: &[Observation]) -> Result<()> {
     Ok(())
 }
 
-/// The solar table must follow the observations' band sampling: M3's GLOBAL and TARGET modes
-/// have different bands, and a table of the other mode gives the wrong irradiance for the
-/// band (its band passes differ) without any other sign.
-pub(super) fn check_solar_mode(solar: &SolarSpectrum, obs: &[Observation]) -> Result<()> {
-    let Some(table) = solar.mode() else {
-        return Ok(());
-    };
+/// Each observation's solar table, as an index into `tables`: the table of its
+/// INSTRUMENT_MODE_ID, else one whose mode neither its row count nor its name tells (the first
+/// such). The table must follow the observation's band sampling: M3's GLOBAL and TARGET modes
+/// have different bands, and a table of the other mode gives the wrong irradiance for the band
+/// (its band passes differ) without any other sign. Two tables of one mode are refused: which
+/// one holds would be a guess.
+pub(super) fn solar_per_observation(
+    tables: &[SolarSpectrum],
+    obs: &[Observation],
+) -> Result<Vec<usize>> {
     let name = |m: pds::m3::Mode| match m {
         pds::m3::Mode::Global => "GLOBAL",
         pds::m3::Mode::Target => "TARGET",
     };
-    for o in obs {
-        if o.mode != table {
+    for (j, b) in tables.iter().enumerate() {
+        if let Some(a) = tables[..j]
+            .iter()
+            .find(|a| a.mode().is_some() && a.mode() == b.mode())
+        {
             return Err(Error::Usage(format!(
-                "{} is a {}-mode solar spectrum table ({} rows) but {} has INSTRUMENT_MODE_ID = {}: give [inputs] solar_spectrum the {} table (M3{}20110224_RFL_SOLAR_SPEC.TAB)",
-                solar.path.display(),
-                name(table),
-                solar.rows.len(),
-                o.label_path.display(),
-                name(o.mode),
-                name(o.mode),
-                if o.mode == pds::m3::Mode::Global { "G" } else { "T" }
+                "[inputs] solar_spectrum lists two {}-mode tables ({} and {}): give one per mode",
+                name(b.mode().expect("checked")),
+                a.path.display(),
+                b.path.display()
             )));
         }
     }
-    Ok(())
+    obs.iter()
+        .map(|o| {
+            let of_mode = tables.iter().position(|t| t.mode() == Some(o.mode));
+            let unknown = tables.iter().position(|t| t.mode().is_none());
+            of_mode.or(unknown).ok_or_else(|| {
+                let listed: Vec<String> = tables
+                    .iter()
+                    .map(|t| {
+                        format!(
+                            "{} ({}-mode, {} rows)",
+                            t.path.display(),
+                            t.mode().map_or("unknown", name),
+                            t.rows.len()
+                        )
+                    })
+                    .collect();
+                Error::Usage(format!(
+                    "{} has INSTRUMENT_MODE_ID = {} but [inputs] solar_spectrum has no {} table: {}; add the {} table (M3{}20110224_RFL_SOLAR_SPEC.TAB; a list holds one table per mode)",
+                    o.label_path.display(),
+                    name(o.mode),
+                    name(o.mode),
+                    listed.join(", "),
+                    name(o.mode),
+                    if o.mode == pds::m3::Mode::Global { "G" } else { "T" }
+                ))
+            })
+        })
+        .collect()
 }
 
 /// An input DEM: a LOLA GDR (PDS3 label) or a GeoTIFF on the Moon sphere.
@@ -300,7 +343,7 @@ pub(super) fn observations_with_lines(
         let trend = placing.trends.get(k).copied().flatten();
         let (mut img, lines) = ingest::m3_on_grid_with_lines(
             obs,
-            &inputs.solar,
+            inputs.solar(k),
             o.inputs.wavelength_nm,
             grid,
             pr,
@@ -416,6 +459,55 @@ mod tests {
         let d = LolaDem::open(&dir.join("LDEM_4.LBL")).unwrap();
         std::fs::remove_dir_all(&dir).unwrap();
         Dem::Pds(d)
+    }
+
+    /// A solar table of `rows` rows (wavelength, irradiance) named `name` in `dir`.
+    fn table(dir: &std::path::Path, name: &str, rows: usize) -> SolarSpectrum {
+        let text: String = (0..rows)
+            .map(|i| format!("{} 1000.0\n", 400.0 + 10.0 * i as f64))
+            .collect();
+        std::fs::write(dir.join(name), text).unwrap();
+        SolarSpectrum::read(&dir.join(name)).unwrap()
+    }
+
+    /// Each observation takes the table of its mode from a list of one per mode, in any
+    /// order; a mode without its table, and two tables of one mode, are refused by name; a
+    /// table whose mode neither its rows nor its name tells serves any observation.
+    #[test]
+    fn each_observation_takes_the_solar_table_of_its_mode() {
+        let data = std::path::Path::new(env!("CARGO_MANIFEST_DIR")).join("tests/data");
+        let crop = |d: &str, id: &str| {
+            Observation::open(&data.join(format!("m3_l1b_crops/{d}/{id}_V03_L1B_cropped.LBL")))
+                .unwrap()
+        };
+        let obs = [
+            crop("forwardDescending", "M3G20081129T171431"),
+            crop("forwardAscending", "M3T20090630T083407"),
+        ];
+        let dir = std::env::temp_dir().join(format!("sfsfuse-solar-{}", std::process::id()));
+        std::fs::create_dir_all(&dir).unwrap();
+        let target =
+            SolarSpectrum::read(&data.join("m3_calibration/m3t20110224_rfl_solar_spec.tab"))
+                .unwrap();
+        let global = table(&dir, "global.tab", 85);
+        let unknown = table(&dir, "solar.tab", 10);
+        let tables = [target.clone(), global.clone()];
+        assert_eq!(solar_per_observation(&tables, &obs).unwrap(), [1, 0]);
+        let e = solar_per_observation(std::slice::from_ref(&global), &obs)
+            .unwrap_err()
+            .to_string();
+        assert!(
+            e.contains("M3T20090630T083407_V03_L1B_cropped.LBL has INSTRUMENT_MODE_ID = TARGET")
+                && e.contains("global.tab (GLOBAL-mode, 85 rows)")
+                && e.contains("add the TARGET table (M3T20110224_RFL_SOLAR_SPEC.TAB"),
+            "{e}"
+        );
+        let e = solar_per_observation(&[global.clone(), target, global], &obs)
+            .unwrap_err()
+            .to_string();
+        assert!(e.contains("two GLOBAL-mode tables"), "{e}");
+        assert_eq!(solar_per_observation(&[unknown], &obs).unwrap(), [0, 0]);
+        std::fs::remove_dir_all(&dir).unwrap();
     }
 
     /// A simple cylindrical pixel narrows east–west with cos(latitude) as the gaps between

@@ -184,7 +184,7 @@ fn run_key(wf: &Workflow, inputs: &[InputFile]) -> String {
         Workflow::Orbital(o) => {
             names(&mut o.inputs.m3);
             names(&mut o.inputs.lola);
-            o.inputs.solar_spectrum = name(&o.inputs.solar_spectrum);
+            names(&mut o.inputs.solar_spectrum);
             o.output.directory = PathBuf::new();
             // What `[fetch]` brings is in the inputs' checksums; where from is not the
             // products' business.

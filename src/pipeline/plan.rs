@@ -802,8 +802,8 @@ fn survey_all(
     let mut sums = Vec::new();
     let mut sun_deg = Vec::new();
     let mut why = Vec::new();
-    for obs in &inputs.obs {
-        let s = ingest::survey(obs, &inputs.solar, o.inputs.wavelength_nm, grid, pr)?;
+    for (k, obs) in inputs.obs.iter().enumerate() {
+        let s = ingest::survey(obs, inputs.solar(k), o.inputs.wavelength_nm, grid, pr)?;
         sum += s.sum;
         count += s.count;
         means.push((s.count > 0).then(|| s.sum / s.count as f64));

@@ -268,7 +268,7 @@ impl Context<'_> {
         let ingest = |k: usize, shift: &Displacement| {
             ingest::m3_on_grid_with_lines(
                 &inputs.obs[k],
-                &inputs.solar,
+                inputs.solar(k),
                 o.inputs.wavelength_nm,
                 win,
                 &pr,
