@@ -362,20 +362,8 @@ fn dem_values_that_are_not_lunar_heights_are_refused_by_pixel() {
     // A GeoTIFF of radii (height + 1737.4 km) instead of heights.
     use sfsfuse::export::{write_geotiff, BandInfo};
     use sfsfuse::ingest::{geotiff_on_grid, GeoTiffDem};
-    let dem = LolaDem::open(&test_data().unwrap().join("lola_ldem4/LDEM_4.LBL")).unwrap();
-    let s = 2.0 * std::f64::consts::PI * 1_737_400.0 / 360.0 / 4.0;
-    let eqc = Grid::new(
-        Crs::Equirectangular { lon_0: 180.0 },
-        720,
-        1440,
-        -720.0 * s,
-        360.0 * s,
-        s,
-    )
-    .unwrap();
-    let radii = ndarray::Array2::from_shape_vec((720, 1440), dem.read_heights(0, 720).unwrap())
-        .unwrap()
-        + 1_737_400.0;
+    let (eqc, heights) = ldem4_heights();
+    let radii = heights + 1_737_400.0;
     let tif = dir.join("radii.tif");
     let info = BandInfo {
         description: "LDEM_4 radii",
@@ -401,6 +389,24 @@ fn dem_values_that_are_not_lunar_heights_are_refused_by_pixel() {
 /// A DEM given as a GeoTIFF: LDEM_4 written as a COG on its own equirectangular lattice, and
 /// GDAL's strip-organised LZW copy of it, give the same heights on a local grid as the PDS
 /// product; a GeoTIFF on the Earth is refused.
+/// LDEM_4's own grid (GDAL's georeferencing of it: equirectangular, lon_0 = 180°, on the
+/// 1737.4 km sphere, 2π·1737400/360/4 m a pixel) and its heights on it.
+fn ldem4_heights() -> (Grid, ndarray::Array2<f64>) {
+    let dem = LolaDem::open(&test_data().unwrap().join("lola_ldem4/LDEM_4.LBL")).unwrap();
+    let s = 2.0 * std::f64::consts::PI * 1_737_400.0 / 360.0 / 4.0;
+    let eqc = Grid::new(
+        Crs::Equirectangular { lon_0: 180.0 },
+        720,
+        1440,
+        -720.0 * s,
+        360.0 * s,
+        s,
+    )
+    .unwrap();
+    let h = ndarray::Array2::from_shape_vec((720, 1440), dem.read_heights(0, 720).unwrap());
+    (eqc, h.unwrap())
+}
+
 /// LDEM_4 written by us as a GeoTIFF in `dir`, with the Antoniadi grid's geography and the
 /// PDS product resampled onto it: (GeoTIFF, geography, expected heights, LDEM_4's pixel in m).
 fn ldem4_geotiff(
@@ -414,18 +420,8 @@ fn ldem4_geotiff(
     use sfsfuse::export::{write_geotiff, BandInfo};
     let data = test_data().unwrap();
     let dem = LolaDem::open(&data.join("lola_ldem4/LDEM_4.LBL")).unwrap();
-    let s = 2.0 * std::f64::consts::PI * 1_737_400.0 / 360.0 / 4.0;
-    let eqc = Grid::new(
-        Crs::Equirectangular { lon_0: 180.0 },
-        720,
-        1440,
-        -720.0 * s,
-        360.0 * s,
-        s,
-    )
-    .unwrap();
-    let h =
-        ndarray::Array2::from_shape_vec((720, 1440), dem.read_heights(0, 720).unwrap()).unwrap();
+    let (eqc, h) = ldem4_heights();
+    let s = eqc.spacing;
     std::fs::create_dir_all(dir).unwrap();
     let tif = dir.join("ldem4.tif");
     write_geotiff(
