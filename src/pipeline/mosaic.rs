@@ -667,45 +667,25 @@ fn layer_writers(
     Ok((writers, outputs))
 }
 
-/// Blend every tile into the products and write the run record. `files`: the inputs with
-/// their checksums if they were hashed already ([`checksums`]), else they are hashed here,
-/// once every tile is known to be there.
-pub(super) fn mosaic(
-    o: &Orbital,
-    wf: &Workflow,
-    inputs: &Inputs,
+/// Blend the finished tiles (`heads`) into the layers' writers band by band (memory is one
+/// band of rows, whatever the region's size) and finish the GeoTIFFs; returns the metrics
+/// over the layers and the block means the quick look shows, in `TILE_LAYERS` order.
+fn blend_tiles(
+    out: &Path,
     plan: &Plan,
-    files: Option<Vec<InputFile>>,
+    heads: &[(TileRecord, u64)],
+    mut writers: Vec<(usize, CogWriter)>,
     progress: &Progress,
-) -> Result<(Vec<PathBuf>, PathBuf, Sanity)> {
-    let out = &o.output.directory;
-    let heads = done_tiles(out, plan, progress)?;
+) -> Result<(MetricsAcc, Vec<Thumbnail>)> {
     let (rows, cols) = (plan.grid.rows, plan.grid.cols);
-    let files = match files {
-        Some(f) => {
-            progress.note(&format!(
-                "checksums: {} input files, hashed while the tiles ran",
-                f.len()
-            ));
-            f
-        }
-        None => checksums(&inputs.files()?, progress)?,
-    };
-    // What the products are, from the inputs' contents and the parameters only (no path or
-    // time: the same inputs give the same files wherever they lie and the run writes).
-    let key = run_key(wf, &files);
-    let meta = product_metadata(o, inputs, plan, &key);
-    let (mut writers, mut outputs) = layer_writers(o, plan, &meta)?;
-    // Blend band by band: memory is one band of rows, whatever the region's size.
     let mut stats = MetricsAcc::new();
-    // Block means of the layers the quick look shows, in TILE_LAYERS order.
     let mut thumbs: Vec<Thumbnail> = (0..TILE_LAYERS.len())
         .map(|_| Thumbnail::new(rows, cols, QUICKLOOK_SIDE))
         .collect();
     progress.steps("mosaic", rows.div_ceil(MOSAIC_BAND) as u64);
     for b0 in (0..rows).step_by(MOSAIC_BAND) {
         let b1 = (b0 + MOSAIC_BAND).min(rows);
-        let layers = blend_band(out, plan, &heads, b0, b1)?;
+        let layers = blend_band(out, plan, heads, b0, b1)?;
         stats.add(&layers);
         for (t, l) in thumbs.iter_mut().zip(&layers) {
             t.add(b0, l.view());
@@ -721,32 +701,72 @@ pub(super) fn mosaic(
         w.finish()?;
     }
     progress.finish();
-    let ql = out.join("quicklook.png");
-    write_quicklook(&ql, &thumbs, plan.grid.spacing, o.inputs.wavelength_nm)?;
-    outputs.push(ql);
-    let records: Vec<TileRecord> = heads.into_iter().map(|(r, _)| r).collect();
+    Ok((stats, thumbs))
+}
+
+/// The run's sanity figures from its tiles' sums, with the warnings about observations that
+/// share no gain reference, pixels coarser than the grid and low Suns; and how each
+/// observation (`labels`) was used.
+fn run_sanity(plan: &Plan, records: &[TileRecord], labels: &[String]) -> (Sanity, Vec<Usage>) {
     let mut sums = TileSums::default();
     records.iter().for_each(|r| sums.add(&r.sanity));
-    let labels: Vec<String> = inputs
-        .obs
-        .iter()
-        .map(|o| o.label_path.display().to_string())
-        .collect();
-    let mut sanity = Sanity::from_sums(&sums, &labels);
+    let mut sanity = Sanity::from_sums(&sums, labels);
     let usage: Vec<Usage> = sanity.observations.iter().map(|o| o.usage()).collect();
     let used: Vec<bool> = usage.iter().map(|&u| u == Usage::Used).collect();
     sanity
         .warnings
-        .extend(gain_groups_warning(&labels, &used, &plan.gain_reference));
+        .extend(gain_groups_warning(labels, &used, &plan.gain_reference));
     sanity.warnings.extend(coarse_pixels_warning(
-        &labels,
+        labels,
         &used,
         &plan.pixel_size_m,
         plan.grid.spacing,
     ));
     sanity
         .warnings
-        .extend(low_sun_warning(&labels, &used, &plan.sun_deg));
+        .extend(low_sun_warning(labels, &used, &plan.sun_deg));
+    (sanity, usage)
+}
+
+/// Blend every tile into the products and write the run record. `files`: the inputs with
+/// their checksums if they were hashed already ([`checksums`]), else they are hashed here,
+/// once every tile is known to be there.
+pub(super) fn mosaic(
+    o: &Orbital,
+    wf: &Workflow,
+    inputs: &Inputs,
+    plan: &Plan,
+    files: Option<Vec<InputFile>>,
+    progress: &Progress,
+) -> Result<(Vec<PathBuf>, PathBuf, Sanity)> {
+    let out = &o.output.directory;
+    let heads = done_tiles(out, plan, progress)?;
+    let files = match files {
+        Some(f) => {
+            progress.note(&format!(
+                "checksums: {} input files, hashed while the tiles ran",
+                f.len()
+            ));
+            f
+        }
+        None => checksums(&inputs.files()?, progress)?,
+    };
+    // What the products are, from the inputs' contents and the parameters only (no path or
+    // time: the same inputs give the same files wherever they lie and the run writes).
+    let key = run_key(wf, &files);
+    let meta = product_metadata(o, inputs, plan, &key);
+    let (writers, mut outputs) = layer_writers(o, plan, &meta)?;
+    let (stats, thumbs) = blend_tiles(out, plan, &heads, writers, progress)?;
+    let ql = out.join("quicklook.png");
+    write_quicklook(&ql, &thumbs, plan.grid.spacing, o.inputs.wavelength_nm)?;
+    outputs.push(ql);
+    let records: Vec<TileRecord> = heads.into_iter().map(|(r, _)| r).collect();
+    let labels: Vec<String> = inputs
+        .obs
+        .iter()
+        .map(|o| o.label_path.display().to_string())
+        .collect();
+    let (sanity, usage) = run_sanity(plan, &records, &labels);
     let record = RunRecord {
         tool: "sfsfuse",
         version: crate::BUILD,
