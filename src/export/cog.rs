@@ -204,6 +204,28 @@ impl CogWriter {
                 .map(|(k, v)| (k.as_str(), v.clone()))
                 .collect::<Vec<_>>(),
         };
+        let xml = gdal_metadata(&info, &self.stats);
+        let layout = self.layout(&xml);
+        let tmp = crate::raster::tmp_name(&self.path);
+        let res = self
+            .write_file(&tmp, &xml, &layout)
+            .and_then(|()| std::fs::rename(&tmp, &self.path).map_err(|e| Error::io(&self.path, e)));
+        if res.is_err() {
+            let _ = std::fs::remove_file(&tmp);
+        }
+        res
+    }
+
+    /// The grid and GDAL metadata `xml` of level `k`: the full-resolution level's only.
+    fn main_tags<'a>(&'a self, k: usize, xml: &'a str) -> Option<(Option<&'a Grid>, &'a str)> {
+        (k == 0).then_some((self.grid.as_ref(), xml))
+    }
+
+    /// Where everything goes: the header and the ghost block, each level's IFD (tags with the
+    /// level's `xml` metadata), then the tiles, smallest overview first and full resolution
+    /// last, each as its 4-byte size, its bytes and a copy of its last 4 bytes (COG's
+    /// leader and trailer). BigTIFF where the data would pass 4 GiB (or when asked for).
+    fn layout(&self, xml: &str) -> Layout {
         let data_bytes: u64 = self
             .levels
             .iter()
@@ -213,25 +235,25 @@ impl CogWriter {
         let ntiles: u64 = self.levels.iter().map(|l| l.sizes.len() as u64).sum();
         let big = self.container == Container::BigTiff
             || data_bytes + 1_000_000 + 64 * ntiles > u32::MAX as u64;
-        let w = Width { big };
-        let ghost = ghost_block();
+        let width = Width { big };
         let header_len = if big { 16 } else { 8 };
-        let mut pos = (header_len + ghost.len()) as u64;
+        let mut pos = (header_len + ghost_block().len()) as u64;
         pos += pos % 2;
-        let grid = self.grid;
-        let xml = gdal_metadata(&info, &self.stats);
-        let main = |k: usize| (k == 0).then_some((grid.as_ref(), xml.as_str()));
-        let format = self.format;
         let mut ifd_pos = Vec::new();
         for (k, l) in self.levels.iter().enumerate() {
             ifd_pos.push(pos);
-            pos += ifd_size(
-                &level_tags(k, (l.h, l.w), &l.sizes, main(k), &w, &[], format),
-                &w,
+            let tags = level_tags(
+                k,
+                (l.h, l.w),
+                &l.sizes,
+                self.main_tags(k, xml),
+                &width,
+                &[],
+                self.format,
             );
+            pos += ifd_size(&tags, &width);
             pos += pos % 2;
         }
-        // Data: smallest overview first, full resolution last.
         let mut offsets: Vec<Vec<u64>> = vec![Vec::new(); self.levels.len()];
         let data_start = pos;
         for k in (0..self.levels.len()).rev() {
@@ -240,53 +262,72 @@ impl CogWriter {
                 pos += s + 8;
             }
         }
-        let tmp = crate::raster::tmp_name(&self.path);
-        let res = (|| -> Result<()> {
-            let f = std::fs::File::create(&tmp).map_err(|e| Error::io(&tmp, e))?;
-            let mut out = std::io::BufWriter::new(f);
-            let mut head = Vec::with_capacity(data_start as usize);
-            if big {
-                head.extend_from_slice(b"II\x2b\x00\x08\x00\x00\x00");
-                head.extend_from_slice(&ifd_pos[0].to_le_bytes());
-            } else {
-                head.extend_from_slice(b"II\x2a\x00");
-                head.extend_from_slice(&(ifd_pos[0] as u32).to_le_bytes());
-            }
-            head.extend_from_slice(&ghost);
-            for (k, l) in self.levels.iter().enumerate() {
-                pad_to(&mut head, ifd_pos[k]);
-                let tags = level_tags(k, (l.h, l.w), &l.sizes, main(k), &w, &offsets[k], format);
-                let next = ifd_pos.get(k + 1).copied().unwrap_or(0);
-                write_ifd(&mut head, &tags, ifd_pos[k], next, &w);
-            }
-            pad_to(&mut head, data_start);
-            out.write_all(&head).map_err(|e| Error::io(&tmp, e))?;
-            for l in self.levels.iter().rev() {
-                let mut r = std::io::BufReader::new(
-                    std::fs::File::open(&l.tmp).map_err(|e| Error::io(&l.tmp, e))?,
-                );
-                let mut t = Vec::new();
-                for &s in &l.sizes {
-                    t.resize(s as usize, 0);
-                    r.read_exact(&mut t).map_err(|e| Error::io(&l.tmp, e))?;
-                    out.write_all(&(s as u32).to_le_bytes())
-                        .map_err(|e| Error::io(&tmp, e))?;
-                    out.write_all(&t).map_err(|e| Error::io(&tmp, e))?;
-                    out.write_all(&t[t.len() - 4..])
-                        .map_err(|e| Error::io(&tmp, e))?;
-                }
-            }
-            let f = out
-                .into_inner()
-                .map_err(|e| Error::io(&tmp, e.into_error()))?;
-            f.sync_all().map_err(|e| Error::io(&tmp, e))?;
-            debug_assert_eq!(f.metadata().map(|m| m.len()).unwrap_or(pos), pos);
-            std::fs::rename(&tmp, &self.path).map_err(|e| Error::io(&self.path, e))
-        })();
-        if res.is_err() {
-            let _ = std::fs::remove_file(&tmp);
+        Layout {
+            width,
+            ifd_pos,
+            offsets,
+            data_start,
+            len: pos,
         }
-        res
+    }
+
+    /// The whole file at `tmp` as `layout` places it, synced to disk.
+    fn write_file(&self, tmp: &Path, xml: &str, layout: &Layout) -> Result<()> {
+        let Layout {
+            width,
+            ifd_pos,
+            offsets,
+            data_start,
+            len,
+        } = layout;
+        let f = std::fs::File::create(tmp).map_err(|e| Error::io(tmp, e))?;
+        let mut out = std::io::BufWriter::new(f);
+        let mut head = Vec::with_capacity(*data_start as usize);
+        if width.big {
+            head.extend_from_slice(b"II\x2b\x00\x08\x00\x00\x00");
+            head.extend_from_slice(&ifd_pos[0].to_le_bytes());
+        } else {
+            head.extend_from_slice(b"II\x2a\x00");
+            head.extend_from_slice(&(ifd_pos[0] as u32).to_le_bytes());
+        }
+        head.extend_from_slice(&ghost_block());
+        for (k, l) in self.levels.iter().enumerate() {
+            pad_to(&mut head, ifd_pos[k]);
+            let tags = level_tags(
+                k,
+                (l.h, l.w),
+                &l.sizes,
+                self.main_tags(k, xml),
+                width,
+                &offsets[k],
+                self.format,
+            );
+            let next = ifd_pos.get(k + 1).copied().unwrap_or(0);
+            write_ifd(&mut head, &tags, ifd_pos[k], next, width);
+        }
+        pad_to(&mut head, *data_start);
+        out.write_all(&head).map_err(|e| Error::io(tmp, e))?;
+        for l in self.levels.iter().rev() {
+            let mut r = std::io::BufReader::new(
+                std::fs::File::open(&l.tmp).map_err(|e| Error::io(&l.tmp, e))?,
+            );
+            let mut t = Vec::new();
+            for &s in &l.sizes {
+                t.resize(s as usize, 0);
+                r.read_exact(&mut t).map_err(|e| Error::io(&l.tmp, e))?;
+                out.write_all(&(s as u32).to_le_bytes())
+                    .map_err(|e| Error::io(tmp, e))?;
+                out.write_all(&t).map_err(|e| Error::io(tmp, e))?;
+                out.write_all(&t[t.len() - 4..])
+                    .map_err(|e| Error::io(tmp, e))?;
+            }
+        }
+        let f = out
+            .into_inner()
+            .map_err(|e| Error::io(tmp, e.into_error()))?;
+        f.sync_all().map_err(|e| Error::io(tmp, e))?;
+        debug_assert_eq!(f.metadata().map(|m| m.len()).unwrap_or(*len), *len);
+        Ok(())
     }
 
     pub(super) fn cleanup(&mut self) {
@@ -437,6 +478,17 @@ pub(super) fn byte_predictor(row: &[f32]) -> Vec<u8> {
 }
 
 /// Offsets are 4 bytes (classic TIFF) or 8 (BigTIFF).
+/// Where [`CogWriter::assemble`] puts each part of the file: the offset width, each level's
+/// IFD, each level's tile offsets (past each tile's 4-byte leader), where the tiles start and
+/// the file's length.
+struct Layout {
+    width: Width,
+    ifd_pos: Vec<u64>,
+    offsets: Vec<Vec<u64>>,
+    data_start: u64,
+    len: u64,
+}
+
 pub(super) struct Width {
     pub(super) big: bool,
 }
