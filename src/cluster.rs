@@ -295,6 +295,37 @@ fn submit_cmd(mut cmd: Command, what: &str) -> Result<String> {
     Ok(id)
 }
 
+/// Submit the tile script (when there are pending tiles) and the mosaic script after it, with
+/// `opts.dependency` on the tile job: (the tile job's id, the mosaic job's id).
+fn enqueue(
+    opts: &Options,
+    tiles: Option<&Path>,
+    mosaic_script: &Path,
+) -> Result<(Option<String>, String)> {
+    let dep = opts.dependency.word();
+    let (program, parsable): (&str, &[&str]) = match opts.scheduler {
+        Scheduler::Slurm => ("sbatch", &["--parsable"]),
+        Scheduler::Pbs => ("qsub", &[]),
+    };
+    let mut mosaic = Command::new(program);
+    mosaic.args(parsable);
+    let tiles_job = match tiles {
+        Some(script) => {
+            let mut c = Command::new(program);
+            c.args(parsable).arg(script);
+            let id = submit_cmd(c, program)?;
+            match opts.scheduler {
+                Scheduler::Slurm => mosaic.arg(format!("--dependency={dep}:{id}")),
+                Scheduler::Pbs => mosaic.arg("-W").arg(format!("depend={dep}:{id}")),
+            };
+            Some(id)
+        }
+        None => None,
+    };
+    mosaic.arg(mosaic_script);
+    Ok((tiles_job, submit_cmd(mosaic, program)?))
+}
+
 /// Plan the workflow at `wf_path`, write the scripts and submit them (see the module).
 pub fn submit(
     wf_path: &Path,
@@ -373,34 +404,8 @@ pub fn submit(
     for (p, text) in &sub.scripts {
         write_atomic(p, text.as_bytes())?;
     }
-    let dep = opts.dependency.word();
-    match opts.scheduler {
-        Scheduler::Slurm => {
-            let mut mosaic = Command::new("sbatch");
-            mosaic.arg("--parsable");
-            if !b.is_empty() {
-                let mut c = Command::new("sbatch");
-                c.arg("--parsable").arg(&tiles_path);
-                let id = submit_cmd(c, "sbatch")?;
-                mosaic.arg(format!("--dependency={dep}:{id}"));
-                sub.tiles_job = Some(id);
-            }
-            mosaic.arg(&mosaic_path);
-            sub.mosaic_job = Some(submit_cmd(mosaic, "sbatch")?);
-        }
-        Scheduler::Pbs => {
-            let mut mosaic = Command::new("qsub");
-            if !b.is_empty() {
-                let mut c = Command::new("qsub");
-                c.arg(&tiles_path);
-                let id = submit_cmd(c, "qsub")?;
-                mosaic.arg("-W").arg(format!("depend={dep}:{id}"));
-                sub.tiles_job = Some(id);
-            }
-            mosaic.arg(&mosaic_path);
-            sub.mosaic_job = Some(submit_cmd(mosaic, "qsub")?);
-        }
-    }
+    let (tiles_job, mosaic_job) = enqueue(opts, sub.tiles_script.as_deref(), &mosaic_path)?;
+    (sub.tiles_job, sub.mosaic_job) = (tiles_job, Some(mosaic_job));
     progress.note(&format!(
         "submitted {} tile task(s) and the mosaic; logs in {}",
         sub.batches.len(),
