@@ -435,7 +435,7 @@ fn one_or_more_paths<'de, D: serde::Deserializer<'de>>(
     }
 }
 
-/// One path as a string, several as a list (a workflow of one table keeps its run key).
+/// One path as a string, several as a list (a workflow of one table is recorded as before).
 fn one_or_more_paths_out<S: serde::Serializer>(
     v: &[PathBuf],
     s: S,
@@ -873,8 +873,8 @@ directory = "out"
             o.inputs.solar_spectrum,
             [Path::new("/data/run/cal/solar.tab")]
         );
-        // One table is written back as a string (the run key of such a workflow does not
-        // change), one per mode as a list, each resolved.
+        // One table is written back as a string (run.json records such a workflow as
+        // before), one per mode as a list, each resolved.
         let json = serde_json::to_value(&o.inputs).unwrap();
         assert_eq!(json["solar_spectrum"], "/data/run/cal/solar.tab");
         let two = MINIMAL.replace(
