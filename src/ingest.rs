@@ -776,9 +776,10 @@ pub fn reference_shift(dem: &LolaDem) -> f64 {
     dem.offset.map_or(0.0, |o| o - grid::MOON_RADIUS_M)
 }
 
-/// Refuses `heights` (rows of a DEM starting at 0-based `origin` = (line, sample) of `file`)
-/// where a finite one lies outside [`LUNAR_HEIGHT_RANGE_M`], naming the first such pixel
-/// (counted from 1), its value and how many there are. NaN (no data) passes.
+/// Refuses `heights` (the part of a DEM read for a grid, starting at 0-based `origin` =
+/// (line, sample) of `file`: whole lines of a PDS product, the needed strips or tiles of a
+/// GeoTIFF) where a finite one lies outside [`LUNAR_HEIGHT_RANGE_M`], naming the first such
+/// pixel (counted from 1), its value and how many there are. NaN (no data) passes.
 pub fn check_lunar_heights(
     file: &std::path::Path,
     heights: ArrayView2<f64>,
@@ -793,7 +794,7 @@ pub fn check_lunar_heights(
     Err(Error::Usage(format!(
         "{}: line {}, sample {}: height {h} m is not on the Moon (its surface lies within \
          −9.1 … +10.8 km of the 1737.4 km sphere; accepted {lo} … {hi} m), and {} more pixel(s) \
-         the grid needs are outside too: check the label's SCALING_FACTOR, OFFSET and UNIT, \
+         of the part read for the grid are outside too: check the label's SCALING_FACTOR, OFFSET and UNIT, \
          whether the file holds radii rather than heights, and whether a fill value marks \
          missing data (declare it as no data)",
         file.display(),
