@@ -762,18 +762,12 @@ pub const LUNAR_HEIGHT_RANGE_M: [f64; 2] = [-12_000.0, 12_000.0];
 /// CRS, metres: DN × SCALING_FACTOR + OFFSET − 1737.4 km where the label gives OFFSET (the
 /// product's reference sphere; 1737.4 km in every LOLA GDR), DN × SCALING_FACTOR where not.
 pub fn lola_heights(dem: &LolaDem, first: usize, count: usize) -> Result<Vec<f64>> {
-    let shift = reference_shift(dem);
+    let shift = dem.offset.map_or(0.0, |o| o - grid::MOON_RADIUS_M);
     Ok(dem
         .read_heights(first, count)?
         .into_iter()
         .map(|h| h + shift)
         .collect())
-}
-
-/// What turns `dem`'s heights into heights above the 1737.4 km sphere: OFFSET − 1737.4 km, 0
-/// without OFFSET.
-pub fn reference_shift(dem: &LolaDem) -> f64 {
-    dem.offset.map_or(0.0, |o| o - grid::MOON_RADIUS_M)
 }
 
 /// Refuses `heights` (the part of a DEM read for a grid, starting at 0-based `origin` =

@@ -3,7 +3,7 @@
 
 use crate::error::{Error, Result};
 use pds::lola::{LolaDem, Projection};
-use pds::m3::{Mode, Observation};
+use pds::m3::Observation;
 use serde::Serialize;
 use std::path::Path;
 
@@ -173,10 +173,10 @@ fn inspect_geotiff(path: &Path) -> Result<Inspection> {
 /// Lines read per window when scanning a product for its value range.
 const WINDOW: usize = 256;
 
-fn scan(
+fn scan<E>(
     lines: usize,
-    mut read: impl FnMut(usize, usize) -> pds::Result<Vec<f64>>,
-) -> pds::Result<Option<Range>> {
+    mut read: impl FnMut(usize, usize) -> std::result::Result<Vec<f64>, E>,
+) -> std::result::Result<Option<Range>, E> {
     let mut acc: Option<Range> = None;
     for first in (0..lines).step_by(WINDOW) {
         let r = Range::of(read(first, WINDOW.min(lines - first))?.into_iter());
@@ -262,10 +262,7 @@ fn inspect_m3(path: &Path) -> Result<Inspection> {
     let [incidence_deg, emission_deg, phase_deg, sun_azimuth_deg] = ill;
     Ok(Inspection::M3 {
         label: path.display().to_string(),
-        mode: match o.mode {
-            Mode::Global => "GLOBAL".into(),
-            Mode::Target => "TARGET".into(),
-        },
+        mode: o.mode.keyword().into(),
         lines: o.rdn.lines,
         samples: o.rdn.samples,
         bands: o.rdn.bands,
@@ -336,12 +333,8 @@ fn inspect_lola(path: &Path) -> Result<Inspection> {
             )
         }
     };
-    // Heights above the 1737.4 km sphere, as a run reads them (`ingest::lola_heights`).
-    let shift = crate::ingest::reference_shift(&d);
-    let heights = scan(d.lines(), |f, n| {
-        d.read_heights(f, n)
-            .map(|h| h.into_iter().map(|h| h + shift).collect())
-    })?;
+    // Heights above the 1737.4 km sphere, as a run reads them.
+    let heights = scan(d.lines(), |f, n| crate::ingest::lola_heights(&d, f, n))?;
     Ok(Inspection::Lola {
         label: path.display().to_string(),
         lines: d.lines(),

@@ -26,6 +26,16 @@ pub enum Mode {
     Target,
 }
 
+impl Mode {
+    /// The label's INSTRUMENT_MODE_ID value for this mode.
+    pub fn keyword(self) -> &'static str {
+        match self {
+            Mode::Global => "GLOBAL",
+            Mode::Target => "TARGET",
+        }
+    }
+}
+
 /// Built-in band centres (nm) for a mode.
 pub fn band_centres(mode: Mode) -> Vec<f64> {
     let text = include_str!("../data/m3_wavelengths.json");

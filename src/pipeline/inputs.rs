@@ -128,10 +128,7 @@ pub(super) fn solar_per_observation(
     tables: &[SolarSpectrum],
     obs: &[Observation],
 ) -> Result<Vec<usize>> {
-    let name = |m: pds::m3::Mode| match m {
-        pds::m3::Mode::Global => "GLOBAL",
-        pds::m3::Mode::Target => "TARGET",
-    };
+    let name = pds::m3::Mode::keyword;
     for (j, b) in tables.iter().enumerate() {
         if let Some(a) = tables[..j]
             .iter()
