@@ -359,6 +359,13 @@ pub struct FusionParams {
     /// rule from the problem's point spread σ_B, then clears this flag. Off: the workflow's η
     /// and k everywhere.
     pub coarse_dem_membrane: bool,
+    /// s of the pixel-scale shrink applied, where several observations overlap, to the fused
+    /// correction z − z_DEM ([`ops::shrink_near_nyquist`]: waves near the Nyquist frequency
+    /// scaled by 1 − s along each axis, at half of it by 1 − s/16; blended in by the
+    /// multi-coverage c(x), so a pixel one observation carries is left alone). The
+    /// photometric gradient barely sees waves that short, so what the solution holds there is
+    /// mostly error (docs/science.md, "The pixel-scale shrink"). 0: off.
+    pub nyquist_shrink: f64,
 }
 
 impl Default for FusionParams {
@@ -396,6 +403,7 @@ impl Default for FusionParams {
             dem_track_weight: 0.1,
             dem_track_sigma_px: 9.0,
             coarse_dem_membrane: true,
+            nyquist_shrink: 0.75,
         }
     }
 }
@@ -917,13 +925,19 @@ fn fine_stages(
         multi.as_ref(),
         &mut stages,
     )?;
-    // Beyond the support band the result is the input DEM; within it the correction fades.
-    // (s is formed again for the layers at the end: the final albedo's arrays need the
-    // memory in between.)
+    // Where observations overlap, the correction's pixel-scale waves are shrunk (blended in
+    // by the multi-coverage c); beyond the support band the result is the input DEM, within
+    // it the correction fades. (s is formed again for the layers at the end: the final
+    // albedo's arrays need the memory in between.)
+    Zip::from(&mut z).and(pr.dem).par_for_each(|z, &d| *z -= d);
+    if let Some(c) = &multi {
+        let shrunk = ops::shrink_near_nyquist(z.view(), params.nyquist_shrink);
+        z = blend(&shrunk, &z, c);
+    }
     Zip::from(&mut z)
         .and(&obj.support())
         .and(pr.dem)
-        .par_for_each(|z, &s, &d| *z = d + s * (*z - d));
+        .par_for_each(|z, &s, &d| *z = d + s * *z);
     let mut albedo = final_albedo_layer(pr, &obj, params, z.view(), last_rho, multi.as_ref())?;
     drop(multi);
     // The residuals and coverage of each observation on the final surface (their slopes'

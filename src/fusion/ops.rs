@@ -319,6 +319,68 @@ pub fn weighted_normal_into<T: Real>(
         });
 }
 
+/// Coefficients of the eighth difference over 2⁸, (−1)ᵗ·C(8, t)/256 for t = 0 … 8 (offsets
+/// −4 … 4): its response to a wave of angular frequency ω (radians per pixel) is sin⁸(ω/2),
+/// 1 at the Nyquist frequency, 1/16 at half of it, under 5·10⁻⁴ at a quarter of it.
+const EIGHTH_DIFFERENCE: [f64; 9] = [
+    1.0 / 256.0,
+    -8.0 / 256.0,
+    28.0 / 256.0,
+    -56.0 / 256.0,
+    70.0 / 256.0,
+    -56.0 / 256.0,
+    28.0 / 256.0,
+    -8.0 / 256.0,
+    1.0 / 256.0,
+];
+
+/// The pixel-scale shrink F = F_y F_x, F(ω) = 1 − s·sin⁸(ω/2) along each axis: a wave at
+/// the Nyquist frequency (ω = π) scaled by 1 − s, one at half of it by 1 − s/16, longer ones
+/// kept (a polynomial of degree < 8 exactly). Each axis is the identity minus s times
+/// the eighth difference (−1)ᵗ·C(8, t)/256, t = 0 … 8, continued past the grid's edges by the
+/// half-sample mirror (v₋₁ = v₀, as the DCT-II's even extension: every DCT-II basis
+/// function cos(ω(j + ½)) is scaled by exactly F(ω), edges included). Local (4 px each way),
+/// so a tile with any halo wider than that gives what the whole region gives.
+///
+/// The photometric gradient's response falls to 0 at the Nyquist frequency
+/// ([`stencil_response`]), so the images hold waves there only weakly, and what the solution
+/// holds there is mostly error (docs/science.md, "The pixel-scale shrink").
+pub fn shrink_near_nyquist(a: ArrayView2<f64>, s: f64) -> Array2<f64> {
+    if s == 0.0 {
+        return a.to_owned();
+    }
+    let along_rows = shrink_axis(a, s, Axis(1));
+    shrink_axis(along_rows.view(), s, Axis(0))
+}
+
+/// One axis of [`shrink_near_nyquist`]: each lane along `axis` filtered on its own.
+fn shrink_axis(a: ArrayView2<f64>, s: f64, axis: Axis) -> Array2<f64> {
+    let mut out = a.to_owned();
+    out.lanes_mut(axis)
+        .into_iter()
+        .zip(a.lanes(axis))
+        .collect::<Vec<_>>()
+        .into_par_iter()
+        .for_each(|(mut o, v)| {
+            let n = v.len() as isize;
+            // The half-sample mirror: …, v₁, v₀ | v₀, v₁, … at both ends.
+            let at = |j: isize| {
+                let j = if j < 0 { -j - 1 } else { j };
+                let j = if j >= n { 2 * n - 1 - j } else { j };
+                v[j.clamp(0, n - 1) as usize]
+            };
+            for (j, o) in o.iter_mut().enumerate() {
+                let h: f64 = EIGHTH_DIFFERENCE
+                    .iter()
+                    .enumerate()
+                    .map(|(t, c)| c * at(j as isize + t as isize - 4))
+                    .sum();
+                *o -= s * h;
+            }
+        });
+    out
+}
+
 /// max |aᵢ| in f64 (0 for an empty array); f32 values are widened exactly.
 pub fn max_abs<T: Copy + Into<f64>>(a: ArrayView2<T>) -> f64 {
     a.iter().fold(0.0, |m, &x| m.max(x.into().abs()))
@@ -369,6 +431,46 @@ pub fn sum_row_parts<const N: usize>(parts: ArrayView1<[f64; N]>) -> [f64; N] {
 #[cfg(test)]
 mod tests {
     use super::*;
+
+    /// A DCT-II basis function cos(ω_y(i + ½))·cos(ω_x(j + ½)) is scaled by exactly
+    /// (1 − s·sin⁸(ω_y/2))(1 − s·sin⁸(ω_x/2)) at every pixel, edges included (the analytic
+    /// response of the eighth difference under the half-sample mirror).
+    #[test]
+    fn the_pixel_scale_shrink_scales_each_cosine_by_its_response() {
+        let (ny, nx, s) = (12, 17, 0.75);
+        for (ky, kx) in [(0, 0), (1, 0), (0, 16), (11, 3), (6, 8), (11, 16)] {
+            let wy = std::f64::consts::PI * ky as f64 / ny as f64;
+            let wx = std::f64::consts::PI * kx as f64 / nx as f64;
+            let a = Array2::from_shape_fn((ny, nx), |(i, j)| {
+                (wy * (i as f64 + 0.5)).cos() * (wx * (j as f64 + 0.5)).cos()
+            });
+            let f = |w: f64| 1.0 - s * (w / 2.0).sin().powi(8);
+            let out = shrink_near_nyquist(a.view(), s);
+            for (o, v) in out.iter().zip(&a) {
+                assert!(
+                    (o - f(wy) * f(wx) * v).abs() < 1e-12,
+                    "({ky}, {kx}): {o} vs {v}"
+                );
+            }
+        }
+    }
+
+    /// Relief smoother than the pixel passes: a polynomial of degree 7 along each axis is kept
+    /// away from the edges (the eighth difference annihilates it), and s = 0 is the identity.
+    #[test]
+    fn the_pixel_scale_shrink_keeps_polynomials_below_degree_eight() {
+        let a = Array2::from_shape_fn((20, 24), |(i, j)| {
+            let (y, x) = (i as f64 / 10.0, j as f64 / 10.0);
+            3.0 + x - 2.0 * y * y + 0.5 * x.powi(7) - y.powi(5) * x.powi(2)
+        });
+        let out = shrink_near_nyquist(a.view(), 0.9);
+        for i in 4..16 {
+            for j in 4..20 {
+                assert!((out[(i, j)] - a[(i, j)]).abs() < 1e-9 * a[(i, j)].abs().max(1.0));
+            }
+        }
+        assert_eq!(shrink_near_nyquist(a.view(), 0.0), a);
+    }
 
     #[test]
     fn gradient_at_one_pixel_is_the_gradient_there_to_the_bit() {

@@ -160,7 +160,8 @@ impl Coarse {
 }
 
 /// The parameters of the coarse reference: every width in pixels divided by f (σ_DEM at least
-/// ½ px), no further coarsening.
+/// ½ px), no further coarsening, and no pixel-scale shrink (the fine stages start from the
+/// reference and settle its pixel-scale waves themselves).
 pub fn coarse_params(params: &FusionParams, f: usize) -> FusionParams {
     let f = f as f64;
     let div = |s: f64| s / f;
@@ -175,6 +176,7 @@ pub fn coarse_params(params: &FusionParams, f: usize) -> FusionParams {
         edge_ramp_px: div(params.edge_ramp_px),
         coarse_factor: 1,
         coarse_dem_membrane: false,
+        nyquist_shrink: 0.0,
         ..params.clone()
     }
 }

@@ -118,7 +118,13 @@ pub fn validate_params(params: &FusionParams) -> Result<(), FusionError> {
             });
         }
     }
-    let checks: [(&'static str, f64, bool, &'static str); 25] = [
+    let checks: [(&'static str, f64, bool, &'static str); 26] = [
+        (
+            "nyquist_shrink",
+            params.nyquist_shrink,
+            (0.0..=1.0).contains(&params.nyquist_shrink),
+            "must be in [0, 1] (0: off; 1 removes the Nyquist wave)",
+        ),
         (
             "cg_tolerance",
             params.cg_tolerance,
