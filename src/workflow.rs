@@ -842,6 +842,20 @@ directory = "out"
             e.contains("w.toml") && e.contains("albedo_sigmas is empty"),
             "{e}"
         );
+        // A shrink beyond 1 would turn the Nyquist wave over; NaN is no number at all.
+        for value in ["1.5", "-0.1", "nan"] {
+            let bad = lab.replace(
+                "[output]",
+                &format!("[solver]\nnyquist_shrink = {value}\n[output]"),
+            );
+            let e = Workflow::parse(&bad, Path::new("w.toml"), Path::new("."))
+                .unwrap_err()
+                .to_string();
+            assert!(
+                e.contains("w.toml") && e.contains("nyquist_shrink") && e.contains("[0, 1]"),
+                "{value}: {e}"
+            );
+        }
         assert_eq!(FusionParams::default().dem_track_weight, 0.1);
     }
 
