@@ -797,6 +797,11 @@ directory = "out"
             Workflow::Orbital(_) => panic!("a lab workflow"),
         };
         assert_eq!(weight(lab), 1.0);
+        let refusal = |text: &str| {
+            Workflow::parse(text, Path::new("w.toml"), Path::new("."))
+                .unwrap_err()
+                .to_string()
+        };
         let given = lab.replace("[output]", "[solver]\ndem_track_weight = 0.2\n[output]");
         assert_eq!(weight(&given), 0.2);
         for (light, want) in [
@@ -815,42 +820,28 @@ directory = "out"
         ] {
             let bad = lab.replace("zenith_deg = 50.0, azimuth_deg = 120.0", light);
             assert_ne!(bad, lab);
-            let e = Workflow::parse(&bad, Path::new("w.toml"), Path::new("."))
-                .unwrap_err()
-                .to_string();
+            let e = refusal(&bad);
             assert!(e.contains("w.toml") && e.contains(want), "{e}");
         }
-        let bad = lab.replace("[output]", "[solver]\nmax_iterations = 0\n[output]");
-        let e = Workflow::parse(&bad, Path::new("w.toml"), Path::new("."))
-            .unwrap_err()
-            .to_string();
+        // `[solver]` values out of their ranges, each refused naming the key: the reasons.
+        let solver =
+            |line: &str| refusal(&lab.replace("[output]", &format!("[solver]\n{line}\n[output]")));
+        let e = solver("max_iterations = 0");
         assert!(e.contains("w.toml") && e.contains("max_iterations"), "{e}");
-        let bad = lab.replace("[output]", "[solver]\nmulti_albedo_passes = 0\n[output]");
-        let e = Workflow::parse(&bad, Path::new("w.toml"), Path::new("."))
-            .unwrap_err()
-            .to_string();
+        let e = solver("multi_albedo_passes = 0");
         assert!(
             e.contains("w.toml") && e.contains("multi_albedo_passes") && e.contains("at least 1"),
             "{e}"
         );
         // No albedo stage: no surface solve at all, the DEM would come out unchanged.
-        let bad = lab.replace("[output]", "[solver]\nalbedo_sigmas = []\n[output]");
-        let e = Workflow::parse(&bad, Path::new("w.toml"), Path::new("."))
-            .unwrap_err()
-            .to_string();
+        let e = solver("albedo_sigmas = []");
         assert!(
             e.contains("w.toml") && e.contains("albedo_sigmas is empty"),
             "{e}"
         );
         // A shrink beyond 1 would turn the Nyquist wave over; NaN is no number at all.
         for value in ["1.5", "-0.1", "nan"] {
-            let bad = lab.replace(
-                "[output]",
-                &format!("[solver]\nnyquist_shrink = {value}\n[output]"),
-            );
-            let e = Workflow::parse(&bad, Path::new("w.toml"), Path::new("."))
-                .unwrap_err()
-                .to_string();
+            let e = solver(&format!("nyquist_shrink = {value}"));
             assert!(
                 e.contains("w.toml") && e.contains("nyquist_shrink") && e.contains("[0, 1]"),
                 "{value}: {e}"

@@ -14,6 +14,14 @@ fn base() -> SceneSpec {
     }
 }
 
+/// The fixed scene under `suns` (gains 1) fused with `params`: its elevation RMSE and the
+/// fused heights.
+fn fused_with(suns: &[(f64, f64)], params: FusionParams) -> (f64, ndarray::Array2<f64>) {
+    let scene = generate(&base().with_observations(suns, &[], false));
+    let f = fuse(&scene.problem(), &params).unwrap();
+    (score(&scene, &f).0, f.height)
+}
+
 fn fused(spec: &SceneSpec) -> (Scene, Fusion) {
     let scene = generate(spec);
     let f = fuse(&scene.problem(), &FusionParams::default()).unwrap();
@@ -141,13 +149,13 @@ fn two_high_suns_beat_the_better_single_image() {
 #[test]
 fn a_second_pass_of_the_last_stage_lowers_the_error_of_two_suns() {
     let run = |suns: &[(f64, f64)], passes: usize| {
-        let scene = generate(&base().with_observations(suns, &[], false));
-        let p = FusionParams {
-            multi_albedo_passes: passes,
-            ..FusionParams::default()
-        };
-        let f = fuse(&scene.problem(), &p).unwrap();
-        (score(&scene, &f).0, f.height)
+        fused_with(
+            suns,
+            FusionParams {
+                multi_albedo_passes: passes,
+                ..FusionParams::default()
+            },
+        )
     };
     for pair in [[DEMO_SUNS[0], DEMO_SUNS[1]], [(45.0, 30.0), (135.0, 30.0)]] {
         let ((one, _), (two, _)) = (run(&pair, 1), run(&pair, 2));
@@ -167,13 +175,13 @@ fn a_second_pass_of_the_last_stage_lowers_the_error_of_two_suns() {
 #[test]
 fn the_pixel_scale_shrink_lowers_the_error_where_suns_overlap() {
     let run = |suns: &[(f64, f64)], shrink: f64| {
-        let scene = generate(&base().with_observations(suns, &[], false));
-        let p = FusionParams {
-            nyquist_shrink: shrink,
-            ..FusionParams::default()
-        };
-        let f = fuse(&scene.problem(), &p).unwrap();
-        (score(&scene, &f).0, f.height)
+        fused_with(
+            suns,
+            FusionParams {
+                nyquist_shrink: shrink,
+                ..FusionParams::default()
+            },
+        )
     };
     let default = FusionParams::default().nyquist_shrink;
     assert!(default > 0.0);
