@@ -30,7 +30,7 @@ fn fused(spec: &SceneSpec) -> (Scene, Fusion) {
 
 /// Two Suns 120° apart in azimuth, then three; the second observation 5 % brighter and the
 /// third 3 % darker than the first (calibration differences). The bars: elevation RMSE ≤ 0.65×
-/// the better single image with two, ≤ 0.55× with three (this scene: 0.525× and 0.388×,
+/// the better single image with two, ≤ 0.55× with three (this scene: 0.524× and 0.390×,
 /// docs/science.md), albedo RMSE ≤ 0.008, gains recovered.
 #[test]
 fn two_and_three_illuminations_beat_the_better_single_image() {
@@ -168,8 +168,8 @@ fn a_second_pass_of_the_last_stage_lowers_the_error_of_two_suns() {
 
 /// Where Suns overlap, the pixel-scale shrink of the correction (`nyquist_shrink`, waves near
 /// the Nyquist frequency scaled by 1 − s) takes out error the images do not hold there
-/// (docs/science.md, "The pixel-scale shrink": on this scene 3.53 → 3.13 m for three Suns and
-/// 5.22 → 5.01 m for the pair mirrored about the east–west line, measured 2026-12-05). The
+/// (docs/science.md, "The pixel-scale shrink": on this scene 3.55 → 3.15 m for three Suns and
+/// 5.21 → 5.00 m for the pair mirrored about the east–west line, measured 2026-12-05). The
 /// test asks each for at least 3 % lower with it than without, and one observation, which it
 /// leaves alone, for the same result bit for bit.
 #[test]

@@ -390,7 +390,7 @@ impl Default for FusionParams {
             shadow_edge_weight: 0.25,
             multi_albedo_sigma: 0.5,
             multi_final_albedo_sigma: 0.7,
-            multi_albedo_passes: 2,
+            multi_albedo_passes: 3,
             multi_delta_factor: 0.2,
             multi_delta_factor_all: 0.1,
             multi_delta_factor_high_sun: 0.1,
