@@ -1843,7 +1843,7 @@ fn gains_drifting_along_the_track_are_followed() {
 /// (the first against the DEM, the second relative to the first, moved back by its own drift),
 /// finds every segment's displacement at its middle line, and the pair comes within 15 % of the
 /// pair in place (what is left is the estimate's own bias against the DEM, 0.2–0.3 px here:
-/// 5.35 against 4.77 m, 1.12×; 1.08× before the pixel-scale shrink, which takes 4.6 % off the
+/// 5.29 against 4.72 m, 1.12×; 1.08× before the pixel-scale shrink, which takes 4.6 % off the
 /// pair in place and 1 % off the registered one, whose remaining error is that bias's, at the
 /// craters' scale rather than the pixel's). Left as they are the pair is at 20.8 m against
 /// 5.00 m; one translation per observation, the displacement at the middle, leaves ±3 px at the
