@@ -7,7 +7,7 @@
 //! quadratic terms use forward differences, which the DCT diagonalises (see `spectral`).
 
 use crate::spectral::{to, Real};
-use ndarray::{Array2, ArrayView1, ArrayView2, Axis};
+use ndarray::{Array2, ArrayView1, ArrayView2, Axis, Zip};
 use rayon::prelude::*;
 
 /// Interior coefficients (c₁, c₂) of the photometric gradient,
@@ -356,12 +356,9 @@ pub fn shrink_near_nyquist(a: ArrayView2<f64>, s: f64) -> Array2<f64> {
 /// One axis of [`shrink_near_nyquist`]: each lane along `axis` filtered on its own.
 fn shrink_axis(a: ArrayView2<f64>, s: f64, axis: Axis) -> Array2<f64> {
     let mut out = a.to_owned();
-    out.lanes_mut(axis)
-        .into_iter()
-        .zip(a.lanes(axis))
-        .collect::<Vec<_>>()
-        .into_par_iter()
-        .for_each(|(mut o, v)| {
+    Zip::from(out.lanes_mut(axis))
+        .and(a.lanes(axis))
+        .par_for_each(|mut o, v| {
             let n = v.len() as isize;
             // The half-sample mirror: …, v₁, v₀ | v₀, v₁, … at both ends.
             let at = |j: isize| {
