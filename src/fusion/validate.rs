@@ -60,7 +60,7 @@ pub(super) fn validate(pr: &Problem, params: &FusionParams) -> Result<(), Fusion
     }
     validate_params(params)?;
     let sel = &pr.selection;
-    let checks: [(&'static str, f64, bool, &'static str); 3] = [
+    let checks: [Check; 3] = [
         (
             "dem_psf_sigma",
             pr.dem_psf_sigma,
@@ -83,10 +83,11 @@ pub(super) fn validate(pr: &Problem, params: &FusionParams) -> Result<(), Fusion
     check_all(checks)
 }
 
+/// One range check: the key, its value, whether it is in range, and what the range is.
+type Check = (&'static str, f64, bool, &'static str);
+
 /// Every check's value must be finite and pass.
-fn check_all<const N: usize>(
-    checks: [(&'static str, f64, bool, &'static str); N],
-) -> Result<(), FusionError> {
+fn check_all<const N: usize>(checks: [Check; N]) -> Result<(), FusionError> {
     for (name, value, ok, why) in checks {
         if !ok || !value.is_finite() {
             return Err(FusionError::Parameter { name, value, why });
@@ -99,6 +100,15 @@ fn check_all<const N: usize>(
 /// is checked with this when it is loaded, so that a bad value is refused before any input is
 /// read; [`super::fuse`] checks it again with the problem.
 pub fn validate_params(params: &FusionParams) -> Result<(), FusionError> {
+    check_counts(params)?;
+    check_all(solver_controls(params))?;
+    check_all(dem_and_membrane(params))?;
+    check_all(several_observations(params))?;
+    check_stages(params)
+}
+
+/// The iteration counts: each must be at least 1.
+fn check_counts(params: &FusionParams) -> Result<(), FusionError> {
     let never = "must be at least 1: with 0 the surface is never solved for";
     let counts = [
         ("max_iterations", params.max_iterations, never),
@@ -118,12 +128,44 @@ pub fn validate_params(params: &FusionParams) -> Result<(), FusionError> {
             });
         }
     }
-    let checks: [(&'static str, f64, bool, &'static str); 26] = [
+    Ok(())
+}
+
+/// δ and η not both 0, and at least one albedo stage, every σ_ρ ≥ 0.
+fn check_stages(params: &FusionParams) -> Result<(), FusionError> {
+    if params.delta == 0.0 && params.eta == 0.0 {
+        return Err(FusionError::Parameter {
+            name: "delta",
+            value: 0.0,
+            why: "delta and eta cannot both be 0: nothing would fix relief across the Sun",
+        });
+    }
+    if params.albedo_sigmas.is_empty() {
+        return Err(FusionError::NoAlbedoStages);
+    }
+    if let Some(&s) = params
+        .albedo_sigmas
+        .iter()
+        .find(|s| !(s.is_finite() && **s >= 0.0))
+    {
+        return Err(FusionError::Parameter {
+            name: "albedo_sigmas",
+            value: s,
+            why: "every σ_ρ must be ≥ 0",
+        });
+    }
+    Ok(())
+}
+
+/// The solver's controls: step sizes, tolerances and the curvature rule.
+fn solver_controls(params: &FusionParams) -> [Check; 6] {
+    [
+        ("gamma", params.gamma, params.gamma > 0.0, "must be > 0"),
         (
-            "nyquist_shrink",
-            params.nyquist_shrink,
-            (0.0..=1.0).contains(&params.nyquist_shrink),
-            "must be in [0, 1] (0: off; 1 removes the Nyquist wave)",
+            "tolerance",
+            params.tolerance,
+            params.tolerance >= 0.0,
+            "must be ≥ 0 (a relative energy decrease)",
         ),
         (
             "cg_tolerance",
@@ -132,11 +174,79 @@ pub fn validate_params(params: &FusionParams) -> Result<(), FusionError> {
             "must be in (0, 1) (a relative residual)",
         ),
         (
-            "tolerance",
-            params.tolerance,
-            params.tolerance >= 0.0,
-            "must be ≥ 0 (a relative energy decrease)",
+            "stage_step_tolerance",
+            params.stage_step_tolerance,
+            params.stage_step_tolerance >= 0.0,
+            "must be ≥ 0 (grid spacings)",
         ),
+        (
+            "step_tolerance",
+            params.step_tolerance,
+            params.step_tolerance >= 0.0,
+            "must be ≥ 0 (grid spacings)",
+        ),
+        (
+            "curvature_residual",
+            params.curvature_residual,
+            params.curvature_residual >= 0.0,
+            "must be ≥ 0 (a large value such as 1e9 turns the curvature term off)",
+        ),
+    ]
+}
+
+/// E_DEM, the membrane, the albedo's last width and the shadow test.
+fn dem_and_membrane(params: &FusionParams) -> [Check; 9] {
+    [
+        ("delta", params.delta, params.delta >= 0.0, "must be ≥ 0"),
+        ("eta", params.eta, params.eta >= 0.0, "must be ≥ 0"),
+        (
+            "sigma_dem",
+            params.sigma_dem,
+            params.sigma_dem >= 0.0,
+            "must be ≥ 0",
+        ),
+        (
+            "dem_height_length_px",
+            params.dem_height_length_px,
+            params.dem_height_length_px >= 0.0,
+            "must be ≥ 0 (pixels; 0: the DEM term measures gradients only)",
+        ),
+        (
+            "dem_track_weight",
+            params.dem_track_weight,
+            (0.0..=1.0).contains(&params.dem_track_weight),
+            "must be in [0, 1] (1: the DEM term without track weighting)",
+        ),
+        (
+            "dem_track_sigma_px",
+            params.dem_track_sigma_px,
+            params.dem_track_sigma_px >= 0.0,
+            "must be ≥ 0 (pixels along the columns)",
+        ),
+        (
+            "edge_membrane_slope",
+            params.edge_membrane_slope,
+            params.edge_membrane_slope >= 0.0,
+            "must be ≥ 0 (a slope; 0 keeps the plain membrane)",
+        ),
+        (
+            "final_albedo_sigma",
+            params.final_albedo_sigma,
+            params.final_albedo_sigma >= 0.0,
+            "must be ≥ 0",
+        ),
+        (
+            "shadow_threshold",
+            params.shadow_threshold,
+            params.shadow_threshold >= 0.0,
+            "must be ≥ 0",
+        ),
+    ]
+}
+
+/// What acts only where several observations overlap.
+fn several_observations(params: &FusionParams) -> [Check; 11] {
+    [
         (
             "multi_delta_factor",
             params.multi_delta_factor,
@@ -170,27 +280,6 @@ pub fn validate_params(params: &FusionParams) -> Result<(), FusionError> {
             "must be ≥ 0 pixels",
         ),
         (
-            "edge_ramp_px",
-            params.edge_ramp_px,
-            params.edge_ramp_px >= 0.0,
-            "must be ≥ 0 pixels",
-        ),
-        (
-            "shadow_edge_weight",
-            params.shadow_edge_weight,
-            params.shadow_edge_weight > 0.0 && params.shadow_edge_weight <= 1.0,
-            "must be in (0, 1]",
-        ),
-        ("gamma", params.gamma, params.gamma > 0.0, "must be > 0"),
-        ("delta", params.delta, params.delta >= 0.0, "must be ≥ 0"),
-        ("eta", params.eta, params.eta >= 0.0, "must be ≥ 0"),
-        (
-            "edge_membrane_slope",
-            params.edge_membrane_slope,
-            params.edge_membrane_slope >= 0.0,
-            "must be ≥ 0 (a slope; 0 keeps the plain membrane)",
-        ),
-        (
             "multi_eta_factor",
             params.multi_eta_factor,
             params.multi_eta_factor >= 0.0,
@@ -209,81 +298,22 @@ pub fn validate_params(params: &FusionParams) -> Result<(), FusionError> {
             "must be ≥ 0 (0: off)",
         ),
         (
-            "dem_height_length_px",
-            params.dem_height_length_px,
-            params.dem_height_length_px >= 0.0,
-            "must be ≥ 0 (pixels; 0: the DEM term measures gradients only)",
+            "edge_ramp_px",
+            params.edge_ramp_px,
+            params.edge_ramp_px >= 0.0,
+            "must be ≥ 0 pixels",
         ),
         (
-            "sigma_dem",
-            params.sigma_dem,
-            params.sigma_dem >= 0.0,
-            "must be ≥ 0",
+            "shadow_edge_weight",
+            params.shadow_edge_weight,
+            params.shadow_edge_weight > 0.0 && params.shadow_edge_weight <= 1.0,
+            "must be in (0, 1]",
         ),
         (
-            "final_albedo_sigma",
-            params.final_albedo_sigma,
-            params.final_albedo_sigma >= 0.0,
-            "must be ≥ 0",
+            "nyquist_shrink",
+            params.nyquist_shrink,
+            (0.0..=1.0).contains(&params.nyquist_shrink),
+            "must be in [0, 1] (0: off; 1 removes the Nyquist wave)",
         ),
-        (
-            "shadow_threshold",
-            params.shadow_threshold,
-            params.shadow_threshold >= 0.0,
-            "must be ≥ 0",
-        ),
-        (
-            "stage_step_tolerance",
-            params.stage_step_tolerance,
-            params.stage_step_tolerance >= 0.0,
-            "must be ≥ 0 (grid spacings)",
-        ),
-        (
-            "step_tolerance",
-            params.step_tolerance,
-            params.step_tolerance >= 0.0,
-            "must be ≥ 0 (grid spacings)",
-        ),
-        (
-            "dem_track_weight",
-            params.dem_track_weight,
-            (0.0..=1.0).contains(&params.dem_track_weight),
-            "must be in [0, 1] (1: the DEM term without track weighting)",
-        ),
-        (
-            "dem_track_sigma_px",
-            params.dem_track_sigma_px,
-            params.dem_track_sigma_px >= 0.0,
-            "must be ≥ 0 (pixels along the columns)",
-        ),
-        (
-            "curvature_residual",
-            params.curvature_residual,
-            params.curvature_residual >= 0.0,
-            "must be ≥ 0 (a large value such as 1e9 turns the curvature term off)",
-        ),
-    ];
-    check_all(checks)?;
-    if params.delta == 0.0 && params.eta == 0.0 {
-        return Err(FusionError::Parameter {
-            name: "delta",
-            value: 0.0,
-            why: "delta and eta cannot both be 0: nothing would fix relief across the Sun",
-        });
-    }
-    if params.albedo_sigmas.is_empty() {
-        return Err(FusionError::NoAlbedoStages);
-    }
-    if let Some(&s) = params
-        .albedo_sigmas
-        .iter()
-        .find(|s| !(s.is_finite() && **s >= 0.0))
-    {
-        return Err(FusionError::Parameter {
-            name: "albedo_sigmas",
-            value: s,
-            why: "every σ_ρ must be ≥ 0",
-        });
-    }
-    Ok(())
+    ]
 }
