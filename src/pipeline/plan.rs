@@ -419,91 +419,109 @@ pub(super) fn resolution(o: &Orbital, inputs: &Inputs) -> Result<(f64, String)> 
     ))
 }
 
-/// The grid of an orbital workflow with spacing `res`.
+/// The grid of an orbital workflow with spacing `res`: the `[region]` given, or without one
+/// the whole swath of the first observation.
 pub(super) fn make_grid(o: &Orbital, inputs: &Inputs, res: f64) -> Result<Grid> {
-    let usage = |e: crate::grid::GridError| Error::Usage(format!("[grid]/[region]: {e}"));
     match o.region.map(|r| r.kind()).transpose()? {
         Some(RegionKind::LonLat(b)) => {
             let (lon, lat) = b.centre();
-            Grid::covering(o.grid.crs((lat, lon)), &b, res).map_err(usage)
+            Grid::covering(o.grid.crs((lat, lon)), &b, res).map_err(grid_usage)
         }
-        Some(RegionKind::Map([x0, x1, y0, y1])) => {
-            let crs = o.grid.crs((
-                o.grid.center_lat.unwrap_or(0.0),
-                o.grid.center_lon.unwrap_or(0.0),
-            ));
-            let (c0, c1) = ((x0 / res).floor(), (x1 / res).ceil());
-            let (r0, r1) = ((y0 / res).floor(), (y1 / res).ceil());
-            if (c1 - c0) * (r1 - r0) > crate::grid::MAX_PIXELS as f64 {
-                return Err(Error::Usage(format!("[region]: {} × {} pixels at {res} m is more than one run can hold ({}); use a coarser resolution or a smaller region", r1 - r0, c1 - c0, crate::grid::MAX_PIXELS)));
-            }
-            Grid::new(
-                crs,
-                (r1 - r0) as usize,
-                (c1 - c0) as usize,
-                c0 * res,
-                r1 * res,
-                res,
-            )
-            .map_err(usage)
+        Some(RegionKind::Map(bounds)) => map_grid(o, bounds, res),
+        None => swath_grid(o, inputs, res),
+    }
+}
+
+/// A grid or projection error as a usage error of the workflow's `[grid]`/`[region]`.
+fn grid_usage(e: crate::grid::GridError) -> Error {
+    Error::Usage(format!("[grid]/[region]: {e}"))
+}
+
+/// The grid over map bounds `[x0, x1, y0, y1]` (metres in the `[grid]` projection), widened to
+/// whole pixels of `res`; refused when it holds more than one run can.
+fn map_grid(o: &Orbital, [x0, x1, y0, y1]: [f64; 4], res: f64) -> Result<Grid> {
+    let crs = o.grid.crs((
+        o.grid.center_lat.unwrap_or(0.0),
+        o.grid.center_lon.unwrap_or(0.0),
+    ));
+    let (c0, c1) = ((x0 / res).floor(), (x1 / res).ceil());
+    let (r0, r1) = ((y0 / res).floor(), (y1 / res).ceil());
+    if (c1 - c0) * (r1 - r0) > crate::grid::MAX_PIXELS as f64 {
+        return Err(Error::Usage(format!("[region]: {} × {} pixels at {res} m is more than one run can hold ({}); use a coarser resolution or a smaller region", r1 - r0, c1 - c0, crate::grid::MAX_PIXELS)));
+    }
+    Grid::new(
+        crs,
+        (r1 - r0) as usize,
+        (c1 - c0) as usize,
+        c0 * res,
+        r1 * res,
+        res,
+    )
+    .map_err(grid_usage)
+}
+
+/// The grid over the whole swath of the first observation (its LOC backplane's valid
+/// longitudes and latitudes), centred on it.
+fn swath_grid(o: &Orbital, inputs: &Inputs, res: f64) -> Result<Grid> {
+    let obs = &inputs.obs[0];
+    let loc = obs.part("LOC")?;
+    let (lon, lat) = (
+        loc.read_band(0, 0, loc.lines)?,
+        loc.read_band(1, 0, loc.lines)?,
+    );
+    let fin: Vec<(f64, f64)> = lon
+        .iter()
+        .zip(&lat)
+        .filter(|(a, b)| a.is_finite() && b.is_finite())
+        .map(|(&a, &b)| (a, b))
+        .collect();
+    if fin.is_empty() {
+        return Err(Error::Usage(format!(
+            "{}: LOC has no valid longitude/latitude",
+            obs.label_path.display()
+        )));
+    }
+    let (lo0, lo1) = longitude_span(&fin);
+    let (la0, la1) = fin
+        .iter()
+        .fold((f64::MAX, f64::MIN), |m, p| (m.0.min(p.1), m.1.max(p.1)));
+    let centre = (0.5 * (la0 + la1), 0.5 * (lo0 + lo1));
+    let crs = o.grid.crs(centre);
+    let pr = crs.projector().map_err(grid_usage)?;
+    let (mut x0, mut x1, mut y0, mut y1) = (f64::MAX, f64::MIN, f64::MAX, f64::MIN);
+    for &(a, b) in &fin {
+        if let Some((x, y)) = pr.forward(a, b) {
+            (x0, x1, y0, y1) = (x0.min(x), x1.max(x), y0.min(y), y1.max(y));
         }
-        None => {
-            // The whole swath of the first observation.
-            let obs = &inputs.obs[0];
-            let loc = obs.part("LOC")?;
-            let (lon, lat) = (
-                loc.read_band(0, 0, loc.lines)?,
-                loc.read_band(1, 0, loc.lines)?,
-            );
-            let fin: Vec<(f64, f64)> = lon
-                .iter()
-                .zip(&lat)
-                .filter(|(a, b)| a.is_finite() && b.is_finite())
-                .map(|(&a, &b)| (a, b))
-                .collect();
-            if fin.is_empty() {
-                return Err(Error::Usage(format!(
-                    "{}: LOC has no valid longitude/latitude",
-                    obs.label_path.display()
-                )));
-            }
-            // Longitudes in the half-turn that keeps the swath together.
-            let spread = |shift: f64| {
-                let v = fin.iter().map(|p| (p.0 + shift).rem_euclid(360.0));
-                let (a, b) = v.fold((f64::MAX, f64::MIN), |m, x| (m.0.min(x), m.1.max(x)));
-                (a - shift, b - shift)
-            };
-            let (a0, b0) = spread(0.0);
-            let (a1, b1) = spread(180.0);
-            let (lo0, lo1) = if b0 - a0 <= b1 - a1 {
-                (a0, b0)
-            } else {
-                (a1, b1)
-            };
-            let (la0, la1) = fin
-                .iter()
-                .fold((f64::MAX, f64::MIN), |m, p| (m.0.min(p.1), m.1.max(p.1)));
-            let centre = (0.5 * (la0 + la1), 0.5 * (lo0 + lo1));
-            let crs = o.grid.crs(centre);
-            let pr = crs.projector().map_err(usage)?;
-            let (mut x0, mut x1, mut y0, mut y1) = (f64::MAX, f64::MIN, f64::MAX, f64::MIN);
-            for &(a, b) in &fin {
-                if let Some((x, y)) = pr.forward(a, b) {
-                    (x0, x1, y0, y1) = (x0.min(x), x1.max(x), y0.min(y), y1.max(y));
-                }
-            }
-            let (c0, c1) = ((x0 / res).floor(), (x1 / res).ceil());
-            let (r0, r1) = ((y0 / res).floor(), (y1 / res).ceil());
-            Grid::new(
-                crs,
-                (r1 - r0).max(1.0) as usize,
-                (c1 - c0).max(1.0) as usize,
-                c0 * res,
-                r1 * res,
-                res,
-            )
-            .map_err(usage)
-        }
+    }
+    let (c0, c1) = ((x0 / res).floor(), (x1 / res).ceil());
+    let (r0, r1) = ((y0 / res).floor(), (y1 / res).ceil());
+    Grid::new(
+        crs,
+        (r1 - r0).max(1.0) as usize,
+        (c1 - c0).max(1.0) as usize,
+        c0 * res,
+        r1 * res,
+        res,
+    )
+    .map_err(grid_usage)
+}
+
+/// The smallest longitude range (degrees, west to east) holding every (lon, lat) point: of
+/// the ranges in [0, 360) and in [−180, 180), the narrower, so that a swath across the 0°
+/// or the 180° meridian stays together.
+fn longitude_span(points: &[(f64, f64)]) -> (f64, f64) {
+    let spread = |shift: f64| {
+        let v = points.iter().map(|p| (p.0 + shift).rem_euclid(360.0));
+        let (a, b) = v.fold((f64::MAX, f64::MIN), |m, x| (m.0.min(x), m.1.max(x)));
+        (a - shift, b - shift)
+    };
+    let (a0, b0) = spread(0.0);
+    let (a1, b1) = spread(180.0);
+    if b0 - a0 <= b1 - a1 {
+        (a0, b0)
+    } else {
+        (a1, b1)
     }
 }
 
@@ -558,24 +576,23 @@ pub(super) fn plan(
         intensity_scale,
     )?;
     let shifts = shifts(&registration);
-    let RunGains {
-        gains,
-        reference: gain_reference,
-        trends: gain_trends,
-    } = if inputs.obs.len() > 1 {
-        progress.stage("planning: radiometric gains where observations overlap");
-        run_gains(o, inputs, &grid, (&swaths, &shifts), intensity_scale)?
-    } else {
-        RunGains::one()
-    };
-    // Ī of the tiles' E_I: the mean of I_k/g_k over every observation's pixels on the grid, as
-    // `fuse` computes it for itself (the raw mean served the registration and the gains).
-    let intensity_scale = if inputs.obs.len() > 1 {
-        sums.iter().zip(&gains).map(|(s, g)| s / g).sum::<f64>() / count as f64
-    } else {
-        intensity_scale
-    };
-    let noise_weights = noise_weights(&means, &gains, intensity_scale);
+    let Radiometry {
+        gains:
+            RunGains {
+                gains,
+                reference: gain_reference,
+                trends: gain_trends,
+            },
+        intensity_scale,
+        noise_weights,
+    } = radiometry(
+        o,
+        inputs,
+        &grid,
+        (&swaths, &shifts),
+        (intensity_scale, &sums, &means, count),
+        progress,
+    )?;
     std::fs::create_dir_all(out).map_err(|e| Error::io(out, e))?;
     let pixel_size_m: Vec<Option<f64>> = inputs
         .obs
@@ -641,6 +658,52 @@ pub(super) fn plan(
         None => (None, None),
     };
     Ok((p, reference, ingested))
+}
+
+/// The run-wide radiometry: the gains, the intensity scale of the tiles' E_I and the noise
+/// weights.
+struct Radiometry {
+    gains: RunGains,
+    /// Ī: the mean of I_k/g_k over every observation's usable pixels on the grid.
+    intensity_scale: f64,
+    noise_weights: Vec<f64>,
+}
+
+/// The gains where observations overlap ([`run_gains`]; one observation: gain 1), then Ī of
+/// the tiles' E_I — the mean of I_k/g_k over every observation's pixels on the grid, as `fuse`
+/// computes it for itself — and the noise weights. `raw` is what the survey measured: the
+/// raw mean Ī (it served the registration and the gains), each observation's sum and mean
+/// of usable reflectance, and the count of usable pixels.
+fn radiometry(
+    o: &Orbital,
+    inputs: &Inputs,
+    grid: &Grid,
+    placed: (&[SwathIndex], &[Displacement]),
+    (raw_scale, sums, means, count): (f64, &[f64], &[Option<f64>], usize),
+    progress: &Progress,
+) -> Result<Radiometry> {
+    let several = inputs.obs.len() > 1;
+    let gains = if several {
+        progress.stage("planning: radiometric gains where observations overlap");
+        run_gains(o, inputs, grid, placed, raw_scale)?
+    } else {
+        RunGains::one()
+    };
+    let intensity_scale = if several {
+        sums.iter()
+            .zip(&gains.gains)
+            .map(|(s, g)| s / g)
+            .sum::<f64>()
+            / count as f64
+    } else {
+        raw_scale
+    };
+    let noise_weights = noise_weights(means, &gains.gains, intensity_scale);
+    Ok(Radiometry {
+        gains,
+        intensity_scale,
+        noise_weights,
+    })
 }
 
 /// Refuse a grid of fewer than 3 pixels along a side (fusion's smallest, `FusionError::TooSmall`),
@@ -971,6 +1034,17 @@ mod tests {
         let polar = grid(Crs::PolarStereographic { north: false });
         let turn = north_turn_deg(&polar, &polar.crs.projector().unwrap());
         assert!(turn > 90.0, "{turn}°");
+    }
+
+    /// The narrower of the two ranges: a swath across 0° or 180° stays together.
+    #[test]
+    fn a_swath_across_a_meridian_keeps_its_longitudes_together() {
+        let at = |lons: &[f64]| longitude_span(&lons.iter().map(|&l| (l, 0.0)).collect::<Vec<_>>());
+        assert_eq!(at(&[10.0, 20.0, 15.0]), (10.0, 20.0));
+        assert_eq!(at(&[359.0, 1.0]), (-1.0, 1.0));
+        assert_eq!(at(&[-1.0, 1.0]), (-1.0, 1.0));
+        assert_eq!(at(&[179.0, -179.0]), (179.0, 181.0));
+        assert_eq!(at(&[179.0, 181.0]), (179.0, 181.0));
     }
 
     #[test]
