@@ -25,40 +25,50 @@ impl Range {
     }
 }
 
+/// What `inspect` says of an M3 L1B observation.
+#[derive(Debug, Clone, Serialize)]
+pub struct M3Inspection {
+    pub label: String,
+    pub mode: String,
+    pub lines: usize,
+    pub samples: usize,
+    pub bands: usize,
+    pub wavelengths_nm: Vec<f64>,
+    pub wavelength_source: String,
+    pub solar_distance_au: f64,
+    /// Longitude (east) and latitude ranges from LOC, when the LOC file is present.
+    pub longitude_deg: Option<Range>,
+    pub latitude_deg: Option<Range>,
+    /// Why LOC could not be read, if it could not.
+    pub loc_problem: Option<String>,
+    /// Pixel size on the ground from LOC, metres ([`crate::ingest::ground_sample_distance`]):
+    /// what `run` compares with the grid's.
+    pub pixel_size_m: Option<f64>,
+    /// Radiance range of the first band, W/(m² µm sr).
+    pub radiance_band0: Option<Range>,
+    /// Illumination from OBS, degrees, when the OBS file is present: incidence (to-Sun
+    /// zenith), emission (to-M3 zenith), phase, and the Sun's azimuth (clockwise from
+    /// north).
+    pub incidence_deg: Option<Range>,
+    pub emission_deg: Option<Range>,
+    pub phase_deg: Option<Range>,
+    pub sun_azimuth_deg: Option<Range>,
+    /// Why OBS could not be read, if it could not.
+    pub obs_problem: Option<String>,
+    /// Whether LOC's, and OBS's, file is beside the label but cannot be read as it
+    /// describes it (truncated, wrong size, a malformed object): bad input, which
+    /// `sfsfuse inspect` reports by its exit status after the description. A part whose
+    /// file is absent is only described as such (a download may hold the radiance alone).
+    pub loc_unreadable: bool,
+    pub obs_unreadable: bool,
+}
+
 /// A description of one product.
 #[derive(Debug, Clone, Serialize)]
 #[serde(tag = "kind")]
 pub enum Inspection {
     #[serde(rename = "M3 L1B")]
-    M3 {
-        label: String,
-        mode: String,
-        lines: usize,
-        samples: usize,
-        bands: usize,
-        wavelengths_nm: Vec<f64>,
-        wavelength_source: String,
-        solar_distance_au: f64,
-        /// Longitude (east) and latitude ranges from LOC, when the LOC file is present.
-        longitude_deg: Option<Range>,
-        latitude_deg: Option<Range>,
-        /// Why LOC could not be read, if it could not.
-        loc_problem: Option<String>,
-        /// Pixel size on the ground from LOC, metres ([`crate::ingest::ground_sample_distance`]):
-        /// what `run` compares with the grid's.
-        pixel_size_m: Option<f64>,
-        /// Radiance range of the first band, W/(m² µm sr).
-        radiance_band0: Option<Range>,
-        /// Illumination from OBS, degrees, when the OBS file is present: incidence (to-Sun
-        /// zenith), emission (to-M3 zenith), phase, and the Sun's azimuth (clockwise from
-        /// north).
-        incidence_deg: Option<Range>,
-        emission_deg: Option<Range>,
-        phase_deg: Option<Range>,
-        sun_azimuth_deg: Option<Range>,
-        /// Why OBS could not be read, if it could not.
-        obs_problem: Option<String>,
-    },
+    M3(Box<M3Inspection>),
     #[serde(rename = "LOLA GDR")]
     Lola {
         label: String,
@@ -239,13 +249,16 @@ fn not_a_label(path: &Path, bytes: &[u8], e: pds::odl::ParseError) -> Error {
 fn inspect_m3(path: &Path) -> Result<Inspection> {
     let o = Observation::open(path)?;
     let (mut lon, mut lat, mut problem, mut pixel_size_m) = (None, None, None, None);
+    // A part's problem, and whether its file is there but unreadable.
+    let note = |e: pds::Error| (Some(e.to_string()), !matches!(e, pds::Error::Absent { .. }));
+    let (mut loc_unreadable, mut obs_unreadable) = (false, false);
     match o.part("LOC") {
         Ok(loc) => {
             lon = scan(loc.lines, |f, n| loc.read_band(0, f, n))?;
             lat = scan(loc.lines, |f, n| loc.read_band(1, f, n))?;
             pixel_size_m = crate::ingest::ground_sample_distance(&o).ok();
         }
-        Err(e) => problem = Some(e.to_string()),
+        Err(e) => (problem, loc_unreadable) = note(e),
     }
     let rad = scan(o.rdn.lines, |f, n| o.rdn.read_band(0, f, n))?;
     let mut ill = [None, None, None, None];
@@ -257,10 +270,10 @@ fn inspect_m3(path: &Path) -> Result<Inspection> {
                 ill[k] = scan(obs.lines, |f, n| obs.read_band(band, f, n))?;
             }
         }
-        Err(e) => obs_problem = Some(e.to_string()),
+        Err(e) => (obs_problem, obs_unreadable) = note(e),
     }
     let [incidence_deg, emission_deg, phase_deg, sun_azimuth_deg] = ill;
-    Ok(Inspection::M3 {
+    Ok(Inspection::M3(Box::new(M3Inspection {
         label: path.display().to_string(),
         mode: o.mode.keyword().into(),
         lines: o.rdn.lines,
@@ -279,7 +292,9 @@ fn inspect_m3(path: &Path) -> Result<Inspection> {
         phase_deg,
         sun_azimuth_deg,
         obs_problem,
-    })
+        loc_unreadable,
+        obs_unreadable,
+    })))
 }
 
 /// Why a LOLA product's height range cannot be the Moon's: an end outside
@@ -356,6 +371,23 @@ fn inspect_lola(path: &Path) -> Result<Inspection> {
 }
 
 impl Inspection {
+    /// Why the product is bad input although it could be described: the first part whose
+    /// file is present but unreadable (`None` when every part present reads).
+    pub fn unreadable(&self) -> Option<String> {
+        match self {
+            Inspection::M3(m) => [
+                (&m.loc_problem, &m.loc_unreadable),
+                (&m.obs_problem, &m.obs_unreadable),
+            ]
+            .into_iter()
+            .find_map(|(p, &bad)| p.as_ref().filter(|_| bad))
+            .map(|e| {
+                format!("{e} (the rest of the observation is described above; `run` refuses it)")
+            }),
+            _ => None,
+        }
+    }
+
     pub fn table(&self) -> String {
         let r = |r: &Option<Range>| {
             r.as_ref()
@@ -363,26 +395,28 @@ impl Inspection {
                 .unwrap_or_else(|| "—".into())
         };
         match self {
-            Inspection::M3 {
-                label,
-                mode,
-                lines,
-                samples,
-                bands,
-                wavelengths_nm,
-                wavelength_source,
-                solar_distance_au,
-                longitude_deg,
-                latitude_deg,
-                loc_problem,
-                pixel_size_m,
-                radiance_band0,
-                incidence_deg,
-                emission_deg,
-                phase_deg,
-                sun_azimuth_deg,
-                obs_problem,
-            } => {
+            Inspection::M3(m) => {
+                let M3Inspection {
+                    label,
+                    mode,
+                    lines,
+                    samples,
+                    bands,
+                    wavelengths_nm,
+                    wavelength_source,
+                    solar_distance_au,
+                    longitude_deg,
+                    latitude_deg,
+                    loc_problem,
+                    pixel_size_m,
+                    radiance_band0,
+                    incidence_deg,
+                    emission_deg,
+                    phase_deg,
+                    sun_azimuth_deg,
+                    obs_problem,
+                    ..
+                } = &**m;
                 let mut s = format!("{label}\n  kind           M3 Level 1B, {mode} mode\n  size           {lines} lines × {samples} samples × {bands} bands\n");
                 let wl = if wavelengths_nm.len() > 6 {
                     format!(

@@ -479,7 +479,11 @@ fn demo(a: DemoArgs) -> Result<(), sfsfuse::Error> {
 /// `sfsfuse inspect`.
 fn inspect(a: InspectArgs) -> Result<(), sfsfuse::Error> {
     let i = sfsfuse::inspect::inspect(&a.path)?;
-    emit(a.json, &i, i.table())
+    emit(a.json, &i, i.table())?;
+    match i.unreadable() {
+        Some(why) => Err(sfsfuse::Error::Usage(why)),
+        None => Ok(()),
+    }
 }
 
 /// `sfsfuse run`: the tile list, some tiles, the mosaic only, or the whole run.

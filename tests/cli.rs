@@ -263,6 +263,57 @@ fn inspect_describes_real_products() {
     );
 }
 
+/// A part the label names whose file is cut short is bad input: `inspect` still describes the
+/// rest, then names the file and the bytes the label needs and exits non-zero. A part whose
+/// file is absent is only described as absent (exit 0).
+#[test]
+fn inspect_refuses_a_truncated_part_and_describes_an_absent_one() {
+    let Some(data) = test_data() else { return };
+    let src = data.join("m3_l1b_crops/forwardDescending");
+    let dir = scratch("inspect-truncated");
+    std::fs::create_dir_all(&dir).unwrap();
+    for e in std::fs::read_dir(&src).unwrap() {
+        let p = e.unwrap().path();
+        std::fs::copy(&p, dir.join(p.file_name().unwrap())).unwrap();
+    }
+    let label = dir.join("M3G20081129T171431_V03_L1B_cropped.LBL");
+    let loc = dir.join("M3G20081129T171431_V03_LOC_cropped.IMG");
+    // The label's LOC: 5 lines × 304 samples × 3 bands of 8-byte reals = 36 480 bytes.
+    assert_eq!(std::fs::metadata(&loc).unwrap().len(), 36480);
+    std::fs::write(&loc, [0u8; 7]).unwrap();
+    let o = sfsfuse().arg("inspect").arg(&label).output().unwrap();
+    let (out, err) = (
+        String::from_utf8_lossy(&o.stdout),
+        String::from_utf8_lossy(&o.stderr),
+    );
+    assert_eq!(o.status.code(), Some(1), "{out}{err}");
+    assert!(
+        out.contains("radiance b0") && out.contains("incidence"),
+        "{out}"
+    );
+    assert!(
+        err.contains("M3G20081129T171431_V03_LOC_cropped.IMG")
+            && err.contains("file is 7 bytes but the label needs 36480"),
+        "{err}"
+    );
+    std::fs::remove_file(&loc).unwrap();
+    let o = sfsfuse()
+        .args(["inspect", "--json"])
+        .arg(&label)
+        .output()
+        .unwrap();
+    let r = json_of(&o);
+    assert!(
+        r["loc_problem"]
+            .as_str()
+            .is_some_and(|p| p.contains("which is not in")),
+        "{r}"
+    );
+    assert_eq!(r["loc_unreadable"], false);
+    assert!(r["incidence_deg"]["min"].is_number(), "{r}");
+    std::fs::remove_dir_all(&dir).unwrap();
+}
+
 /// `inspect` shows an observation's illumination: the incidence range equals the range of
 /// OBS band 2 read straight from the file's bytes (LINE_INTERLEAVED float32, 10 bands).
 #[test]

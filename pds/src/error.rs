@@ -23,6 +23,13 @@ pub enum Error {
     },
     #[error("{path}: {why}")]
     Size { path: PathBuf, why: String },
+    /// A pointer names a file that is not beside the label (in any letter case).
+    #[error("{path}: pointer: points to {file}, which is not in {}", dir.display())]
+    Absent {
+        path: PathBuf,
+        file: String,
+        dir: PathBuf,
+    },
 }
 
 pub type Result<T> = std::result::Result<T, Error>;

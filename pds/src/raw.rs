@@ -253,7 +253,7 @@ impl Raster {
 }
 
 /// Find `name` next to the label, matching the file name case-insensitively (PDS names are
-/// upper case; archives and copies are not always).
+/// upper case; archives and copies are not always); [`Error::Absent`] when it is not there.
 pub fn locate(label: &Path, name: &str) -> Result<PathBuf> {
     if name.contains('/') || name.contains('\\') || name == ".." || name == "." {
         return Err(Error::invalid(
@@ -280,9 +280,9 @@ pub fn locate(label: &Path, name: &str) -> Result<PathBuf> {
             return Ok(e.path());
         }
     }
-    Err(Error::invalid(
-        label,
-        "pointer",
-        format!("points to {name}, which is not in {}", dir.display()),
-    ))
+    Err(Error::Absent {
+        path: label.into(),
+        file: name.into(),
+        dir: dir.into(),
+    })
 }
