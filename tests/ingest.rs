@@ -612,3 +612,41 @@ fn m3_on_a_window_is_the_window_of_m3_on_the_whole_grid() {
         "{finite} of {compared}"
     );
 }
+
+/// The measured M3 solar table passes the plausibility check at every band (docs/formats.md:
+/// ≈ 478 W/(m² µm) at 1209.6 nm), within 0.95–1.22× of a 5778 K black body as
+/// docs/science.md says; the same table in another unit (×10, or W/(m² nm): ÷1000) is refused,
+/// naming the file and the wavelength.
+#[test]
+fn a_solar_table_in_another_unit_is_refused() {
+    let Some(data) = test_data() else { return };
+    let path = data.join("m3_calibration/m3t20110224_rfl_solar_spec.tab");
+    let solar = SolarSpectrum::read(&path).unwrap();
+    let e = sfsfuse::ingest::irradiance_at(&solar, 1209.6).unwrap();
+    assert!((e - 478.0).abs() < 2.0, "{e}");
+    let ratios: Vec<f64> = solar
+        .rows
+        .iter()
+        .map(|&(w, e)| e / sfsfuse::ingest::blackbody_irradiance(w))
+        .collect();
+    let (lo, hi) = ratios
+        .iter()
+        .fold((f64::MAX, f64::MIN), |m, &r| (m.0.min(r), m.1.max(r)));
+    assert!(lo > 0.94 && hi < 1.23, "{lo} … {hi}");
+    for w in solar.rows.iter().map(|r| r.0) {
+        sfsfuse::ingest::irradiance_at(&solar, w).unwrap();
+    }
+    for scale in [10.0, 1e-3] {
+        let mut wrong = solar.clone();
+        wrong.rows.iter_mut().for_each(|r| r.1 *= scale);
+        let err = sfsfuse::ingest::irradiance_at(&wrong, 1209.6)
+            .unwrap_err()
+            .to_string();
+        assert!(
+            err.contains("m3t20110224_rfl_solar_spec.tab")
+                && err.contains("1209.6 nm")
+                && err.contains("W/(m² µm) at 1 AU"),
+            "{err}"
+        );
+    }
+}

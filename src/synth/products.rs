@@ -49,16 +49,7 @@ pub const LOLA_RES: f64 = 64.0;
 /// SOLAR_DISTANCE written into the label, AU.
 const SOLAR_DISTANCE: f64 = 0.984326066205;
 
-/// Solar spectral irradiance at 1 AU of a 5778 K black body, W/(m² µm), at `nm`:
-/// E = π·B_λ(T)·(R☉/AU)², B_λ = 2hc²/λ⁵ / (exp(hc/λkT) − 1).
-pub fn blackbody_irradiance(nm: f64) -> f64 {
-    let (h, c, k) = (6.626_070_15e-34, 2.997_924_58e8, 1.380_649e-23);
-    let (t, r_sun, au): (f64, f64, f64) = (5778.0, 6.957e8, 1.495_978_707e11);
-    let l = nm * 1e-9;
-    let b = 2.0 * h * c * c / l.powi(5) / ((h * c / (l * k * t)).exp() - 1.0);
-    // W/(m² m) → W/(m² µm).
-    std::f64::consts::PI * b * (r_sun / au).powi(2) * 1e-6
-}
+pub use crate::ingest::blackbody_irradiance;
 
 fn f32_bytes(out: &mut Vec<u8>, v: f64) {
     out.extend_from_slice(&(v as f32).to_le_bytes());
