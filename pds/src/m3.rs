@@ -52,6 +52,12 @@ pub fn band_centres(mode: Mode) -> Vec<f64> {
         .collect()
 }
 
+/// The range SOLAR_DISTANCE must lie in, AU: the Earth–Sun distance spans 0.983–1.017 AU
+/// over the year and the Moon stays within 0.003 AU of the Earth, so anything outside
+/// 0.97–1.03 AU is not a distance of the Moon from the Sun (and would scale every
+/// reflectance by d²).
+pub const SUN_DISTANCE_AU: [f64; 2] = [0.97, 1.03];
+
 /// An opened L1B observation.
 #[derive(Debug, Clone)]
 pub struct Observation {
@@ -96,12 +102,15 @@ impl Observation {
             .ok_or_else(|| Error::missing(path, "SOLAR_DISTANCE"))?;
         let solar_distance_au = sd
             .as_f64()
-            .filter(|d| *d > 0.5 && *d < 1.5)
+            .filter(|d| (SUN_DISTANCE_AU[0]..=SUN_DISTANCE_AU[1]).contains(d))
             .ok_or_else(|| {
                 Error::invalid(
                     path,
                     &label.root.at("SOLAR_DISTANCE"),
-                    format!("{sd} is not a lunar Sun distance in AU (0.5 to 1.5)"),
+                    format!(
+                        "{sd} is not a Sun distance of the Moon in AU ({} to {}: the Earth's orbit spans 0.983–1.017 AU, the Moon's ±0.003 AU about it)",
+                        SUN_DISTANCE_AU[0], SUN_DISTANCE_AU[1]
+                    ),
                 )
             })?;
         if let Some(u) = sd.unit().filter(|u| !u.eq_ignore_ascii_case("AU")) {

@@ -196,6 +196,11 @@ fn bad_label_values_are_refused_with_keyword_and_line() {
         ),
         (
             "SOLAR_DISTANCE = 0.984326066205 <AU>",
+            "SOLAR_DISTANCE = 1.2 <AU>",
+            "SOLAR_DISTANCE (line 29)",
+        ),
+        (
+            "SOLAR_DISTANCE = 0.984326066205 <AU>",
             "SOLAR_DISTANCE = far",
             "SOLAR_DISTANCE (line 29)",
         ),
