@@ -275,11 +275,27 @@ fn height_scale(path: &Path, image: &Object) -> Result<(f64, Option<f64>)> {
 
 /// A simple cylindrical (equirectangular) map: `MAP_RESOLUTION` px/deg and the scale positive,
 /// the standard parallel `CENTER_LATITUDE` not a pole, `CENTER_LONGITUDE` within ±360°, and
-/// the projection offsets.
-fn simple_cylindrical(path: &Path, map: &Object, map_scale_m: f64) -> Result<Projection> {
+/// the projection offsets. With the standard parallel at the equator, MAP_SCALE must be the
+/// equator's degree over MAP_RESOLUTION, 2π·A_AXIS_RADIUS/360/MAP_RESOLUTION, within 1 %
+/// (the label says the same thing twice; a radius or resolution that disagrees is not this
+/// product's).
+fn simple_cylindrical(
+    path: &Path,
+    map: &Object,
+    map_scale_m: f64,
+    radius_m: f64,
+) -> Result<Projection> {
     let resolution = number(path, map, "MAP_RESOLUTION")?;
     positive(path, "MAP_RESOLUTION", resolution, "")?;
     positive(path, "MAP_SCALE", map_scale_m, " m/pix")?;
+    let equator = 2.0 * std::f64::consts::PI * radius_m / 360.0 / resolution;
+    if number(path, map, "CENTER_LATITUDE")? == 0.0 && (map_scale_m / equator - 1.0).abs() > 0.01 {
+        return Err(Error::invalid(
+            path,
+            &at(map, "MAP_SCALE"),
+            format!("{map_scale_m} m/pix disagrees with A_AXIS_RADIUS = {radius_m} m and MAP_RESOLUTION = {resolution} px/deg, which make {equator:.2} m/pix at the equator: one of the three is wrong"),
+        ));
+    }
     let lat = number(path, map, "CENTER_LATITUDE")?;
     let center_lat = within(
         path,
@@ -371,7 +387,7 @@ impl LolaDem {
         let projection = if kind.eq_ignore_ascii_case("SIMPLE CYLINDRICAL")
             || kind.eq_ignore_ascii_case("EQUIRECTANGULAR")
         {
-            simple_cylindrical(path, map, map_scale_m)?
+            simple_cylindrical(path, map, map_scale_m, radius_m)?
         } else if kind.eq_ignore_ascii_case("POLAR STEREOGRAPHIC") {
             polar_stereographic(path, map, map_scale_m, radius_m)?
         } else {
@@ -382,7 +398,7 @@ impl LolaDem {
             ));
         };
         positive(path, "A_AXIS_RADIUS", radius_m, " m")?;
-        Ok(LolaDem {
+        let dem = LolaDem {
             label_path: path.into(),
             map_scale_m,
             radius_m,
@@ -391,7 +407,52 @@ impl LolaDem {
             scaling_factor,
             offset: ref_offset,
             projection,
-        })
+        };
+        dem.check_extent()?;
+        Ok(dem)
+    }
+
+    /// A simple cylindrical product's edges from its projection (the outer edges of its
+    /// first and last lines and samples) must be those its label states, where it states
+    /// them (MAXIMUM_LATITUDE, MINIMUM_LATITUDE, WESTERNMOST_LONGITUDE, EASTERNMOST_LONGITUDE;
+    /// longitudes modulo 360°), within 0.75 pixel: a CENTER_LONGITUDE, projection offset or
+    /// MAP_RESOLUTION off by a pixel or more places every height elsewhere.
+    fn check_extent(&self) -> Result<()> {
+        let Projection::SimpleCylindrical { resolution, .. } = self.projection else {
+            return Ok(());
+        };
+        let Some(map) = self.label.find("IMAGE_MAP_PROJECTION") else {
+            return Ok(());
+        };
+        let (lines, samples) = (self.lines() as f64, self.samples() as f64);
+        // lonlat takes 0-based centres: the outer edges are at −0.5 and n − 0.5.
+        let (west, north) = self.lonlat(-0.5, -0.5);
+        let (east, south) = self.lonlat(lines - 0.5, samples - 0.5);
+        let tolerance = 0.75 / resolution;
+        // (keyword, the edge the projection places, whether it is a longitude: modulo 360°)
+        let edges = [
+            ("MAXIMUM_LATITUDE", north, false),
+            ("MINIMUM_LATITUDE", south, false),
+            ("WESTERNMOST_LONGITUDE", west, true),
+            ("EASTERNMOST_LONGITUDE", east, true),
+        ];
+        for (key, edge, longitude) in edges {
+            if let Some(stated) = optional_number(&self.label_path, map, key)? {
+                let diff = if longitude {
+                    ((edge - stated + 180.0).rem_euclid(360.0) - 180.0).abs()
+                } else {
+                    (edge - stated).abs()
+                };
+                if diff > tolerance {
+                    return Err(Error::invalid(
+                        &self.label_path,
+                        &at(map, key),
+                        format!("{stated}° is not the product's edge, {edge:.4}°, that CENTER_LATITUDE, CENTER_LONGITUDE, MAP_RESOLUTION and the LINE/SAMPLE_PROJECTION_OFFSETs place for its {lines} lines × {samples} samples: one of them is wrong"),
+                    ));
+                }
+            }
+        }
+        Ok(())
     }
 
     pub fn lines(&self) -> usize {

@@ -291,6 +291,29 @@ fn impossible_label_values_are_refused_with_keyword_and_line() {
             "RECORD_BYTES              = -98",
             "RECORD_BYTES (line 48)",
         ),
+        // Values that could each be right, but not with the rest of the label: the projection
+        // then places the edges elsewhere than the label states (by 1° and by one pixel, 0.25°)
+        // or the scale disagrees with the radius (Mars's).
+        (
+            "CENTER_LONGITUDE             = 180 <deg>",
+            "CENTER_LONGITUDE             = 179 <deg>",
+            "WESTERNMOST_LONGITUDE (line 101)",
+        ),
+        (
+            "SAMPLE_PROJECTION_OFFSET     = 719.5 <pix>",
+            "SAMPLE_PROJECTION_OFFSET     = 720.5 <pix>",
+            "WESTERNMOST_LONGITUDE (line 101)",
+        ),
+        (
+            "LINE_PROJECTION_OFFSET       = 359.5 <pix>",
+            "LINE_PROJECTION_OFFSET       = 360.5 <pix>",
+            "MAXIMUM_LATITUDE (line 99)",
+        ),
+        (
+            "A_AXIS_RADIUS                = 1737.4 <km>",
+            "A_AXIS_RADIUS                = 3396.2 <km>",
+            "MAP_SCALE (line 98)",
+        ),
         (
             "^IMAGE                    = \"LDEM_4.IMG\"",
             "^IMAGE                    = (\"LDEM_4.IMG\", 0)",
