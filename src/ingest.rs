@@ -309,8 +309,8 @@ pub fn check_pixel(
 
 /// Solar spectral irradiance at 1 AU of a 5778 K black body, W/(m² µm), at `nm`:
 /// E = π·B_λ(T)·(R☉/AU)², B_λ = 2hc²/λ⁵ / (exp(hc/λkT) − 1) (Planck's law; R☉ = 6.957·10⁸ m,
-/// 1 AU = 1.495 978 707·10¹¹ m). Within 5 % of the measured M3 table in the near infrared and
-/// within 0.95–1.22× of it over all its 256 bands.
+/// 1 AU = 1.495 978 707·10¹¹ m). The measured M3 table lies within 5 % of it in the near
+/// infrared and within 0.95–1.22× of it over all its 256 bands.
 pub fn blackbody_irradiance(nm: f64) -> f64 {
     let (h, c, k) = (6.626_070_15e-34, 2.997_924_58e8, 1.380_649e-23);
     let (t, r_sun, au): (f64, f64, f64) = (5778.0, 6.957e8, 1.495_978_707e11);

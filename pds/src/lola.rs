@@ -288,15 +288,15 @@ fn simple_cylindrical(
     let resolution = number(path, map, "MAP_RESOLUTION")?;
     positive(path, "MAP_RESOLUTION", resolution, "")?;
     positive(path, "MAP_SCALE", map_scale_m, " m/pix")?;
+    let lat = number(path, map, "CENTER_LATITUDE")?;
     let equator = 2.0 * std::f64::consts::PI * radius_m / 360.0 / resolution;
-    if number(path, map, "CENTER_LATITUDE")? == 0.0 && (map_scale_m / equator - 1.0).abs() > 0.01 {
+    if lat == 0.0 && (map_scale_m / equator - 1.0).abs() > 0.01 {
         return Err(Error::invalid(
             path,
             &at(map, "MAP_SCALE"),
             format!("{map_scale_m} m/pix disagrees with A_AXIS_RADIUS = {radius_m} m and MAP_RESOLUTION = {resolution} px/deg, which make {equator:.2} m/pix at the equator: one of the three is wrong"),
         ));
     }
-    let lat = number(path, map, "CENTER_LATITUDE")?;
     let center_lat = within(
         path,
         map,
