@@ -300,8 +300,11 @@ pub fn edge_weights(footprints: &[Array2<bool>], width: f64) -> Vec<Array2<f64>>
         .collect()
 }
 
-/// Whether a valid image value `v` is image-shadowed: I/g/Ī below `threshold` (g the
-/// observation's gain, Ī the scale). [`weights`] leaves such pixels out of E_I;
+/// Whether a valid image value `v` is image-shadowed: I/g/Ī_k below `threshold` (g the
+/// observation's gain, Ī_k its own mean reflectance, [`own_mean`]). A shadow is dark against
+/// its own image's illumination: measured against the mean of all observations, a low Sun's
+/// image, several times darker than a high Sun's, would have its lit slopes facing away from
+/// the Sun taken for shadow. [`weights`] leaves such pixels out of E_I;
 /// [`shadow_edge_factors`] looks at their neighbours.
 fn image_shadowed(v: f64, gain: f64, scale: f64, threshold: f64) -> bool {
     v / gain / scale < threshold
@@ -348,11 +351,11 @@ fn near_shadow(o: &super::Observation, gain: f64, scale: f64, threshold: f64) ->
 /// is 10–15 % of the mean brightness off, against 2–3 % elsewhere (docs/science.md, "What
 /// limits several Suns"), so where another observation sees the pixel cleanly it carries the
 /// pixel. A pixel no other observation sees cleanly keeps its weights: one observation's
-/// results never change.
+/// results never change. `scale` holds each observation's own mean Ī_k ([`own_mean`]).
 pub fn shadow_edge_factors(
     pr: &Problem,
     gains: &[f64],
-    scale: f64,
+    scale: &[f64],
     threshold: f64,
     beta: f64,
     weight: &mut [Array2<f64>],
@@ -364,7 +367,8 @@ pub fn shadow_edge_factors(
         .observations
         .iter()
         .zip(gains)
-        .map(|(o, &g)| near_shadow(o, g, scale, threshold))
+        .zip(scale)
+        .map(|((o, &g), &sc)| near_shadow(o, g, sc, threshold))
         .collect();
     // How many observations carry each pixel away from their own shadows.
     let mut clean = Array2::<u8>::zeros(weight[0].dim());
@@ -400,8 +404,20 @@ pub fn noise_weight(scale: f64, mean: f64) -> f64 {
     scale / mean
 }
 
+/// Ī_k = Ī/ν_k: the mean reflectance of an observation (divided by its gain) whose noise
+/// weight is `nu`, the inverse of [`noise_weight`] (`scale` itself if ν is not positive).
+/// Its shadow test compares each pixel with it: I/g/Ī_k below the shadow threshold is shadow.
+pub fn own_mean(scale: f64, nu: f64) -> f64 {
+    if nu > 0.0 {
+        scale / nu
+    } else {
+        scale
+    }
+}
+
 /// The usable pixels and weights of every observation, with the given gains g_k, scale Ī,
-/// noise weights ν_k (`None`: [`noise_weight`] of each observation's mean) and shadow-edge
+/// noise weights ν_k (`None`: [`noise_weight`] of each observation's mean; each observation's
+/// shadows are found against its own mean Ī/ν_k, [`own_mean`]) and shadow-edge
 /// factor β ([`shadow_edge_factors`]; 1: none).
 pub fn weights(
     pr: &Problem,
@@ -412,29 +428,6 @@ pub fn weights(
     edge_ramp_px: f64,
     shadow_edge_weight: f64,
 ) -> Weights {
-    let sel = pr.selection;
-    let mut usable: Vec<Array2<bool>> = pr
-        .observations
-        .iter()
-        .zip(&gains)
-        .map(|(o, &g)| {
-            Zip::indexed(&o.image).par_map_collect(|(i, j), &v| {
-                let inc = incidence_deg(&o.sun.at(i, j));
-                v.is_finite()
-                    && v > 0.0
-                    && !image_shadowed(v, g, scale, shadow_threshold)
-                    && inc >= sel.min_incidence_deg
-                    && inc < sel.max_incidence_deg
-            })
-        })
-        .collect();
-    // An observation coarser than the grid models each pixel from its neighbours too: it uses a
-    // pixel only where all of them are usable ([`super::blur`]).
-    for (k, u) in usable.iter_mut().enumerate() {
-        if let Some(kernel) = pr.blur_kernel(k) {
-            *u = super::blur::erode(u, kernel.radius());
-        }
-    }
     let noise = match noise {
         Some(n) => n,
         None if pr.observations.len() == 1 => vec![1.0],
@@ -452,6 +445,33 @@ pub fn weights(
             })
             .collect(),
     };
+    // Ī_k, each observation's own mean brightness, which ν_k was computed from: its shadows
+    // are dark against its own illumination, not against the other observations'.
+    let own_scale: Vec<f64> = noise.iter().map(|&nu| own_mean(scale, nu)).collect();
+    let sel = pr.selection;
+    let mut usable: Vec<Array2<bool>> = pr
+        .observations
+        .iter()
+        .zip(&gains)
+        .zip(&own_scale)
+        .map(|((o, &g), &sc)| {
+            Zip::indexed(&o.image).par_map_collect(|(i, j), &v| {
+                let inc = incidence_deg(&o.sun.at(i, j));
+                v.is_finite()
+                    && v > 0.0
+                    && !image_shadowed(v, g, sc, shadow_threshold)
+                    && inc >= sel.min_incidence_deg
+                    && inc < sel.max_incidence_deg
+            })
+        })
+        .collect();
+    // An observation coarser than the grid models each pixel from its neighbours too: it uses a
+    // pixel only where all of them are usable ([`super::blur`]).
+    for (k, u) in usable.iter_mut().enumerate() {
+        if let Some(kernel) = pr.blur_kernel(k) {
+            *u = super::blur::erode(u, kernel.radius());
+        }
+    }
     let footprints: Vec<Array2<bool>> = pr
         .observations
         .iter()
@@ -477,7 +497,7 @@ pub fn weights(
     shadow_edge_factors(
         pr,
         &gains,
-        scale,
+        &own_scale,
         shadow_threshold,
         shadow_edge_weight,
         &mut weight,
@@ -823,6 +843,62 @@ mod tests {
         let one = weights(&pr, vec![1.0], 0.03, None, 0.1, 0.0, 0.25);
         assert!(one.weight[0].iter().all(|&w| w == 0.0 || w == 1.0));
         assert!(one.weight[0][(4, 4)] == 1.0);
+    }
+
+    #[test]
+    fn each_observation_finds_its_shadows_against_its_own_brightness() {
+        use crate::fusion::{Directions, Observation};
+        use crate::photometry::Hapke;
+        // A high Sun's image at 0.08 and a low Sun's 8× darker, at 0.01; in each, one pixel at
+        // 30 % of its image's mean (a lit slope turned away from the Sun) and one at 5 % (a
+        // shadow). Against the mean of both (≈ 0.045) the low Sun's 30 % pixel, 0.003, would be
+        // under the threshold 0.1 × 0.045 and taken for shadow.
+        let n = 12;
+        let image = |mean: f64| {
+            Array2::from_shape_fn((n, n), |(i, j)| match (i, j) {
+                (3, 3) => 0.3 * mean,
+                (8, 8) => 0.05 * mean,
+                _ => mean,
+            })
+        };
+        let (bright, dark) = (image(0.08), image(0.01));
+        let dem = Array2::zeros((n, n));
+        let model = Hapke::moon();
+        let mut pr = Problem::single(
+            bright.view(),
+            Directions::Uniform(crate::synth::direction(30.0, 100.0)),
+            Directions::Uniform(crate::synth::direction(0.0, 0.0)),
+            dem.view(),
+            100.0,
+            0.0,
+            &model,
+        );
+        pr.observations.push(Observation {
+            image: dark.view(),
+            sun: Directions::Uniform(crate::synth::direction(65.0, 250.0)),
+            view: Directions::Uniform(crate::synth::direction(0.0, 0.0)),
+        });
+        let scale = (bright.sum() + dark.sum()) / (2 * n * n) as f64;
+        let w = weights(&pr, vec![1.0, 1.0], scale, None, 0.1, 0.0, 1.0);
+        for k in 0..2 {
+            assert!(
+                w.usable[k][(3, 3)],
+                "observation {k}: 30 % of its mean is lit"
+            );
+            assert!(
+                !w.usable[k][(8, 8)],
+                "observation {k}: 5 % of its mean is shadow"
+            );
+            assert!(w.usable[k][(0, 0)]);
+        }
+        assert!(
+            0.3 * 0.01 < 0.1 * scale,
+            "the dark image's lit pixel is under 0.1 Ī"
+        );
+        // The noise weights the plan hands the tiles give the same masks.
+        let noise = w.noise.clone();
+        let given = weights(&pr, vec![1.0, 1.0], scale, Some(noise), 0.1, 0.0, 1.0);
+        assert_eq!(given.usable, w.usable);
     }
 
     #[test]
