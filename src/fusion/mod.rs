@@ -239,7 +239,8 @@ pub struct FusionParams {
     pub albedo_sigmas: Vec<f64>,
     /// σ of the final albedo map (per-pixel inversion on the final surface), in pixels.
     pub final_albedo_sigma: f64,
-    /// Pixels with I/Ī below this are treated as cast shadow and drop out of E_I.
+    /// Pixels with I/Ī_k below this are treated as cast shadow and drop out of E_I, Ī_k the
+    /// observation's own mean ([`observations::own_mean`]; one observation: Ī).
     pub shadow_threshold: f64,
     /// Iteration limit per stage (Gauss–Newton steps for `fast`, sweeps for `paper`).
     pub max_iterations: usize,
