@@ -3,9 +3,9 @@
 //! E(z) = E_I + δ·E_DEM + η·E_reg, with
 //! * E_I   = Σ_k Σ_x w_k(x)·(I_k/g_k − R(p, q, ρ; s_k, v_k))²/Ī² over the observations k,
 //!   (p, q) the central-difference gradient of z, summed over the pixels each observation saw
-//!   lit: valid, not image-shadowed (I_k/g_k/Ī_k ≥ threshold, Ī_k its own mean), seen by the camera (μ > 0), and within
-//!   the selection; w_k and the gains g_k are those of [`super::observations`]. R is continued
-//!   through μ0 = 0
+//!   lit: valid, not image-shadowed (I_k/g_k/Ī_k ≥ threshold, Ī_k its own mean), seen by the
+//!   camera (μ > 0), and within the selection; w_k and the gains g_k are those of
+//!   [`super::observations`]. R is continued through μ0 = 0
 //!   ([`crate::photometry::ReflectanceModel::shade_observed`]),
 //!   so a surface turned away from the Sun at an observed-lit pixel is penalised, not dropped;
 //!   an observation coarser than the grid compares its image with B_k R instead, B_k its blur
