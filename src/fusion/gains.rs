@@ -434,7 +434,7 @@ mod tests {
             }
             let pr = sc.problem();
             let scale = sc.image.mean().unwrap();
-            let w = weights(&pr, vec![1.0; 2], scale, None, 0.1, 0.0, 1.0);
+            let w = weights(&pr, vec![1.0; 2], scale, None, 0.1, 0.0, (1.0, 1.0));
             let g = estimate_gains(&pr, &w.usable, pr.dem);
             estimate_gain_trends(
                 &pr,

@@ -285,6 +285,12 @@ pub struct FusionParams {
     /// 1: the full weight). Such a pixel is likely part in shadow, which the reflectance does
     /// not model (docs/science.md, "Several observations"). No effect with one observation.
     pub shadow_edge_weight: f64,
+    /// β_all: the same factor where two or more other observations see the pixel away from
+    /// their own shadows ([`observations::shadow_edge_factors`]). Three Suns spread in azimuth
+    /// measure slope free of albedo in every direction without the pixel, which then adds
+    /// mostly its partial shadow (docs/science.md, "Several observations"). No effect with one
+    /// or two observations.
+    pub shadow_edge_weight_all: f64,
     /// Where two or more observations see a pixel under different Suns, shading and albedo
     /// separate pixel by pixel: a last albedo stage of this σ_ρ (pixels) is run there,
     /// blended into the last configured stage by the multi-coverage c(x) of
@@ -389,6 +395,7 @@ impl Default for FusionParams {
             cg_tolerance: 0.02,
             edge_ramp_px: 16.0,
             shadow_edge_weight: 0.25,
+            shadow_edge_weight_all: 0.1,
             multi_albedo_sigma: 0.5,
             multi_final_albedo_sigma: 0.7,
             multi_albedo_passes: 3,
@@ -726,7 +733,7 @@ pub(crate) fn objective<'a, 'p>(
             pr.noise_weights.clone(),
             params.shadow_threshold,
             params.edge_ramp_px,
-            params.shadow_edge_weight,
+            (params.shadow_edge_weight, params.shadow_edge_weight_all),
         )
     };
     if pr.gains.is_none() && k > 1 {

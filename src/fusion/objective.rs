@@ -1115,7 +1115,7 @@ mod tests {
     /// Every finite pixel usable, unit gains, no edge ramps.
     fn weights_of(pr: &Problem, scale: f64) -> Weights {
         let k = pr.observations.len();
-        crate::fusion::observations::weights(pr, vec![1.0; k], scale, None, 0.0, 0.0, 1.0)
+        crate::fusion::observations::weights(pr, vec![1.0; k], scale, None, 0.0, 0.0, (1.0, 1.0))
     }
 
     /// ∂E/∂z at `points` of `z` (albedo 0.4) against central differences of E.
@@ -1216,7 +1216,7 @@ mod tests {
             Some(vec![1.0, 0.7]),
             0.0,
             4.0,
-            1.0,
+            (1.0, 1.0),
         )
     }
 
@@ -1385,7 +1385,15 @@ mod tests {
             sun: Directions::Uniform(crate::synth::direction(45.0, 220.0)),
             view: Directions::Uniform(crate::synth::direction(0.0, 0.0)),
         });
-        let w = crate::fusion::observations::weights(&pr, vec![1.0, 1.0], 0.2, None, 0.0, 0.0, 1.0);
+        let w = crate::fusion::observations::weights(
+            &pr,
+            vec![1.0, 1.0],
+            0.2,
+            None,
+            0.0,
+            0.0,
+            (1.0, 1.0),
+        );
         let mut obj = Objective::new(&pr, 3.0, 0.2, 1.2, 1.5, 0.2, w);
         let rho = Array2::from_elem((ny, nx), 0.5);
         let c = obj.weights.multiplicity();
@@ -1426,8 +1434,15 @@ mod tests {
         let (a, b) = two_strips(1.0);
         let model = Hapke::moon();
         let pr = two_observations(&a, &b, &dem, &model);
-        let w =
-            crate::fusion::observations::weights(&pr, vec![1.0, 1.0], 0.03, None, 0.0, 4.0, 1.0);
+        let w = crate::fusion::observations::weights(
+            &pr,
+            vec![1.0, 1.0],
+            0.03,
+            None,
+            0.0,
+            4.0,
+            (1.0, 1.0),
+        );
         let mut obj = Objective::new(&pr, 3.0, 0.5, 1.2, 1.5, 0.03, w);
         // The weights come from another surface than the one the gradient is checked at.
         let start = &dem + &z.mapv(|v| 0.5 * v);

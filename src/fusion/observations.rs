@@ -19,7 +19,8 @@
 //!   - τ_k(x), 1 up to 10° before the maximum incidence and a smoothstep to 0 at it: near the
 //!     terminator shadows and roughness make the model least reliable;
 //!   - β (`shadow_edge_weight`) on a pixel next to one k sees shadowed, wherever another
-//!     observation carries the pixel away from its own shadows ([`shadow_edge_factors`]); 1
+//!     observation carries the pixel away from its own shadows, β_all
+//!     (`shadow_edge_weight_all`) where two or more others do ([`shadow_edge_factors`]); 1
 //!     elsewhere.
 //! * Selection: pixels outside [min, max] incidence drop out; with `max_per_pixel` = M > 0 only
 //!   the M observations of largest w_k·μ_k/s_k² (μ the cosine of the emission angle, s_k² the
@@ -343,9 +344,12 @@ fn near_shadow(o: &super::Observation, gain: f64, scale: f64, threshold: f64) ->
     near
 }
 
-/// s_k(x), the shadow-edge factors, applied to the weights in place: β = `beta` where
-/// observation k carries x (w_k > 0) within one pixel of a pixel it sees shadowed, and another
-/// observation carries x with no shadow of its own that near; 1 elsewhere. A detector pixel
+/// s_k(x), the shadow-edge factors, applied to the weights in place: where observation k
+/// carries x (w_k > 0) within one pixel of a pixel it sees shadowed, β = `beta.0` if one other
+/// observation carries x with no shadow of its own that near, β_all = `beta.1` if two or more
+/// do; 1 elsewhere. Two clean observations under Suns apart in azimuth measure the slope free of
+/// albedo along one direction, and k's pixel holds the other; three measure it along every
+/// direction, and k's pixel then adds mostly its partial shadow. A detector pixel
 /// next to a cast shadow is likely part in shadow (the shadow mask marks only the pixels
 /// mostly dark), and the solver's reflectance has no partial shadow: there the forward model
 /// is 10–15 % of the mean brightness off, against 2–3 % elsewhere (docs/science.md, "What
@@ -357,10 +361,10 @@ pub fn shadow_edge_factors(
     gains: &[f64],
     scale: &[f64],
     threshold: f64,
-    beta: f64,
+    (beta, beta_all): (f64, f64),
     weight: &mut [Array2<f64>],
 ) {
-    if weight.len() < 2 || beta >= 1.0 {
+    if weight.len() < 2 || (beta >= 1.0 && beta_all >= 1.0) {
         return;
     }
     let near: Vec<Array2<bool>> = pr
@@ -381,7 +385,7 @@ pub fn shadow_edge_factors(
     for (w, n) in weight.iter_mut().zip(&near) {
         Zip::from(w).and(n).and(&clean).par_for_each(|w, &n, &c| {
             if n && c > 0 {
-                *w *= beta;
+                *w *= if c >= 2 { beta_all } else { beta };
             }
         });
     }
@@ -418,7 +422,7 @@ pub fn own_mean(scale: f64, nu: f64) -> f64 {
 /// The usable pixels and weights of every observation, with the given gains g_k, scale Ī,
 /// noise weights ν_k (`None`: [`noise_weight`] of each observation's mean; each observation's
 /// shadows are found against its own mean Ī/ν_k, [`own_mean`]) and shadow-edge
-/// factor β ([`shadow_edge_factors`]; 1: none).
+/// factors (β, β_all) ([`shadow_edge_factors`]; 1: none).
 pub fn weights(
     pr: &Problem,
     gains: Vec<f64>,
@@ -426,7 +430,7 @@ pub fn weights(
     noise: Option<Vec<f64>>,
     shadow_threshold: f64,
     edge_ramp_px: f64,
-    shadow_edge_weight: f64,
+    shadow_edge_weight: (f64, f64),
 ) -> Weights {
     let noise = match noise {
         Some(n) => n,
@@ -801,7 +805,7 @@ mod tests {
                 Some(vec![1.0, 1.0]),
                 0.1,
                 0.0,
-                beta,
+                (beta, beta),
             )
         };
         let (full, edged) = (w(1.0), w(0.25));
@@ -840,9 +844,63 @@ mod tests {
         assert_eq!(edged.weight[1][(6, 11)], 0.25);
         // One observation: no factor anywhere.
         pr.observations.truncate(1);
-        let one = weights(&pr, vec![1.0], 0.03, None, 0.1, 0.0, 0.25);
+        let one = weights(&pr, vec![1.0], 0.03, None, 0.1, 0.0, (0.25, 0.25));
         assert!(one.weight[0].iter().all(|&w| w == 0.0 || w == 1.0));
         assert!(one.weight[0][(4, 4)] == 1.0);
+    }
+
+    #[test]
+    fn next_to_a_shadow_two_clean_observations_take_the_pixel_further() {
+        use crate::fusion::{Directions, Observation};
+        use crate::photometry::Hapke;
+        // Observation 0 has a 3 × 3 shadow at rows and columns 5..8; 1 sees everything lit; 2
+        // sees the left half (columns < 6) lit and nothing of the right half. Around 0's
+        // shadow, 0 weighs β_all where 1 and 2 both carry the pixel, β where 1 alone does.
+        let n = 14;
+        let lit = |i: usize, j: usize| 0.03 + 0.001 * ((i + 2 * j) % 3) as f64;
+        let a = Array2::from_shape_fn((n, n), |(i, j)| {
+            if (5..8).contains(&i) && (5..8).contains(&j) {
+                1e-4
+            } else {
+                lit(i, j)
+            }
+        });
+        let b = Array2::from_shape_fn((n, n), |(i, j)| lit(j, i));
+        let c = Array2::from_shape_fn((n, n), |(i, j)| if j < 6 { lit(i, i) } else { f64::NAN });
+        let dem = Array2::zeros((n, n));
+        let model = Hapke::moon();
+        let view = || Directions::Uniform(crate::synth::direction(0.0, 0.0));
+        let mut pr = Problem::single(
+            a.view(),
+            Directions::Uniform(crate::synth::direction(40.0, 100.0)),
+            view(),
+            dem.view(),
+            100.0,
+            0.0,
+            &model,
+        );
+        for (image, azimuth) in [(&b, 220.0), (&c, 340.0)] {
+            pr.observations.push(Observation {
+                image: image.view(),
+                sun: Directions::Uniform(crate::synth::direction(40.0, azimuth)),
+                view: view(),
+            });
+        }
+        let w = weights(
+            &pr,
+            vec![1.0; 3],
+            0.03,
+            Some(vec![1.0; 3]),
+            0.1,
+            0.0,
+            (0.25, 0.1),
+        );
+        assert_eq!(w.weight[0][(4, 4)], 0.1, "1 and 2 carry (4, 4)");
+        assert_eq!(w.weight[0][(4, 8)], 0.25, "only 1 carries (4, 8)");
+        assert_eq!(w.weight[0][(6, 6)], 0.0, "the shadow itself is not used");
+        assert_eq!(w.weight[0][(10, 10)], 1.0, "away from the shadow");
+        assert_eq!(w.weight[1][(4, 4)], 1.0);
+        assert_eq!(w.weight[2][(4, 4)], 1.0);
     }
 
     #[test]
@@ -879,7 +937,7 @@ mod tests {
             view: Directions::Uniform(crate::synth::direction(0.0, 0.0)),
         });
         let scale = (bright.sum() + dark.sum()) / (2 * n * n) as f64;
-        let w = weights(&pr, vec![1.0, 1.0], scale, None, 0.1, 0.0, 1.0);
+        let w = weights(&pr, vec![1.0, 1.0], scale, None, 0.1, 0.0, (1.0, 1.0));
         for k in 0..2 {
             assert!(
                 w.usable[k][(3, 3)],
@@ -897,7 +955,15 @@ mod tests {
         );
         // The noise weights the plan hands the tiles give the same masks.
         let noise = w.noise.clone();
-        let given = weights(&pr, vec![1.0, 1.0], scale, Some(noise), 0.1, 0.0, 1.0);
+        let given = weights(
+            &pr,
+            vec![1.0, 1.0],
+            scale,
+            Some(noise),
+            0.1,
+            0.0,
+            (1.0, 1.0),
+        );
         assert_eq!(given.usable, w.usable);
     }
 

@@ -245,7 +245,7 @@ fn dem_and_membrane(params: &FusionParams) -> [Check; 9] {
 }
 
 /// What acts only where several observations overlap.
-fn several_observations(params: &FusionParams) -> [Check; 11] {
+fn several_observations(params: &FusionParams) -> [Check; 12] {
     [
         (
             "multi_delta_factor",
@@ -307,6 +307,12 @@ fn several_observations(params: &FusionParams) -> [Check; 11] {
             "shadow_edge_weight",
             params.shadow_edge_weight,
             params.shadow_edge_weight > 0.0 && params.shadow_edge_weight <= 1.0,
+            "must be in (0, 1]",
+        ),
+        (
+            "shadow_edge_weight_all",
+            params.shadow_edge_weight_all,
+            params.shadow_edge_weight_all > 0.0 && params.shadow_edge_weight_all <= 1.0,
             "must be in (0, 1]",
         ),
         (

@@ -380,7 +380,7 @@ fn gains_on(
         None,
         o.solver.shadow_threshold,
         0.0,
-        1.0,
+        (1.0, 1.0),
     );
     let g = fusion::gains::estimate_gains(&problem, &w.usable, dem);
     let t = if trend {
