@@ -646,6 +646,35 @@ pub fn invert_albedo(
 mod tests {
     use super::*;
 
+    /// A problem of `images` (each with its Sun's zenith and azimuth, degrees) seen from
+    /// nadir, over `dem` at 100 m pixels.
+    fn uniform_problem<'a>(
+        images: &[(&'a Array2<f64>, f64, f64)],
+        dem: &'a Array2<f64>,
+        model: &'a dyn ReflectanceModel,
+    ) -> Problem<'a> {
+        use crate::fusion::{Directions, Observation};
+        let towards =
+            |zenith, azimuth| Directions::Uniform(crate::synth::direction(zenith, azimuth));
+        let mut pr = Problem::single(
+            images[0].0.view(),
+            towards(images[0].1, images[0].2),
+            towards(0.0, 0.0),
+            dem.view(),
+            100.0,
+            0.0,
+            model,
+        );
+        for &(image, zenith, azimuth) in &images[1..] {
+            pr.observations.push(Observation {
+                image: image.view(),
+                sun: towards(zenith, azimuth),
+                view: towards(0.0, 0.0),
+            });
+        }
+        pr
+    }
+
     /// A Sun at azimuth `az` (clockwise from north) and elevation `el`, degrees, in the grid
     /// frame (x east, y north, z up).
     fn sun(az: f64, el: f64) -> Vec3 {
@@ -760,7 +789,6 @@ mod tests {
     /// of its first shadow where 1 sees the pixel cleanly, and nowhere else.
     #[test]
     fn a_pixel_next_to_a_shadow_weighs_less_only_where_another_observation_sees_it_cleanly() {
-        use crate::fusion::{Directions, Observation};
         use crate::photometry::Hapke;
         let n = 20;
         let lit = |i: usize, j: usize| 0.03 + 0.001 * ((i + 2 * j) % 3) as f64;
@@ -783,20 +811,7 @@ mod tests {
         });
         let dem = Array2::zeros((n, n));
         let model = Hapke::moon();
-        let mut pr = Problem::single(
-            a.view(),
-            Directions::Uniform(crate::synth::direction(40.0, 100.0)),
-            Directions::Uniform(crate::synth::direction(0.0, 0.0)),
-            dem.view(),
-            100.0,
-            0.0,
-            &model,
-        );
-        pr.observations.push(Observation {
-            image: b.view(),
-            sun: Directions::Uniform(crate::synth::direction(45.0, 250.0)),
-            view: Directions::Uniform(crate::synth::direction(0.0, 0.0)),
-        });
+        let mut pr = uniform_problem(&[(&a, 40.0, 100.0), (&b, 45.0, 250.0)], &dem, &model);
         let w = |beta: f64| {
             weights(
                 &pr,
@@ -851,7 +866,6 @@ mod tests {
 
     #[test]
     fn next_to_a_shadow_two_clean_observations_take_the_pixel_further() {
-        use crate::fusion::{Directions, Observation};
         use crate::photometry::Hapke;
         // Observation 0 has a 3 × 3 shadow at rows and columns 5..8; 1 sees everything lit; 2
         // sees the left half (columns < 6) lit and nothing of the right half. Around 0's
@@ -869,23 +883,11 @@ mod tests {
         let c = Array2::from_shape_fn((n, n), |(i, j)| if j < 6 { lit(i, i) } else { f64::NAN });
         let dem = Array2::zeros((n, n));
         let model = Hapke::moon();
-        let view = || Directions::Uniform(crate::synth::direction(0.0, 0.0));
-        let mut pr = Problem::single(
-            a.view(),
-            Directions::Uniform(crate::synth::direction(40.0, 100.0)),
-            view(),
-            dem.view(),
-            100.0,
-            0.0,
+        let pr = uniform_problem(
+            &[(&a, 40.0, 100.0), (&b, 40.0, 220.0), (&c, 40.0, 340.0)],
+            &dem,
             &model,
         );
-        for (image, azimuth) in [(&b, 220.0), (&c, 340.0)] {
-            pr.observations.push(Observation {
-                image: image.view(),
-                sun: Directions::Uniform(crate::synth::direction(40.0, azimuth)),
-                view: view(),
-            });
-        }
         let w = weights(
             &pr,
             vec![1.0; 3],
@@ -905,7 +907,6 @@ mod tests {
 
     #[test]
     fn each_observation_finds_its_shadows_against_its_own_brightness() {
-        use crate::fusion::{Directions, Observation};
         use crate::photometry::Hapke;
         // A high Sun's image at 0.08 and a low Sun's 8× darker, at 0.01; in each, one pixel at
         // 30 % of its image's mean (a lit slope turned away from the Sun) and one at 5 % (a
@@ -922,20 +923,11 @@ mod tests {
         let (bright, dark) = (image(0.08), image(0.01));
         let dem = Array2::zeros((n, n));
         let model = Hapke::moon();
-        let mut pr = Problem::single(
-            bright.view(),
-            Directions::Uniform(crate::synth::direction(30.0, 100.0)),
-            Directions::Uniform(crate::synth::direction(0.0, 0.0)),
-            dem.view(),
-            100.0,
-            0.0,
+        let pr = uniform_problem(
+            &[(&bright, 30.0, 100.0), (&dark, 65.0, 250.0)],
+            &dem,
             &model,
         );
-        pr.observations.push(Observation {
-            image: dark.view(),
-            sun: Directions::Uniform(crate::synth::direction(65.0, 250.0)),
-            view: Directions::Uniform(crate::synth::direction(0.0, 0.0)),
-        });
         let scale = (bright.sum() + dark.sum()) / (2 * n * n) as f64;
         let w = weights(&pr, vec![1.0, 1.0], scale, None, 0.1, 0.0, (1.0, 1.0));
         for k in 0..2 {
