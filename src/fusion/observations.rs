@@ -307,13 +307,13 @@ pub fn edge_weights(footprints: &[Array2<bool>], width: f64) -> Vec<Array2<f64>>
 /// image, several times darker than a high Sun's, would have its lit slopes facing away from
 /// the Sun taken for shadow. [`weights`] leaves such pixels out of E_I;
 /// [`shadow_edge_factors`] looks at their neighbours.
-fn image_shadowed(v: f64, gain: f64, scale: f64, threshold: f64) -> bool {
-    v / gain / scale < threshold
+fn image_shadowed(v: f64, gain: f64, own_mean: f64, threshold: f64) -> bool {
+    v / gain / own_mean < threshold
 }
 
 /// The pixels next to a shadow (within one pixel, the eight neighbours) that observation `o`
 /// sees valid: image-shadowed pixels as in [`image_shadowed`].
-fn near_shadow(o: &super::Observation, gain: f64, scale: f64, threshold: f64) -> Array2<bool> {
+fn near_shadow(o: &super::Observation, gain: f64, own_mean: f64, threshold: f64) -> Array2<bool> {
     let (ny, nx) = o.image.dim();
     // Each row's dark pixels widened by one column to either side, then each output row the
     // union of its three neighbouring widened rows (a 3 × 3 dilation in two passes).
@@ -323,7 +323,7 @@ fn near_shadow(o: &super::Observation, gain: f64, scale: f64, threshold: f64) ->
         .zip(o.image.axis_iter(Axis(0)).into_par_iter())
         .for_each(|(mut out, row)| {
             for (j, v) in row.iter().enumerate() {
-                if v.is_finite() && image_shadowed(*v, gain, scale, threshold) {
+                if v.is_finite() && image_shadowed(*v, gain, own_mean, threshold) {
                     for k in j.saturating_sub(1)..(j + 2).min(nx) {
                         out[k] = true;
                     }
@@ -355,11 +355,11 @@ fn near_shadow(o: &super::Observation, gain: f64, scale: f64, threshold: f64) ->
 /// is 10–15 % of the mean brightness off, against 2–3 % elsewhere (docs/science.md, "What
 /// limits several Suns"), so where another observation sees the pixel cleanly it carries the
 /// pixel. A pixel no other observation sees cleanly keeps its weights: one observation's
-/// results never change. `scale` holds each observation's own mean Ī_k ([`own_mean`]).
+/// results never change. `own_means` holds each observation's own mean Ī_k ([`own_mean`]).
 pub fn shadow_edge_factors(
     pr: &Problem,
     gains: &[f64],
-    scale: &[f64],
+    own_means: &[f64],
     threshold: f64,
     (beta, beta_all): (f64, f64),
     weight: &mut [Array2<f64>],
@@ -371,8 +371,8 @@ pub fn shadow_edge_factors(
         .observations
         .iter()
         .zip(gains)
-        .zip(scale)
-        .map(|((o, &g), &sc)| near_shadow(o, g, sc, threshold))
+        .zip(own_means)
+        .map(|((o, &g), &m)| near_shadow(o, g, m, threshold))
         .collect();
     // How many observations carry each pixel away from their own shadows.
     let mut clean = Array2::<u8>::zeros(weight[0].dim());
@@ -451,19 +451,19 @@ pub fn weights(
     };
     // Ī_k, each observation's own mean brightness, which ν_k was computed from: its shadows
     // are dark against its own illumination, not against the other observations'.
-    let own_scale: Vec<f64> = noise.iter().map(|&nu| own_mean(scale, nu)).collect();
+    let own_means: Vec<f64> = noise.iter().map(|&nu| own_mean(scale, nu)).collect();
     let sel = pr.selection;
     let mut usable: Vec<Array2<bool>> = pr
         .observations
         .iter()
         .zip(&gains)
-        .zip(&own_scale)
-        .map(|((o, &g), &sc)| {
+        .zip(&own_means)
+        .map(|((o, &g), &m)| {
             Zip::indexed(&o.image).par_map_collect(|(i, j), &v| {
                 let inc = incidence_deg(&o.sun.at(i, j));
                 v.is_finite()
                     && v > 0.0
-                    && !image_shadowed(v, g, sc, shadow_threshold)
+                    && !image_shadowed(v, g, m, shadow_threshold)
                     && inc >= sel.min_incidence_deg
                     && inc < sel.max_incidence_deg
             })
@@ -501,7 +501,7 @@ pub fn weights(
     shadow_edge_factors(
         pr,
         &gains,
-        &own_scale,
+        &own_means,
         shadow_threshold,
         shadow_edge_weight,
         &mut weight,
