@@ -64,7 +64,8 @@ fn demo_writes_products_and_a_json_report() {
             let sum = e["intensity"].as_f64().unwrap()
                 + r["params"]["delta"].as_f64().unwrap() * e["dem"].as_f64().unwrap()
                 + r["params"]["eta"].as_f64().unwrap() * e["membrane"].as_f64().unwrap()
-                + e["tie"].as_f64().unwrap();
+                + e["tie"].as_f64().unwrap()
+                + e["shadow"].as_f64().unwrap();
             assert!((sum - e["total"].as_f64().unwrap()).abs() <= 1e-9 * sum.abs());
         }
     }

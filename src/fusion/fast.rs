@@ -6,7 +6,7 @@
 //! or E stagnates, or after `max_iterations`.
 
 use super::objective::{relief_gradient_into, BlurTerm, Energy, Iterate, Objective};
-use super::{blur, ops, FusionParams, IterationRecord};
+use super::{blur, ops, shadows, FusionParams, IterationRecord};
 use crate::spectral;
 use ndarray::{Array2, ArrayView2, Axis, Zip};
 use rayon::prelude::*;
@@ -101,6 +101,8 @@ struct Normal<'o, 'a, 'p> {
     fixed: &'o Fixed,
     /// The observations coarser than the grid ([`blurred_normal_add`]).
     blurred: &'o [BlurTerm],
+    /// E_S's violated rays at the iterate ([`shadows::add_normal`]).
+    shadow_rows: &'o [shadows::Row],
     fixed_mean: bool,
     v: Array2<f32>,
     /// Scratch of the relief fields' parts (empty without them).
@@ -123,6 +125,14 @@ impl Normal<'_, '_, '_> {
         );
         for t in self.blurred {
             blurred_normal_add(t, obj.problem.spacing, &self.v, out);
+        }
+        if let Some(t) = &obj.shadows {
+            shadows::add_normal(
+                t.weight as f32,
+                self.shadow_rows,
+                self.v.as_slice().expect("standard layout"),
+                out.as_slice_mut().expect("standard layout"),
+            );
         }
         let e2 = (obj.problem.spacing * obj.problem.spacing) as f32;
         if let Some(r) = &self.fixed.membrane_relief {
@@ -263,6 +273,7 @@ fn newton_step(
     hm: Array2<[f32; 3]>,
     fixed: &Fixed,
     blurred: &[BlurTerm],
+    shadow_rows: &[shadows::Row],
     g: &Array2<f32>,
     params: &FusionParams,
 ) -> (Array2<f32>, usize) {
@@ -273,6 +284,7 @@ fn newton_step(
         hm,
         fixed,
         blurred,
+        shadow_rows,
         fixed_mean,
         v: Array2::zeros((ny, nx)),
         u: Array2::zeros(if fixed.dem_relief.is_some() {
@@ -372,6 +384,7 @@ pub fn minimise(
         // H + M, in the curvature's storage.
         let mut hm = obj.curvature(z.view(), rho, &photo, params.curvature_residual);
         obj.add_gauss_newton_hessian(&photo, &mut hm);
+        let shadow_rows = std::mem::take(&mut photo.shadow.rows);
         let blurred = obj.blurred_terms(photo);
         // The gradient only enters the Newton system, solved in f32, and the line search's
         // slope: rounded to f32 here (and the f64 one freed), it takes half the memory through
@@ -379,7 +392,7 @@ pub fn minimise(
         let g32 = g.mapv(|x| x as f32);
         drop(g);
         let g = g32;
-        let (step, inner) = newton_step(obj, hm, &fixed, &blurred, &g, params);
+        let (step, inner) = newton_step(obj, hm, &fixed, &blurred, &shadow_rows, &g, params);
         drop(blurred);
         let slope = ops::dot(g.view(), step.view());
         drop(g);

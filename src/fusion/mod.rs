@@ -14,6 +14,7 @@ pub mod observations;
 pub mod ops;
 mod paper;
 pub mod pyramid;
+pub mod shadows;
 pub mod support;
 mod validate;
 
@@ -373,6 +374,21 @@ pub struct FusionParams {
     /// photometric gradient barely sees waves that short, so what the solution holds there is
     /// mostly error (docs/science.md, "The pixel-scale shrink"). 0: off.
     pub nyquist_shrink: f64,
+    /// λ of E_S, the cast shadows' term ([`shadows`]): a pixel an observation sees shadowed
+    /// must lie below the Sun's horizon, one it sees lit past a shadow's end above it; the
+    /// violation is measured in pixels of shadow length. 0 (the default): off; 1 is what
+    /// docs/science.md measured ("Cast shadows"), where it also says why it is not yet the
+    /// default: a tiled run does not yet end where the single window does near shadows.
+    pub shadow_weight: f64,
+    /// τ: pixels of shadow length an E_S ray may be violated by at no cost.
+    pub shadow_tolerance_px: f64,
+    /// E_S's factor on rays at pixels two or more other observations carry.
+    pub shadow_weight_all: f64,
+    /// I/g/Ī_k from which a pixel counts as lit for E_S (the pixels between this and
+    /// `shadow_threshold` are part in shadow and constrain nothing).
+    pub shadow_lit_threshold: f64,
+    /// The longest walk of an E_S ray towards the Sun, pixels.
+    pub shadow_reach_px: usize,
 }
 
 impl Default for FusionParams {
@@ -412,6 +428,11 @@ impl Default for FusionParams {
             dem_track_sigma_px: 9.0,
             coarse_dem_membrane: true,
             nyquist_shrink: 0.75,
+            shadow_weight: 0.0,
+            shadow_tolerance_px: 0.0,
+            shadow_weight_all: 0.1,
+            shadow_lit_threshold: 0.5,
+            shadow_reach_px: 48,
         }
     }
 }
@@ -766,6 +787,14 @@ pub(crate) fn objective<'a, 'p>(
             params.dem_track_sigma_px,
         ),
         params.dem_track_sigma_px,
+    )
+    .with_shadows(
+        params.shadow_weight,
+        params.shadow_tolerance_px,
+        params.shadow_weight_all,
+        params.shadow_threshold,
+        params.shadow_lit_threshold,
+        params.shadow_reach_px,
     ))
 }
 
@@ -1011,6 +1040,7 @@ fn albedo_stages(
         let t0 = Instant::now();
         let rho = albedo_map(pr, &obj.weights, &obj.dct, z.view(), sigma)?;
         obj.set_membrane_weights(z.view(), rho.view(), MembraneRule::of(params));
+        obj.fix_shadow_steps(z.view());
         let last = m + 1 == sigmas.len() && multi_stage.is_none();
         let stage_params = if last || params.solver == SolverKind::Paper {
             params
@@ -1094,6 +1124,7 @@ fn overlap_passes(
         let rho = blend(&maps[0], &maps[1], multi);
         drop(maps);
         obj.set_membrane_weights(z.view(), rho.view(), MembraneRule::of(params));
+        obj.fix_shadow_steps(z.view());
         let pass_params = if pass + 1 < passes && params.solver == SolverKind::Fast {
             &handing_on
         } else {
@@ -1244,6 +1275,7 @@ pub fn solve_fixed_albedo(
 ) -> Result<Vec<IterationRecord>, FusionError> {
     let mut obj = objective(pr, params)?;
     obj.set_membrane_weights(z.view(), rho, MembraneRule::of(params));
+    obj.fix_shadow_steps(z.view());
     Ok(minimise(&obj, z, rho, params, observe))
 }
 

@@ -39,6 +39,7 @@
 use super::blur;
 use super::observations::{self, Weights};
 use super::ops;
+use super::shadows::{self, ShadowState, ShadowTerm};
 use super::support;
 use super::Problem;
 use crate::photometry::ReflectanceModel;
@@ -61,7 +62,10 @@ pub struct Energy {
     /// E_tie (its weight κ(x) is inside).
     #[serde(default)]
     pub tie: f64,
-    /// E_I + δ·E_DEM + η·E_reg + E_tie.
+    /// E_S, the cast shadows' term (its weight λ inside; [`super::shadows`]).
+    #[serde(default)]
+    pub shadow: f64,
+    /// E_I + δ·E_DEM + η·E_reg + E_tie + E_S.
     pub total: f64,
 }
 
@@ -89,6 +93,8 @@ pub struct Photo {
     pub intensity: f64,
     /// True where at least one observation is used.
     pub used: Array2<bool>,
+    /// E_S and its violated rays at the surface (empty without the term).
+    pub shadow: ShadowState,
 }
 
 /// The state at one iterate z.
@@ -179,6 +185,8 @@ pub struct Objective<'a, 'p> {
     pub membrane_relief: Option<Array2<f64>>,
     /// B_k of each observation coarser than the grid ([`super::blur`]); `None`: sharp.
     pub kernels: Vec<Option<blur::Kernel>>,
+    /// E_S, the cast shadows' rays ([`Objective::with_shadows`]).
+    pub shadows: Option<ShadowTerm>,
 }
 
 /// What the Newton operator needs of an observation coarser than the grid: its part of E_I's
@@ -260,7 +268,68 @@ impl<'a, 'p> Objective<'a, 'p> {
             dem_relief: None,
             membrane_relief: None,
             dem_height: 0.0,
+            shadows: None,
         }
+    }
+
+    /// Fixes E_S's steps on `z` for the stage to come ([`ShadowTerm::fix_steps`]).
+    pub fn fix_shadow_steps(&mut self, z: ArrayView2<f64>) {
+        if let Some(t) = &mut self.shadows {
+            t.fix_steps(z);
+        }
+    }
+
+    /// Adds E_S ([`super::shadows`]) of weight λ = `weight`: the rays of every pixel an
+    /// observation sees shadowed (I/g/Ī_k below `threshold`, as the photometric term drops it)
+    /// or lit just past a shadow's end (I/g/Ī_k at least `lit_threshold`), each walked at most
+    /// `reach_px` steps. λ = 0 leaves the energy as it was.
+    pub fn with_shadows(
+        mut self,
+        weight: f64,
+        tolerance: f64,
+        weight_all: f64,
+        threshold: f64,
+        lit_threshold: f64,
+        reach_px: usize,
+    ) -> Self {
+        if weight <= 0.0 || reach_px == 0 {
+            return self;
+        }
+        let w = &self.weights;
+        let own: Vec<f64> = w
+            .noise
+            .iter()
+            .map(|&nu| observations::own_mean(self.scale, nu))
+            .collect();
+        let gains = w.gains.clone();
+        let usable = &w.usable;
+        // Where two or more other observations carry the pixel, its slopes in every direction
+        // are measured and the ray adds mostly its own sub-pixel error.
+        let factor = |k: usize, i: usize, j: usize| {
+            let others = (0..usable.len())
+                .filter(|&m| m != k && usable[m][(i, j)])
+                .count();
+            if others >= 2 {
+                weight_all
+            } else {
+                1.0
+            }
+        };
+        let rays = shadows::rays(
+            self.problem,
+            &|k, v| v / gains[k] / own[k] < threshold,
+            &|k, v| v / gains[k] / own[k] >= lit_threshold,
+            &factor,
+            reach_px,
+        );
+        if !rays.is_empty() {
+            self.shadows = Some(ShadowTerm {
+                rays,
+                weight,
+                tolerance,
+            });
+        }
+        self
     }
 
     /// s: the photometric support, 1 on and near the images' footprint (finite I, shadow
@@ -595,10 +664,15 @@ impl<'a, 'p> Objective<'a, 'p> {
                 .par_for_each(|all, &u| *all |= u);
             obs.push(ph);
         }
+        let shadow = match &self.shadows {
+            Some(t) => t.evaluate(z.view()),
+            None => ShadowState::default(),
+        };
         Photo {
             obs,
             intensity,
             used,
+            shadow,
         }
     }
 
@@ -878,13 +952,15 @@ impl<'a, 'p> Objective<'a, 'p> {
         let intensity = photo.intensity;
         let (dem, membrane) = self.quadratic(z, zh);
         let tie = self.tie_energy(z);
+        let shadow = photo.shadow.energy;
         Energy {
             intensity,
             integrability: 0.0,
             dem,
             membrane,
             tie,
-            total: intensity + self.delta * dem + self.eta * membrane + tie,
+            shadow,
+            total: intensity + self.delta * dem + self.eta * membrane + tie + shadow,
         }
     }
 
@@ -924,6 +1000,10 @@ impl<'a, 'p> Objective<'a, 'p> {
                 .and(z)
                 .and(self.problem.dem)
                 .par_for_each(|g, &k, &z, &d| *g += 2.0 * k * (z - d));
+        }
+        if let Some(t) = &self.shadows {
+            let g = g.as_slice_mut().expect("standard layout");
+            shadows::add_gradient(t.weight, &photo.shadow.rows, g);
         }
         g
     }

@@ -2,7 +2,7 @@
 //! values against its DEM, and every parameter's range ([`validate_params`]), so that a bad
 //! value is refused with its name rather than solved into a silently wrong surface.
 
-use super::{Directions, FusionError, FusionParams, Problem};
+use super::{shadows, Directions, FusionError, FusionParams, Problem};
 
 /// A problem and its parameters, checked together before a fusion: at least one image, each
 /// of the DEM's shape; gains and noise weights, where given, one per observation and positive;
@@ -104,7 +104,44 @@ pub fn validate_params(params: &FusionParams) -> Result<(), FusionError> {
     check_all(solver_controls(params))?;
     check_all(dem_and_membrane(params))?;
     check_all(several_observations(params))?;
+    check_all(cast_shadows(params))?;
     check_stages(params)
+}
+
+/// E_S, the cast shadows' term ([`super::shadows`]).
+fn cast_shadows(params: &FusionParams) -> [Check; 5] {
+    [
+        (
+            "shadow_weight",
+            params.shadow_weight,
+            params.shadow_weight >= 0.0,
+            "must be ≥ 0 (0: off)",
+        ),
+        (
+            "shadow_tolerance_px",
+            params.shadow_tolerance_px,
+            params.shadow_tolerance_px >= 0.0,
+            "must be ≥ 0 pixels of shadow length",
+        ),
+        (
+            "shadow_weight_all",
+            params.shadow_weight_all,
+            (0.0..=1.0).contains(&params.shadow_weight_all),
+            "must be in [0, 1]",
+        ),
+        (
+            "shadow_lit_threshold",
+            params.shadow_lit_threshold,
+            params.shadow_lit_threshold > params.shadow_threshold,
+            "must be above shadow_threshold: a pixel cannot be both shadowed and lit",
+        ),
+        (
+            "shadow_reach_px",
+            params.shadow_reach_px as f64,
+            (1..=shadows::MAX_REACH_PX).contains(&params.shadow_reach_px),
+            "must be in [1, 4096] pixels",
+        ),
+    ]
 }
 
 /// The iteration counts: each must be at least 1.

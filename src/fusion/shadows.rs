@@ -1,0 +1,558 @@
+//! Cast shadows as height constraints (E_S, docs/science.md "Cast shadows").
+//!
+//! A pixel an observation sees in shadow lies below the Sun's horizon: walking from it
+//! towards the Sun, some point of the surface rises above the ray that climbs at the Sun's
+//! elevation e. A pixel seen lit just past a shadow's far end lies above it: no point on the
+//! way back to the rim that cast the shadow rises above its ray. With s the step along the
+//! Sun's azimuth in pixels, Δ the pixel size and z(s) the surface there (bilinear between
+//! pixel centres), the slack of step s is
+//!
+//! σ(s) = z(s) − z(0) − s·Δ·tan e,
+//!
+//! and the violation, in pixels of shadow length, is u = max(0, −max_s σ(s))/(Δ tan e) for a
+//! shadowed pixel and u = max(0, max_s σ(s))/(Δ tan e) for a lit one. E_S = λ·Σ u² over the
+//! rays. The photometric term sees neither: it drops shadowed pixels, and a crater floor in
+//! shadow is then held only by the DEM and the membrane, which leave it too shallow.
+//!
+//! The walk of a ray is bounded by the image itself: the blocker of a shadowed pixel must lie
+//! near the sunward end of the dark run it belongs to, so a ray reaches to the first pixel seen
+//! lit sunward of it plus [`MARGIN_PX`] (at most `reach_px`). A shadowed pixel whose reach
+//! leaves the grid is not constrained: the blocker may lie outside the window.
+
+use super::Problem;
+use ndarray::{Array2, ArrayView2};
+use rayon::prelude::*;
+
+/// Pixels a ray reaches past the first lit pixel sunward of its start.
+pub const MARGIN_PX: usize = 2;
+
+/// The violation, in pixels of shadow length, at which a ray violated where a stage starts
+/// weighs in full for that stage; less violated, it weighs in proportion
+/// ([`ShadowTerm::fix_steps`]).
+pub const ENGAGE_PX: f64 = 2.0;
+
+/// The longest walk `shadow_reach_px` may ask for.
+pub const MAX_REACH_PX: usize = 4096;
+
+/// A Sun higher than this (tan e) casts no shadow a grid pixel can hold.
+const MAX_TAN_ELEVATION: f64 = 20.0;
+
+/// One constrained pixel under one observation's Sun.
+#[derive(Debug, Clone, Copy)]
+pub struct Ray {
+    /// Row and column of the pixel.
+    pub i: u32,
+    pub j: u32,
+    /// Step towards the Sun, in rows and columns per unit step (a unit horizontal vector).
+    pub dr: f32,
+    pub dc: f32,
+    /// Δ·tan e: the ray's rise per unit step, metres.
+    pub rise: f32,
+    /// Steps walked.
+    pub steps: u16,
+    /// Seen lit (the surface must stay under the ray) rather than in shadow.
+    pub lit: bool,
+    /// The ray's share of λ.
+    pub weight: f32,
+    /// The step that casts or clears the shadow, fixed for a stage ([`ShadowTerm::fix_steps`]);
+    /// 0 until then (every step is tried).
+    pub best: u16,
+    /// The ray's share of λ for the stage, from its violation u₀ where its step was fixed:
+    /// min(1, u₀/[`ENGAGE_PX`]), 0 if it was not violated. For that stage the ray is a plain
+    /// quadratic, u² times this (u may turn negative).
+    pub engaged: f32,
+}
+
+/// A violated ray at one surface: u = c·z over five heights (the pixel's and the four around
+/// the step of largest or smallest slack), and its value.
+#[derive(Debug, Clone, Copy)]
+pub struct Row {
+    pub idx: [u32; 5],
+    pub coef: [f32; 5],
+    pub u: f64,
+}
+
+/// E_S's rays and weight.
+#[derive(Debug, Clone)]
+pub struct ShadowTerm {
+    pub rays: Vec<Ray>,
+    pub weight: f64,
+    /// τ, pixels of shadow length a ray may be violated by at no cost.
+    pub tolerance: f64,
+}
+
+/// E_S at one surface: its value λ·Σ u² and the violated rays.
+#[derive(Debug, Clone, Default)]
+pub struct ShadowState {
+    pub energy: f64,
+    pub rows: Vec<Row>,
+}
+
+/// How an image sees a pixel for the rays.
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+enum Seen {
+    Shadow,
+    Dim,
+    Lit,
+    Unseen,
+}
+
+/// The rays of every observation: `shadowed(k, v)` and `lit(k, v)` say whether observation
+/// k's value v is shadow or clearly lit; `reach_px` bounds every walk.
+pub fn rays(
+    pr: &Problem,
+    shadowed: &(dyn Fn(usize, f64) -> bool + Sync),
+    lit: &(dyn Fn(usize, f64) -> bool + Sync),
+    weight: &(dyn Fn(usize, usize, usize) -> f64 + Sync),
+    reach_px: usize,
+) -> Vec<Ray> {
+    let (ny, nx) = pr.dem.dim();
+    let mut out = Vec::new();
+    for (k, o) in pr.observations.iter().enumerate() {
+        let seen = o.image.mapv(|v| {
+            if !v.is_finite() {
+                Seen::Unseen
+            } else if shadowed(k, v) {
+                Seen::Shadow
+            } else if lit(k, v) {
+                Seen::Lit
+            } else {
+                Seen::Dim
+            }
+        });
+        let rows: Vec<Vec<Ray>> = (0..ny)
+            .into_par_iter()
+            .map(|i| {
+                let mut row = Vec::new();
+                for j in 0..nx {
+                    let start = seen[(i, j)];
+                    if start == Seen::Dim || start == Seen::Unseen {
+                        continue;
+                    }
+                    let w = weight(k, i, j);
+                    if w <= 0.0 {
+                        continue;
+                    }
+                    let s = o.sun.at(i, j);
+                    let h = (s[0] * s[0] + s[1] * s[1]).sqrt();
+                    if s[2] <= 0.0 || h <= 0.0 || s[2] / h > MAX_TAN_ELEVATION {
+                        continue;
+                    }
+                    // East is +column, north is −row.
+                    let (dr, dc) = (-s[1] / h, s[0] / h);
+                    if let Some(ray) = walk(&seen, (i, j), (dr, dc), start, reach_px) {
+                        row.push(Ray {
+                            i: i as u32,
+                            j: j as u32,
+                            dr: dr as f32,
+                            dc: dc as f32,
+                            rise: (pr.spacing * s[2] / h) as f32,
+                            steps: ray as u16,
+                            lit: start == Seen::Lit,
+                            weight: w as f32,
+                            best: 0,
+                            engaged: 0.0,
+                        });
+                    }
+                }
+                row
+            })
+            .collect();
+        out.extend(rows.into_iter().flatten());
+    }
+    out
+}
+
+/// The steps a ray from `ij` takes, from the image alone (nearest pixels): a shadowed pixel
+/// reaches the first lit pixel sunward of it plus [`MARGIN_PX`], and is not constrained if
+/// that leaves the grid or `reach_px`; a lit pixel is constrained only if a shadow lies within
+/// [`MARGIN_PX`] + 1 steps sunward of it (it ends that shadow), and reaches the first lit pixel
+/// past the shadow plus the margin, cut at the grid's edge.
+fn walk(
+    seen: &Array2<Seen>,
+    (i, j): (usize, usize),
+    (dr, dc): (f64, f64),
+    start: Seen,
+    reach_px: usize,
+) -> Option<usize> {
+    let (ny, nx) = seen.dim();
+    let at = |s: usize| -> Option<Seen> {
+        let r = (i as f64 + s as f64 * dr).round();
+        let c = (j as f64 + s as f64 * dc).round();
+        if r < 0.0 || c < 0.0 || r > (ny - 1) as f64 || c > (nx - 1) as f64 {
+            None
+        } else {
+            Some(seen[(r as usize, c as usize)])
+        }
+    };
+    if start == Seen::Shadow {
+        for s in 1..=reach_px {
+            match at(s)? {
+                Seen::Lit => {
+                    let end = s + MARGIN_PX;
+                    return (end <= reach_px && at(end).is_some()).then_some(end);
+                }
+                Seen::Unseen => return None,
+                _ => {}
+            }
+        }
+        return None;
+    }
+    // Lit: a shadow within the first MARGIN_PX + 1 steps, then its far end.
+    let mut s = 1;
+    let mut dark = false;
+    while s <= MARGIN_PX + 1 {
+        match at(s)? {
+            Seen::Shadow => {
+                dark = true;
+                break;
+            }
+            Seen::Lit => return None,
+            Seen::Unseen => return None,
+            Seen::Dim => {}
+        }
+        s += 1;
+    }
+    if !dark {
+        return None;
+    }
+    let mut last = s;
+    while s < reach_px {
+        s += 1;
+        match at(s) {
+            None | Some(Seen::Unseen) => return Some(last),
+            Some(Seen::Lit) => return Some((s + MARGIN_PX).min(reach_px)),
+            Some(_) => last = s,
+        }
+    }
+    Some(last)
+}
+
+/// Bilinear weights of (r, c) inside an ny × nx grid: the flat indices of its four pixels and
+/// their weights.
+#[inline]
+fn bilinear(r: f64, c: f64, ny: usize, nx: usize) -> ([u32; 4], [f64; 4]) {
+    let r = r.clamp(0.0, (ny - 1) as f64);
+    let c = c.clamp(0.0, (nx - 1) as f64);
+    let r0 = (r.floor() as usize).min(ny.saturating_sub(2));
+    let c0 = (c.floor() as usize).min(nx.saturating_sub(2));
+    let (fr, fc) = (r - r0 as f64, c - c0 as f64);
+    let r1 = (r0 + 1).min(ny - 1);
+    let c1 = (c0 + 1).min(nx - 1);
+    let idx = [
+        (r0 * nx + c0) as u32,
+        (r0 * nx + c1) as u32,
+        (r1 * nx + c0) as u32,
+        (r1 * nx + c1) as u32,
+    ];
+    let w = [
+        (1.0 - fr) * (1.0 - fc),
+        (1.0 - fr) * fc,
+        fr * (1.0 - fc),
+        fr * fc,
+    ];
+    (idx, w)
+}
+
+/// The step of largest slack σ(s) along `ray` on `zs` (flat, `nx` columns; the first of equal
+/// ones), with its slack, bilinear indices and weights.
+fn best_step(ray: &Ray, zs: &[f64], ny: usize, nx: usize) -> (usize, f64, [u32; 4], [f64; 4]) {
+    let (i, j) = (ray.i as usize, ray.j as usize);
+    let z0 = zs[i * nx + j];
+    let rise = f64::from(ray.rise);
+    let steps = if ray.best > 0 {
+        ray.best as usize..=ray.best as usize
+    } else {
+        1..=ray.steps as usize
+    };
+    let mut best = (0, f64::NEG_INFINITY, [0; 4], [0.0; 4]);
+    for s in steps {
+        let r = i as f64 + s as f64 * f64::from(ray.dr);
+        let c = j as f64 + s as f64 * f64::from(ray.dc);
+        let (idx, w) = bilinear(r, c, ny, nx);
+        let zb: f64 = idx.iter().zip(&w).map(|(&k, &w)| w * zs[k as usize]).sum();
+        let slack = zb - z0 - s as f64 * rise;
+        if slack > best.1 {
+            best = (s, slack, idx, w);
+        }
+    }
+    best
+}
+
+/// u of a ray whose best step has slack `slack`: the violation in pixels of shadow length
+/// less the tolerance (positive: violated).
+fn violation(ray: &Ray, slack: f64, tolerance: f64) -> f64 {
+    let v = if ray.lit { slack } else { -slack };
+    v / f64::from(ray.rise) - tolerance
+}
+
+impl ShadowTerm {
+    /// Fixes, for the stage to come, each ray's step to the one of largest slack on `z`
+    /// (standard layout) and its set: the rays violated there. Within the stage E_S is then a
+    /// fixed quadratic, λ·Σ ω·u² over that set with u linear in z (an active set, renewed at
+    /// every stage as the membrane's weights are). The Gauss–Newton model of E_S is then exact
+    /// and full steps pass the line search as they did without it; with the hinge the model
+    /// missed the rays a step newly violates, the line search halved such steps or not by a
+    /// hair, and a tiled run ended metres from the single window.
+    pub fn fix_steps(&mut self, z: ArrayView2<f64>) {
+        let (ny, nx) = z.dim();
+        let z = z.as_standard_layout();
+        let zs = z.as_slice().expect("standard layout");
+        let tolerance = self.tolerance;
+        self.rays.par_iter_mut().for_each(|ray| {
+            ray.best = 0;
+            let (s, slack, _, _) = best_step(ray, zs, ny, nx);
+            ray.best = s as u16;
+            let u = violation(ray, slack, tolerance);
+            ray.engaged = (u / ENGAGE_PX).clamp(0.0, 1.0) as f32;
+        });
+    }
+
+    /// E_S and its violated rays at surface `z` (standard layout). Rays are evaluated in
+    /// parallel and summed in their order: the result does not depend on the thread count.
+    pub fn evaluate(&self, z: ArrayView2<f64>) -> ShadowState {
+        let (ny, nx) = z.dim();
+        let zs = z.as_slice().expect("standard layout");
+        let rows: Vec<Option<Row>> = self
+            .rays
+            .par_iter()
+            .map(|ray| {
+                let (i, j) = (ray.i as usize, ray.j as usize);
+                let rise = f64::from(ray.rise);
+                let (_, slack, idx, w) = best_step(ray, zs, ny, nx);
+                let u = violation(ray, slack, self.tolerance);
+                let fixed = ray.best > 0;
+                if (fixed && ray.engaged <= 0.0) || (!fixed && u <= 0.0) {
+                    return None;
+                }
+                let share = if fixed {
+                    f64::from(ray.weight) * f64::from(ray.engaged)
+                } else {
+                    f64::from(ray.weight)
+                };
+                // u = v/rise; shadow: v = z0 − zb + c, lit: v = zb − z0 − c.
+                let sign = if ray.lit { 1.0 } else { -1.0 };
+                let k = sign / rise * share.sqrt();
+                Some(Row {
+                    idx: [(i * nx + j) as u32, idx[0], idx[1], idx[2], idx[3]],
+                    coef: [
+                        -k as f32,
+                        (k * w[0]) as f32,
+                        (k * w[1]) as f32,
+                        (k * w[2]) as f32,
+                        (k * w[3]) as f32,
+                    ],
+                    u: u * share.sqrt(),
+                })
+            })
+            .collect();
+        let rows: Vec<Row> = rows.into_iter().flatten().collect();
+        let energy = self.weight * rows.iter().map(|r| r.u * r.u).sum::<f64>();
+        ShadowState { energy, rows }
+    }
+}
+
+/// ∂E_S/∂z = 2λ Σ u·c, added into `g` (flat, standard layout), rows in order.
+pub fn add_gradient(weight: f64, rows: &[Row], g: &mut [f64]) {
+    for r in rows {
+        for (&k, &c) in r.idx.iter().zip(&r.coef) {
+            g[k as usize] += 2.0 * weight * r.u * f64::from(c);
+        }
+    }
+}
+
+/// The Gauss–Newton Hessian of E_S applied to `v`, 2λ Σ c·(c·v), added into `out` (flat).
+pub fn add_normal(weight: f32, rows: &[Row], v: &[f32], out: &mut [f32]) {
+    for r in rows {
+        let s: f32 = r
+            .idx
+            .iter()
+            .zip(&r.coef)
+            .map(|(&k, &c)| c * v[k as usize])
+            .sum();
+        for (&k, &c) in r.idx.iter().zip(&r.coef) {
+            out[k as usize] += 2.0 * weight * c * s;
+        }
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use crate::fusion::Directions;
+    use crate::photometry::Hapke;
+
+    const SPACING: f64 = 100.0;
+    /// Sun 30° above the horizon, from the east.
+    const ELEVATION: f64 = 30.0;
+    const WALL: usize = 25;
+
+    /// A plain at 0 m with a plateau `height` m high from column [`WALL`] east.
+    fn plateau(ny: usize, nx: usize, height: f64) -> Array2<f64> {
+        Array2::from_shape_fn((ny, nx), |(_, j)| if j >= WALL { height } else { 0.0 })
+    }
+
+    /// The image of a 200 m plateau under [`ELEVATION`]: its shadow, H/(Δ tan e) = 3.46 px
+    /// long, covers columns 22–24 (the ray from column 21 clears the plateau's edge at
+    /// 4 px by 200 − 4·57.7 < 0 m); 0 there, 1 elsewhere.
+    fn image(ny: usize, nx: usize) -> Array2<f64> {
+        Array2::from_shape_fn(
+            (ny, nx),
+            |(_, j)| if (22..WALL).contains(&j) { 0.0 } else { 1.0 },
+        )
+    }
+
+    fn term(pr: &Problem) -> ShadowTerm {
+        let rays = rays(pr, &|_, v| v < 0.1, &|_, v| v >= 0.5, &|_, _, _| 1.0, 48);
+        ShadowTerm {
+            rays,
+            weight: 2.0,
+            tolerance: 0.0,
+        }
+    }
+
+    fn problem<'a>(image: &'a Array2<f64>, dem: &'a Array2<f64>, model: &'a Hapke) -> Problem<'a> {
+        Problem::single(
+            image.view(),
+            Directions::Uniform(crate::synth::direction(90.0 - ELEVATION, 90.0)),
+            Directions::Uniform([0.0, 0.0, 1.0]),
+            dem.view(),
+            SPACING,
+            1.5,
+            model,
+        )
+    }
+
+    /// The rays a plateau's shadow gives: one per shadowed pixel, reaching the plateau's
+    /// first lit pixel plus the margin, and one from the lit pixel just before the shadow.
+    #[test]
+    fn a_shadow_gives_a_ray_per_dark_pixel_and_one_at_its_far_end() {
+        let (ny, nx) = (6, 40);
+        let (img, dem) = (image(ny, nx), plateau(ny, nx, 0.0));
+        let model = Hapke::moon();
+        let pr = problem(&img, &dem, &model);
+        let t = term(&pr);
+        assert_eq!(t.rays.len(), 4 * ny);
+        for r in &t.rays {
+            let j = r.j as usize;
+            if r.lit {
+                assert_eq!(j, 21);
+                assert_eq!(r.steps as usize, WALL - j + MARGIN_PX);
+            } else {
+                assert!((22..WALL).contains(&j));
+                assert_eq!(r.steps as usize, WALL - j + MARGIN_PX);
+            }
+            assert!(r.dr.abs() < 1e-6 && (r.dc - 1.0).abs() < 1e-6);
+            let rise = SPACING * ELEVATION.to_radians().tan();
+            assert!((f64::from(r.rise) - rise).abs() < 1e-3 * rise);
+        }
+    }
+
+    /// E_S against the plateau's geometry: 0 on the truth; a floor that casts no shadow
+    /// (the plateau levelled) violates each shadowed ray by exactly one pixel of shadow
+    /// (its best step is the first, where the ray has risen Δ tan e); a plateau twice as high
+    /// violates the lit ray past the shadow by H/(Δ tan e) − 4 pixels (its best step is the
+    /// plateau's edge, 4 px away).
+    #[test]
+    fn the_shadow_term_holds_the_truth_and_measures_violations_in_pixels() {
+        let (ny, nx) = (6, 40);
+        let img = image(ny, nx);
+        let truth = plateau(ny, nx, 200.0);
+        let model = Hapke::moon();
+        let pr = problem(&img, &truth, &model);
+        let t = term(&pr);
+        let at_truth = t.evaluate(truth.view());
+        assert_eq!(at_truth.energy, 0.0);
+        assert!(at_truth.rows.is_empty());
+
+        let flat = plateau(ny, nx, 0.0);
+        let s = t.evaluate(flat.view());
+        assert_eq!(s.rows.len(), 3 * ny);
+        for r in &s.rows {
+            assert!((r.u - 1.0).abs() < 1e-5, "{}", r.u);
+        }
+        assert!((s.energy - 2.0 * (3 * ny) as f64).abs() < 1e-3);
+
+        let high = 400.0;
+        let s = t.evaluate(plateau(ny, nx, high).view());
+        let expected = high / (SPACING * ELEVATION.to_radians().tan()) - 4.0;
+        assert_eq!(s.rows.len(), ny);
+        for r in &s.rows {
+            assert!((r.u - expected).abs() < 1e-4, "{} against {expected}", r.u);
+        }
+    }
+
+    /// A surface between the plateau's: some rays violated, at generic steps.
+    fn rough(ny: usize, nx: usize) -> Array2<f64> {
+        Array2::from_shape_fn((ny, nx), |(i, j)| {
+            let base = if j >= WALL { 120.0 } else { 0.0 };
+            base + 15.0 * (0.7 * i as f64 + 0.3 * j as f64).sin() + 3.0 * j as f64
+        })
+    }
+
+    /// ∂E_S/∂z against central differences of E_S, and the Gauss–Newton Hessian applied to a
+    /// vector against the change of the gradient along it (E_S is quadratic in z while its
+    /// active rays and their best steps stay the same).
+    #[test]
+    fn the_gradient_and_hessian_match_finite_differences() {
+        let (ny, nx) = (6, 40);
+        let img = image(ny, nx);
+        let z = rough(ny, nx);
+        let model = Hapke::moon();
+        let pr = problem(&img, &z, &model);
+        let t = term(&pr);
+        let s = t.evaluate(z.view());
+        assert!(!s.rows.is_empty());
+        let mut g = vec![0.0; ny * nx];
+        add_gradient(t.weight, &s.rows, &mut g);
+        let h = 1e-4;
+        for (k, &gk) in g.iter().enumerate() {
+            let mut zp = z.clone();
+            zp.as_slice_mut().unwrap()[k] += h;
+            let mut zm = z.clone();
+            zm.as_slice_mut().unwrap()[k] -= h;
+            let num = (t.evaluate(zp.view()).energy - t.evaluate(zm.view()).energy) / (2.0 * h);
+            assert!(
+                (gk - num).abs() < 1e-6 + 1e-5 * num.abs(),
+                "{k}: {gk} against {num}"
+            );
+        }
+        let v: Vec<f32> = (0..ny * nx).map(|k| ((k * 7) % 11) as f32 - 5.0).collect();
+        let mut hv = vec![0f32; ny * nx];
+        add_normal(t.weight as f32, &s.rows, &v, &mut hv);
+        let step = 1e-3;
+        let shifted = |sign: f64| {
+            let zs = Array2::from_shape_fn((ny, nx), |(i, j)| {
+                z[(i, j)] + sign * step * f64::from(v[i * nx + j])
+            });
+            let mut g = vec![0.0; ny * nx];
+            add_gradient(t.weight, &t.evaluate(zs.view()).rows, &mut g);
+            g
+        };
+        let (gp, gm) = (shifted(1.0), shifted(-1.0));
+        for (k, (&h, (p, m))) in hv.iter().zip(gp.iter().zip(&gm)).enumerate() {
+            let num = (p - m) / (2.0 * step);
+            assert!(
+                (f64::from(h) - num).abs() < 1e-4 * (1.0 + num.abs()),
+                "{k}: {h} against {num}"
+            );
+        }
+        // With each ray's step fixed on z, the rays violated there stay, each weighing
+        // min(1, u/ENGAGE_PX): E_S at z is λ·Σ min(1, u/ENGAGE_PX)·u².
+        let mut fixed = t.clone();
+        fixed.fix_steps(z.view());
+        assert!(fixed.rays.iter().all(|r| r.best >= 1 && r.best <= r.steps));
+        let engaged = fixed.evaluate(z.view());
+        assert_eq!(engaged.rows.len(), s.rows.len());
+        let expected: f64 = s
+            .rows
+            .iter()
+            .map(|r| t.weight * (r.u / ENGAGE_PX).min(1.0) * r.u * r.u)
+            .sum();
+        assert!(
+            (engaged.energy - expected).abs() < 1e-6 * expected,
+            "{} against {expected}",
+            engaged.energy
+        );
+    }
+}
