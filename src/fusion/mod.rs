@@ -376,9 +376,8 @@ pub struct FusionParams {
     pub nyquist_shrink: f64,
     /// λ of E_S, the cast shadows' term ([`shadows`]): a pixel an observation sees shadowed
     /// must lie below the Sun's horizon, one it sees lit past a shadow's end above it; the
-    /// violation is measured in pixels of shadow length. 0 (the default): off; 1 is what
-    /// docs/science.md measured ("Cast shadows"), where it also says why it is not yet the
-    /// default: a tiled run does not yet end where the single window does near shadows.
+    /// violation is measured in pixels of shadow length (docs/science.md, "Cast shadows").
+    /// 0: off.
     pub shadow_weight: f64,
     /// τ: pixels of shadow length an E_S ray may be violated by at no cost.
     pub shadow_tolerance_px: f64,
@@ -428,7 +427,7 @@ impl Default for FusionParams {
             dem_track_sigma_px: 9.0,
             coarse_dem_membrane: true,
             nyquist_shrink: 0.75,
-            shadow_weight: 0.0,
+            shadow_weight: 1.0,
             shadow_tolerance_px: 0.0,
             shadow_weight_all: 0.1,
             shadow_lit_threshold: 0.5,

@@ -14,6 +14,11 @@
 //! rays. The photometric term sees neither: it drops shadowed pixels, and a crater floor in
 //! shadow is then held only by the DEM and the membrane, which leave it too shallow.
 //!
+//! Within a stage E_S is a fixed quadratic ([`ShadowTerm::fix_steps`]): each ray's step is
+//! fixed where the stage starts, and a ray violated there by u₀ weighs min(1, u₀/[`ENGAGE_PX`])
+//! for the stage, u free to turn negative. The stage's energy is then a continuous function of
+//! the surface it starts from, so that a tile ends where the whole region does.
+//!
 //! The walk of a ray is bounded by the image itself: the blocker of a shadowed pixel must lie
 //! near the sunward end of the dark run it belongs to, so a ray reaches to the first pixel seen
 //! lit sunward of it plus [`MARGIN_PX`] (at most `reach_px`). A shadowed pixel whose reach
@@ -29,7 +34,7 @@ pub const MARGIN_PX: usize = 2;
 /// The violation, in pixels of shadow length, at which a ray violated where a stage starts
 /// weighs in full for that stage; less violated, it weighs in proportion
 /// ([`ShadowTerm::fix_steps`]).
-pub const ENGAGE_PX: f64 = 2.0;
+pub const ENGAGE_PX: f64 = 4.0;
 
 /// The longest walk `shadow_reach_px` may ask for.
 pub const MAX_REACH_PX: usize = 4096;
