@@ -101,7 +101,7 @@ struct Normal<'o, 'a, 'p> {
     fixed: &'o Fixed,
     /// The observations coarser than the grid ([`blurred_normal_add`]).
     blurred: &'o [BlurTerm],
-    /// E_S's violated rays at the iterate ([`shadows::add_normal`]).
+    /// The rays E_S holds at the iterate ([`shadows::add_normal`]).
     shadow_rows: &'o [shadows::Row],
     fixed_mean: bool,
     v: Array2<f32>,

@@ -93,7 +93,8 @@ pub struct Photo {
     pub intensity: f64,
     /// True where at least one observation is used.
     pub used: Array2<bool>,
-    /// E_S and its violated rays at the surface (empty without the term).
+    /// E_S and the rays it holds at the surface: those engaged for the stage, or before any
+    /// stage the violated ones (empty without the term).
     pub shadow: ShadowState,
 }
 
@@ -272,7 +273,8 @@ impl<'a, 'p> Objective<'a, 'p> {
         }
     }
 
-    /// Fixes E_S's steps on `z` for the stage to come ([`ShadowTerm::fix_steps`]).
+    /// Fixes E_S's steps and engaged rays on `z` for the stage to come
+    /// ([`ShadowTerm::fix_steps`]).
     pub fn fix_shadow_steps(&mut self, z: ArrayView2<f64>) {
         if let Some(t) = &mut self.shadows {
             t.fix_steps(z);
@@ -282,7 +284,9 @@ impl<'a, 'p> Objective<'a, 'p> {
     /// Adds E_S ([`super::shadows`]) of weight λ = `weight`: the rays of every pixel an
     /// observation sees shadowed (I/g/Ī_k below `threshold`, as the photometric term drops it)
     /// or lit just past a shadow's end (I/g/Ī_k at least `lit_threshold`), each walked at most
-    /// `reach_px` steps. λ = 0 leaves the energy as it was.
+    /// `reach_px` steps, forgiven `tolerance` pixels of shadow length, and weighing
+    /// `weight_all` instead of 1 where two or more other observations carry the pixel.
+    /// λ = 0 leaves the energy as it was.
     pub fn with_shadows(
         mut self,
         weight: f64,

@@ -68,8 +68,8 @@ pub struct Ray {
     pub engaged: f32,
 }
 
-/// A violated ray at one surface: u = c·z over five heights (the pixel's and the four around
-/// the step of largest or smallest slack), and its value.
+/// A ray E_S holds at one surface: u = c·z over five heights (the pixel's and the four around
+/// the step of largest slack), and its value.
 #[derive(Debug, Clone, Copy)]
 pub struct Row {
     pub idx: [u32; 5],
@@ -86,7 +86,8 @@ pub struct ShadowTerm {
     pub tolerance: f64,
 }
 
-/// E_S at one surface: its value λ·Σ u² and the violated rays.
+/// E_S at one surface: its value λ·Σ ω·u² and the rays that hold it (engaged for the stage, or
+/// before any stage the violated ones).
 #[derive(Debug, Clone, Default)]
 pub struct ShadowState {
     pub energy: f64,
@@ -313,8 +314,9 @@ impl ShadowTerm {
         });
     }
 
-    /// E_S and its violated rays at surface `z` (standard layout). Rays are evaluated in
-    /// parallel and summed in their order: the result does not depend on the thread count.
+    /// E_S and the rays that hold it at surface `z` (standard layout; [`ShadowState`]). Rays
+    /// are evaluated in parallel and summed in their order: the result does not depend on the
+    /// thread count.
     pub fn evaluate(&self, z: ArrayView2<f64>) -> ShadowState {
         let (ny, nx) = z.dim();
         let zs = z.as_slice().expect("standard layout");
