@@ -1038,8 +1038,7 @@ fn albedo_stages(
     for (m, &sigma) in sigmas.iter().enumerate() {
         let t0 = Instant::now();
         let rho = albedo_map(pr, &obj.weights, &obj.dct, z.view(), sigma)?;
-        obj.set_membrane_weights(z.view(), rho.view(), MembraneRule::of(params));
-        obj.fix_shadow_steps(z.view());
+        obj.begin_stage(z.view(), rho.view(), MembraneRule::of(params));
         let last = m + 1 == sigmas.len() && multi_stage.is_none();
         let stage_params = if last || params.solver == SolverKind::Paper {
             params
@@ -1122,8 +1121,7 @@ fn overlap_passes(
         )?;
         let rho = blend(&maps[0], &maps[1], multi);
         drop(maps);
-        obj.set_membrane_weights(z.view(), rho.view(), MembraneRule::of(params));
-        obj.fix_shadow_steps(z.view());
+        obj.begin_stage(z.view(), rho.view(), MembraneRule::of(params));
         let pass_params = if pass + 1 < passes && params.solver == SolverKind::Fast {
             &handing_on
         } else {
@@ -1273,8 +1271,7 @@ pub fn solve_fixed_albedo(
     observe: &mut dyn FnMut(&Energy),
 ) -> Result<Vec<IterationRecord>, FusionError> {
     let mut obj = objective(pr, params)?;
-    obj.set_membrane_weights(z.view(), rho, MembraneRule::of(params));
-    obj.fix_shadow_steps(z.view());
+    obj.begin_stage(z.view(), rho, MembraneRule::of(params));
     Ok(minimise(&obj, z, rho, params, observe))
 }
 

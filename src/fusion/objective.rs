@@ -273,9 +273,11 @@ impl<'a, 'p> Objective<'a, 'p> {
         }
     }
 
-    /// Fixes E_S's steps and engaged rays on `z` for the stage to come
+    /// What stays fixed through the stage that starts from surface `z` with albedo `rho`: the
+    /// membrane's weights ([`Objective::set_membrane_weights`]) and E_S's steps and engaged rays
     /// ([`ShadowTerm::fix_steps`]).
-    pub fn fix_shadow_steps(&mut self, z: ArrayView2<f64>) {
+    pub fn begin_stage(&mut self, z: ArrayView2<f64>, rho: ArrayView2<f64>, m: MembraneRule) {
+        self.set_membrane_weights(z, rho, m);
         if let Some(t) = &mut self.shadows {
             t.fix_steps(z);
         }
@@ -321,8 +323,8 @@ impl<'a, 'p> Objective<'a, 'p> {
         };
         let rays = shadows::rays(
             self.problem,
-            &|k, v| v / gains[k] / own[k] < threshold,
-            &|k, v| v / gains[k] / own[k] >= lit_threshold,
+            &|k, v| observations::image_shadowed(v, gains[k], own[k], threshold),
+            &|k, v| !observations::image_shadowed(v, gains[k], own[k], lit_threshold),
             &factor,
             reach_px,
         );
@@ -1469,16 +1471,7 @@ mod tests {
             sun: Directions::Uniform(crate::synth::direction(45.0, 220.0)),
             view: Directions::Uniform(crate::synth::direction(0.0, 0.0)),
         });
-        let w = crate::fusion::observations::weights(
-            &pr,
-            vec![1.0, 1.0],
-            0.2,
-            None,
-            0.0,
-            0.0,
-            (1.0, 1.0),
-        );
-        let mut obj = Objective::new(&pr, 3.0, 0.2, 1.2, 1.5, 0.2, w);
+        let mut obj = Objective::new(&pr, 3.0, 0.2, 1.2, 1.5, 0.2, weights_of(&pr, 0.2));
         let rho = Array2::from_elem((ny, nx), 0.5);
         let c = obj.weights.multiplicity();
         let s = obj.level_stiffness(rho.view(), &c);

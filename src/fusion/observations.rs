@@ -307,7 +307,7 @@ pub fn edge_weights(footprints: &[Array2<bool>], width: f64) -> Vec<Array2<f64>>
 /// image, several times darker than a high Sun's, would have its lit slopes facing away from
 /// the Sun taken for shadow. [`weights`] leaves such pixels out of E_I;
 /// [`shadow_edge_factors`] looks at their neighbours.
-fn image_shadowed(v: f64, gain: f64, own_mean: f64, threshold: f64) -> bool {
+pub(crate) fn image_shadowed(v: f64, gain: f64, own_mean: f64, threshold: f64) -> bool {
     v / gain / own_mean < threshold
 }
 
