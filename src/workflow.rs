@@ -294,7 +294,7 @@ pub struct Tiling {
     pub tile_size: usize,
     /// Overlap on each side, pixels; absent = [`auto_halo`]: ⌈4 × the largest Gaussian σ⌉ a
     /// tile applies (the fine albedo stages, σ_DEM, the DEM's point spread), at least
-    /// [`MIN_HALO`].
+    /// [`MIN_HALO`] and, with cast shadows on, 4/3 of their rays' reach.
     pub halo: Option<usize>,
     /// Half-width, pixels, of the band around each core edge where neighbouring tiles are
     /// blended; at most the halo. Absent = halo / 4.
@@ -748,7 +748,9 @@ pub const MIN_HALO: usize = 32;
 /// window. It also covers the photometric support band (3 σ_DEM,
 /// [`crate::fusion::support::band`]). With a coarse reference (`reference`,
 /// [`crate::fusion::pyramid`]) the first albedo stage is the plan's, solved over the whole
-/// region, and does not count.
+/// region, and does not count. With cast shadows on (`shadow_weight` > 0) it is also at least
+/// ⌈4/3 × `shadow_reach_px`⌉: every pixel a tile gives the mosaic (≥ 3/4 halo inside the
+/// window) then has its whole ray inside the window, as it does on the whole region.
 pub fn auto_halo(p: &FusionParams, dem_psf: f64, reference: bool) -> usize {
     let dem = p
         .sigma_dem
@@ -769,7 +771,12 @@ pub fn auto_halo(p: &FusionParams, dem_psf: f64, reference: bool) -> usize {
         .copied()
         .chain([p.final_albedo_sigma, dem, tracks])
         .fold(0.0f64, f64::max);
-    ((4.0 * largest).ceil() as usize).max(MIN_HALO)
+    let rays = if p.shadow_weight > 0.0 {
+        (4 * p.shadow_reach_px).div_ceil(3)
+    } else {
+        0
+    };
+    ((4.0 * largest).ceil() as usize).max(MIN_HALO).max(rays)
 }
 
 #[cfg(test)]
@@ -923,6 +930,12 @@ directory = "out"
         let psf = crate::fusion::dem_psf_sigma(4.0);
         assert_eq!(auto_halo(&o.solver, psf, false), 400);
         assert_eq!(auto_halo(&o.solver, psf, true), 40);
+        // Rays of cast shadows longer than 3/4 of that widen it: 60 px → 80 px.
+        let mut longer = o.solver.clone();
+        longer.shadow_reach_px = 60;
+        assert_eq!(auto_halo(&longer, psf, true), 80);
+        longer.shadow_weight = 0.0;
+        assert_eq!(auto_halo(&longer, psf, true), 40);
         let given = MINIMAL.replace("[output]", "[solver]\nsigma_dem = 5.0\n[output]");
         let Workflow::Orbital(g) =
             Workflow::parse(&given, Path::new("w.toml"), Path::new(".")).unwrap()

@@ -386,7 +386,8 @@ pub struct FusionParams {
     /// I/g/Ī_k from which a pixel counts as lit for E_S (the pixels between this and
     /// `shadow_threshold` are part in shadow and constrain nothing).
     pub shadow_lit_threshold: f64,
-    /// The longest walk of an E_S ray towards the Sun, pixels.
+    /// The longest walk of an E_S ray towards the Sun, pixels (a `run`'s halo is at least 4/3
+    /// of it, `workflow::auto_halo`).
     pub shadow_reach_px: usize,
 }
 
@@ -431,7 +432,7 @@ impl Default for FusionParams {
             shadow_tolerance_px: 0.0,
             shadow_weight_all: 0.1,
             shadow_lit_threshold: 0.5,
-            shadow_reach_px: 48,
+            shadow_reach_px: 24,
         }
     }
 }

@@ -14,10 +14,16 @@
 //! rays. The photometric term sees neither: it drops shadowed pixels, and a crater floor in
 //! shadow is then held only by the DEM and the membrane, which leave it too shallow.
 //!
-//! Within a stage E_S is a fixed quadratic ([`ShadowTerm::fix_steps`]): each ray's step is
-//! fixed where the stage starts, and a ray violated there by u₀ weighs min(1, u₀/[`ENGAGE_PX`])
-//! for the stage, u free to turn negative. The stage's energy is then a continuous function of
-//! the surface it starts from, so that a tile ends where the whole region does.
+//! The step that casts (or clears) the shadow is chosen softly: the slack of a ray is the mean
+//! of its steps' slacks weighted by π_s ∝ exp((σ(s) − max σ)/(T·Δ tan e)), T =
+//! [`STEP_SOFTNESS_PX`], so that where two steps' slacks cross the ray's constraint moves from
+//! one blocker to the other continuously rather than at once.
+//!
+//! Within a stage E_S is a fixed quadratic ([`ShadowTerm::fix_steps`]): each ray's step weights
+//! π_s are fixed where the stage starts, and a ray violated there by u₀ weighs
+//! min(1, u₀/[`ENGAGE_PX`]) for the stage, u free to turn negative. The stage's energy is then a
+//! continuous function of the surface it starts from, so that a tile ends where the whole
+//! region does.
 //!
 //! The walk of a ray is bounded by the image itself: the blocker of a shadowed pixel must lie
 //! near the sunward end of the dark run it belongs to, so a ray reaches to the first pixel seen
@@ -36,6 +42,16 @@ pub const MARGIN_PX: usize = 2;
 /// ([`ShadowTerm::fix_steps`]).
 pub const ENGAGE_PX: f64 = 4.0;
 
+/// T, the softness of a ray's choice of step, in pixels of shadow length: a step whose slack
+/// lies d·Δ tan e below the largest weighs e^(−d/T) as much. With the step chosen outright (the
+/// largest slack alone), a step whose slack overtook another's between a tile's start and the
+/// whole region's moved the ray's constraint to another blocker, and weakly held shadowed
+/// pixels ended metres apart (docs/science.md, "Cast shadows").
+pub const STEP_SOFTNESS_PX: f64 = 0.25;
+
+/// Steps weighing less than this fraction of the heaviest are left out of a ray (e^(−9.2)).
+const STEP_CUT: f64 = 9.2;
+
 /// The longest walk `shadow_reach_px` may ask for.
 pub const MAX_REACH_PX: usize = 4096;
 
@@ -43,7 +59,7 @@ pub const MAX_REACH_PX: usize = 4096;
 const MAX_TAN_ELEVATION: f64 = 20.0;
 
 /// One constrained pixel under one observation's Sun.
-#[derive(Debug, Clone, Copy)]
+#[derive(Debug, Clone)]
 pub struct Ray {
     /// Row and column of the pixel.
     pub i: u32,
@@ -59,21 +75,21 @@ pub struct Ray {
     pub lit: bool,
     /// The ray's share of λ.
     pub weight: f32,
-    /// The step that casts or clears the shadow, fixed for a stage ([`ShadowTerm::fix_steps`]);
-    /// 0 until then (every step is tried).
-    pub best: u16,
-    /// The ray's share of λ for the stage, from its violation u₀ where its step was fixed:
+    /// The steps that cast or clear the shadow and their weights π_s (summing to 1), fixed for
+    /// a stage ([`ShadowTerm::fix_steps`]); empty until then (they follow the surface).
+    pub picks: Vec<(u16, f32)>,
+    /// The ray's share of λ for the stage, from its violation u₀ where its steps were fixed:
     /// min(1, u₀/[`ENGAGE_PX`]), 0 if it was not violated. For that stage the ray is a plain
     /// quadratic, u² times this (u may turn negative).
     pub engaged: f32,
 }
 
-/// A ray E_S holds at one surface: u = c·z over five heights (the pixel's and the four around
-/// the step of largest slack), and its value.
-#[derive(Debug, Clone, Copy)]
+/// A ray E_S holds at one surface: u = c·z over the heights it reads (the pixel's, then the
+/// four around each of its steps), and its value.
+#[derive(Debug, Clone)]
 pub struct Row {
-    pub idx: [u32; 5],
-    pub coef: [f32; 5],
+    pub idx: Vec<u32>,
+    pub coef: Vec<f32>,
     pub u: f64,
 }
 
@@ -156,7 +172,7 @@ pub fn rays(
                             steps: ray as u16,
                             lit: start == Seen::Lit,
                             weight: w as f32,
-                            best: 0,
+                            picks: Vec::new(),
                             engaged: 0.0,
                         });
                     }
@@ -260,32 +276,70 @@ fn bilinear(r: f64, c: f64, ny: usize, nx: usize) -> ([u32; 4], [f64; 4]) {
     (idx, w)
 }
 
-/// The step of largest slack σ(s) along `ray` on `zs` (flat, `nx` columns; the first of equal
-/// ones), with its slack, bilinear indices and weights.
-fn best_step(ray: &Ray, zs: &[f64], ny: usize, nx: usize) -> (usize, f64, [u32; 4], [f64; 4]) {
+/// The slack σ(s) = z(s) − z(0) − s·Δ·tan e of step `s` along `ray` on `zs` (flat, `nx`
+/// columns), with the bilinear indices and weights of z(s).
+fn slack_at(
+    ray: &Ray,
+    zs: &[f64],
+    (ny, nx): (usize, usize),
+    s: usize,
+) -> (f64, [u32; 4], [f64; 4]) {
     let (i, j) = (ray.i as usize, ray.j as usize);
-    let z0 = zs[i * nx + j];
-    let rise = f64::from(ray.rise);
-    let steps = if ray.best > 0 {
-        ray.best as usize..=ray.best as usize
-    } else {
-        1..=ray.steps as usize
-    };
-    let mut best = (0, f64::NEG_INFINITY, [0; 4], [0.0; 4]);
-    for s in steps {
-        let r = i as f64 + s as f64 * f64::from(ray.dr);
-        let c = j as f64 + s as f64 * f64::from(ray.dc);
-        let (idx, w) = bilinear(r, c, ny, nx);
-        let zb: f64 = idx.iter().zip(&w).map(|(&k, &w)| w * zs[k as usize]).sum();
-        let slack = zb - z0 - s as f64 * rise;
-        if slack > best.1 {
-            best = (s, slack, idx, w);
-        }
-    }
-    best
+    let r = i as f64 + s as f64 * f64::from(ray.dr);
+    let c = j as f64 + s as f64 * f64::from(ray.dc);
+    let (idx, w) = bilinear(r, c, ny, nx);
+    let zb: f64 = idx.iter().zip(&w).map(|(&k, &w)| w * zs[k as usize]).sum();
+    (zb - zs[i * nx + j] - s as f64 * f64::from(ray.rise), idx, w)
 }
 
-/// u of a ray whose best step has slack `slack`: the violation in pixels of shadow length
+/// The step weights π_s of `ray` on `zs`: e^((σ(s) − max σ)/(T·Δ tan e)) over its steps
+/// (T = [`STEP_SOFTNESS_PX`]), normalised to sum 1, the steps below e^(−[`STEP_CUT`]) of the
+/// heaviest left out.
+fn step_weights(ray: &Ray, zs: &[f64], dim: (usize, usize)) -> Vec<(u16, f32)> {
+    let slacks: Vec<f64> = (1..=ray.steps as usize)
+        .map(|s| slack_at(ray, zs, dim, s).0)
+        .collect();
+    let top = slacks.iter().copied().fold(f64::NEG_INFINITY, f64::max);
+    let scale = STEP_SOFTNESS_PX * f64::from(ray.rise);
+    let kept: Vec<(u16, f64)> = slacks
+        .iter()
+        .enumerate()
+        .map(|(k, &sl)| ((k + 1) as u16, (sl - top) / scale))
+        .filter(|&(_, x)| x > -STEP_CUT)
+        .map(|(s, x)| (s, x.exp()))
+        .collect();
+    let total: f64 = kept.iter().map(|p| p.1).sum();
+    kept.into_iter()
+        .map(|(s, p)| (s, (p / total) as f32))
+        .collect()
+}
+
+/// The weighted slack Σ π_s σ(s) of `ray` over `picks` on `zs`, and its derivatives: the
+/// heights it reads (the pixel's, then the four around each step) with their coefficients.
+fn weighted_slack(
+    ray: &Ray,
+    picks: &[(u16, f32)],
+    zs: &[f64],
+    dim: (usize, usize),
+) -> (f64, Vec<u32>, Vec<f64>) {
+    let mut idx = Vec::with_capacity(1 + 4 * picks.len());
+    let mut coef = Vec::with_capacity(1 + 4 * picks.len());
+    idx.push((ray.i as usize * dim.1 + ray.j as usize) as u32);
+    coef.push(0.0);
+    let (mut slack, mut total) = (0.0, 0.0);
+    for &(s, p) in picks {
+        let p = f64::from(p);
+        let (sl, ix, w) = slack_at(ray, zs, dim, s as usize);
+        slack += p * sl;
+        total += p;
+        idx.extend(ix);
+        coef.extend(w.iter().map(|w| p * w));
+    }
+    coef[0] = -total;
+    (slack, idx, coef)
+}
+
+/// u of a ray whose (weighted) slack is `slack`: the violation in pixels of shadow length
 /// less the tolerance (positive: violated).
 fn violation(ray: &Ray, slack: f64, tolerance: f64) -> f64 {
     let v = if ray.lit { slack } else { -slack };
@@ -293,8 +347,8 @@ fn violation(ray: &Ray, slack: f64, tolerance: f64) -> f64 {
 }
 
 impl ShadowTerm {
-    /// Fixes, for the stage to come, each ray's step to the one of largest slack on `z`
-    /// (standard layout) and its set: the rays violated there. Within the stage E_S is then a
+    /// Fixes, for the stage to come, each ray's step weights π_s on `z` (standard layout;
+    /// [`STEP_SOFTNESS_PX`]) and its set: the rays violated there. Within the stage E_S is then a
     /// fixed quadratic, λ·Σ ω·u² over that set with u linear in z (an active set, renewed at
     /// every stage as the membrane's weights are). The Gauss–Newton model of E_S is then exact
     /// and full steps pass the line search as they did without it; with the hinge the model
@@ -306,9 +360,8 @@ impl ShadowTerm {
         let zs = z.as_slice().expect("standard layout");
         let tolerance = self.tolerance;
         self.rays.par_iter_mut().for_each(|ray| {
-            ray.best = 0;
-            let (s, slack, _, _) = best_step(ray, zs, ny, nx);
-            ray.best = s as u16;
+            ray.picks = step_weights(ray, zs, (ny, nx));
+            let (slack, _, _) = weighted_slack(ray, &ray.picks, zs, (ny, nx));
             let u = violation(ray, slack, tolerance);
             ray.engaged = (u / ENGAGE_PX).clamp(0.0, 1.0) as f32;
         });
@@ -324,12 +377,18 @@ impl ShadowTerm {
             .rays
             .par_iter()
             .map(|ray| {
-                let (i, j) = (ray.i as usize, ray.j as usize);
+                let fixed = !ray.picks.is_empty();
+                if fixed && ray.engaged <= 0.0 {
+                    return None;
+                }
                 let rise = f64::from(ray.rise);
-                let (_, slack, idx, w) = best_step(ray, zs, ny, nx);
+                let (slack, idx, coef) = if fixed {
+                    weighted_slack(ray, &ray.picks, zs, (ny, nx))
+                } else {
+                    weighted_slack(ray, &step_weights(ray, zs, (ny, nx)), zs, (ny, nx))
+                };
                 let u = violation(ray, slack, self.tolerance);
-                let fixed = ray.best > 0;
-                if (fixed && ray.engaged <= 0.0) || (!fixed && u <= 0.0) {
+                if !fixed && u <= 0.0 {
                     return None;
                 }
                 let share = if fixed {
@@ -341,14 +400,8 @@ impl ShadowTerm {
                 let sign = if ray.lit { 1.0 } else { -1.0 };
                 let k = sign / rise * share.sqrt();
                 Some(Row {
-                    idx: [(i * nx + j) as u32, idx[0], idx[1], idx[2], idx[3]],
-                    coef: [
-                        -k as f32,
-                        (k * w[0]) as f32,
-                        (k * w[1]) as f32,
-                        (k * w[2]) as f32,
-                        (k * w[3]) as f32,
-                    ],
+                    idx,
+                    coef: coef.iter().map(|c| (k * c) as f32).collect(),
                     u: u * share.sqrt(),
                 })
             })
@@ -455,11 +508,24 @@ mod tests {
         }
     }
 
+    /// The step weights' mean of n·e^(−n/T) over n = 0, 1, 2, … (the steps' slacks falling by
+    /// one pixel of shadow each; those beyond [`STEP_CUT`]·T left out).
+    fn soft_excess() -> f64 {
+        let t = STEP_SOFTNESS_PX;
+        let kept: Vec<f64> = (0..)
+            .map(f64::from)
+            .take_while(|n| n / t < STEP_CUT)
+            .collect();
+        let w: f64 = kept.iter().map(|n| (-n / t).exp()).sum();
+        kept.iter().map(|n| n * (-n / t).exp()).sum::<f64>() / w
+    }
+
     /// E_S against the plateau's geometry: 0 on the truth; a floor that casts no shadow
-    /// (the plateau levelled) violates each shadowed ray by exactly one pixel of shadow
-    /// (its best step is the first, where the ray has risen Δ tan e); a plateau twice as high
-    /// violates the lit ray past the shadow by H/(Δ tan e) − 4 pixels (its best step is the
-    /// plateau's edge, 4 px away).
+    /// (the plateau levelled) violates each shadowed ray by one pixel of shadow at its best
+    /// step, the first, where the ray has risen Δ tan e, and the next steps, each a pixel
+    /// more, weigh e^(−1/T): 1 + [`soft_excess`]; a plateau twice as high violates the lit ray
+    /// past the shadow by H/(Δ tan e) − 4 pixels at the plateau's edge, 4 px away, its next
+    /// steps each a pixel less: H/(Δ tan e) − 4 − [`soft_excess`].
     #[test]
     fn the_shadow_term_holds_the_truth_and_measures_violations_in_pixels() {
         let (ny, nx) = (6, 40);
@@ -475,14 +541,15 @@ mod tests {
         let flat = plateau(ny, nx, 0.0);
         let s = t.evaluate(flat.view());
         assert_eq!(s.rows.len(), 3 * ny);
+        let u = 1.0 + soft_excess();
         for r in &s.rows {
-            assert!((r.u - 1.0).abs() < 1e-5, "{}", r.u);
+            assert!((r.u - u).abs() < 1e-5, "{} against {u}", r.u);
         }
-        assert!((s.energy - 2.0 * (3 * ny) as f64).abs() < 1e-3);
+        assert!((s.energy - 2.0 * (3 * ny) as f64 * u * u).abs() < 1e-3);
 
         let high = 400.0;
         let s = t.evaluate(plateau(ny, nx, high).view());
-        let expected = high / (SPACING * ELEVATION.to_radians().tan()) - 4.0;
+        let expected = high / (SPACING * ELEVATION.to_radians().tan()) - 4.0 - soft_excess();
         assert_eq!(s.rows.len(), ny);
         for r in &s.rows {
             assert!((r.u - expected).abs() < 1e-4, "{} against {expected}", r.u);
@@ -497,9 +564,9 @@ mod tests {
         })
     }
 
-    /// ∂E_S/∂z against central differences of E_S, and the Gauss–Newton Hessian applied to a
-    /// vector against the change of the gradient along it (E_S is quadratic in z while its
-    /// active rays and their best steps stay the same).
+    /// ∂E_S/∂z against central differences of E_S with the rays fixed for a stage, and the
+    /// Gauss–Newton Hessian applied to a vector against the change of the gradient along it
+    /// (E_S is then quadratic in z).
     #[test]
     fn the_gradient_and_hessian_match_finite_differences() {
         let (ny, nx) = (6, 40);
@@ -507,8 +574,30 @@ mod tests {
         let z = rough(ny, nx);
         let model = Hapke::moon();
         let pr = problem(&img, &z, &model);
-        let t = term(&pr);
+        let free = term(&pr);
+        // With each ray's step weights fixed on z, the rays violated there stay, each weighing
+        // min(1, u/ENGAGE_PX): E_S at z is λ·Σ min(1, u/ENGAGE_PX)·u².
+        let unfixed = free.evaluate(z.view());
+        let mut t = free.clone();
+        t.fix_steps(z.view());
+        assert!(t.rays.iter().all(|r| {
+            let total: f32 = r.picks.iter().map(|p| p.1).sum();
+            !r.picks.is_empty()
+                && r.picks.iter().all(|p| p.0 >= 1 && p.0 <= r.steps)
+                && (total - 1.0).abs() < 1e-5
+        }));
         let s = t.evaluate(z.view());
+        assert_eq!(s.rows.len(), unfixed.rows.len());
+        let expected: f64 = unfixed
+            .rows
+            .iter()
+            .map(|r| t.weight * (r.u / ENGAGE_PX).min(1.0) * r.u * r.u)
+            .sum();
+        assert!(
+            (s.energy - expected).abs() < 1e-6 * expected,
+            "{} against {expected}",
+            s.energy
+        );
         assert!(!s.rows.is_empty());
         let mut g = vec![0.0; ny * nx];
         add_gradient(t.weight, &s.rows, &mut g);
@@ -544,22 +633,5 @@ mod tests {
                 "{k}: {h} against {num}"
             );
         }
-        // With each ray's step fixed on z, the rays violated there stay, each weighing
-        // min(1, u/ENGAGE_PX): E_S at z is λ·Σ min(1, u/ENGAGE_PX)·u².
-        let mut fixed = t.clone();
-        fixed.fix_steps(z.view());
-        assert!(fixed.rays.iter().all(|r| r.best >= 1 && r.best <= r.steps));
-        let engaged = fixed.evaluate(z.view());
-        assert_eq!(engaged.rows.len(), s.rows.len());
-        let expected: f64 = s
-            .rows
-            .iter()
-            .map(|r| t.weight * (r.u / ENGAGE_PX).min(1.0) * r.u * r.u)
-            .sum();
-        assert!(
-            (engaged.energy - expected).abs() < 1e-6 * expected,
-            "{} against {expected}",
-            engaged.energy
-        );
     }
 }
