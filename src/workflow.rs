@@ -741,6 +741,13 @@ fn validate_layers(layers: &[Layer]) -> std::result::Result<(), String> {
 /// stay wider than the coarse reference's blocks.
 pub const MIN_HALO: usize = 32;
 
+/// The smallest halo where several observations are used, pixels. Where Suns overlap E_DEM
+/// weighs 0.2 δ and the membrane turns edge-aware, so the height part of E_DEM (ℓ =
+/// `dem_height_length_px`, 30 px) screens the window's edge less than where one image is used:
+/// with 40 px, tiles of 128 px ended 0.13–0.18 × the RMSE from the whole region at hundreds of
+/// pixels; with 80 px, 0.05–0.08 × (docs/science.md, "Tiles").
+pub const MIN_HALO_SEVERAL: usize = 80;
+
 /// ⌈4 × the largest Gaussian σ a tile applies⌉ (its albedo stages, final albedo, σ_DEM
 /// combined with the DEM's point spread `dem_psf`, and with the track weighting's σ_t along
 /// the columns), at least [`MIN_HALO`] pixels: with the
@@ -750,8 +757,9 @@ pub const MIN_HALO: usize = 32;
 /// [`crate::fusion::pyramid`]) the first albedo stage is the plan's, solved over the whole
 /// region, and does not count. With cast shadows on (`shadow_weight` > 0) it is also at least
 /// ⌈4/3 × `shadow_reach_px`⌉: every pixel a tile gives the mosaic (≥ 3/4 halo inside the
-/// window) then has its whole ray inside the window, as it does on the whole region.
-pub fn auto_halo(p: &FusionParams, dem_psf: f64, reference: bool) -> usize {
+/// window) then has its whole ray inside the window, as it does on the whole region. With
+/// `several` observations listed it is at least [`MIN_HALO_SEVERAL`].
+pub fn auto_halo(p: &FusionParams, dem_psf: f64, reference: bool, several: bool) -> usize {
     let dem = p
         .sigma_dem
         .hypot(dem_psf)
@@ -776,7 +784,8 @@ pub fn auto_halo(p: &FusionParams, dem_psf: f64, reference: bool) -> usize {
     } else {
         0
     };
-    ((4.0 * largest).ceil() as usize).max(MIN_HALO).max(rays)
+    let least = if several { MIN_HALO_SEVERAL } else { MIN_HALO };
+    ((4.0 * largest).ceil() as usize).max(least).max(rays)
 }
 
 #[cfg(test)]
@@ -928,14 +937,17 @@ directory = "out"
         assert_eq!(o.tiling.halo, None);
         assert!(!o.sigma_dem_given);
         let psf = crate::fusion::dem_psf_sigma(4.0);
-        assert_eq!(auto_halo(&o.solver, psf, false), 400);
-        assert_eq!(auto_halo(&o.solver, psf, true), 40);
+        assert_eq!(auto_halo(&o.solver, psf, false, false), 400);
+        assert_eq!(auto_halo(&o.solver, psf, true, false), 40);
+        // Several observations: at least 80 px.
+        assert_eq!(auto_halo(&o.solver, psf, true, true), 80);
+        assert_eq!(auto_halo(&o.solver, psf, false, true), 400);
         // Rays of cast shadows longer than 3/4 of that widen it: 60 px → 80 px.
         let mut longer = o.solver.clone();
         longer.shadow_reach_px = 60;
-        assert_eq!(auto_halo(&longer, psf, true), 80);
+        assert_eq!(auto_halo(&longer, psf, true, false), 80);
         longer.shadow_weight = 0.0;
-        assert_eq!(auto_halo(&longer, psf, true), 40);
+        assert_eq!(auto_halo(&longer, psf, true, false), 40);
         let given = MINIMAL.replace("[output]", "[solver]\nsigma_dem = 5.0\n[output]");
         let Workflow::Orbital(g) =
             Workflow::parse(&given, Path::new("w.toml"), Path::new(".")).unwrap()

@@ -560,7 +560,12 @@ pub(super) fn plan(
     let membrane = membrane_note(params, dem_psf_sigma, inputs.obs.len());
     let reference_factor = super::reference::factor(&grid, params);
     let halo = o.tiling.halo.unwrap_or_else(|| {
-        crate::workflow::auto_halo(params, dem_psf_sigma, reference_factor.is_some())
+        crate::workflow::auto_halo(
+            params,
+            dem_psf_sigma,
+            reference_factor.is_some(),
+            inputs.obs.len() > 1,
+        )
     });
     let tiles = layout_tiles(o, &grid, halo)?;
     let blend = o.tiling.blend.unwrap_or(halo / 4).min(halo);
