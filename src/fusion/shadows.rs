@@ -369,7 +369,10 @@ impl ShadowTerm {
 
     /// E_S and the rays that hold it at surface `z` (standard layout; [`ShadowState`]). Rays
     /// are evaluated in parallel and summed in their order: the result does not depend on the
-    /// thread count.
+    /// thread count. Before any stage has fixed them ([`Self::fix_steps`]), a ray's step
+    /// weights are taken on `z` itself and its rows treat them as constants: the value is E_S
+    /// at `z`, the rows its gradient only where the weights do not move (the solvers evaluate
+    /// E_S only within stages).
     pub fn evaluate(&self, z: ArrayView2<f64>) -> ShadowState {
         let (ny, nx) = z.dim();
         let zs = z.as_slice().expect("standard layout");
