@@ -1537,6 +1537,32 @@ fn several_observations_tile_without_seams() {
     std::fs::remove_dir_all(&dir).unwrap();
 }
 
+/// `p` run through `run` on one 512-px tile and on tiles of 128 px, the DEM's point spread as
+/// the plan estimates it (as `synth`'s products are run): the RMSE of the one tile, the largest
+/// difference between the two, and the halo the plan chose for the tiles.
+fn small_tiles_against_one(dir: &Path, p: &sfsfuse::synth::products::Products) -> (f64, f64, u64) {
+    let mut dems = Vec::new();
+    let mut halo = 0;
+    for tile in [512, 128] {
+        let out = dir.join(format!("out-{tile}"));
+        let text = workflow(p, &out, tile, "")
+            .replace(
+                r#"layers = ["dem", "albedo", "residual", "mask", "input_dem"]"#,
+                r#"layers = ["dem"]"#,
+            )
+            .replace("dem_psf_sigma_px = 3.0\n", "");
+        let wf = write_workflow(dir, &text);
+        run_ok(&["run", "--progress", "quiet"], &wf);
+        let rec: serde_json::Value =
+            serde_json::from_slice(&std::fs::read(out.join("run.json")).unwrap()).unwrap();
+        halo = rec["halo"].as_u64().unwrap();
+        dems.push(read_tiff(&out.join("dem.tif")).unwrap().data);
+    }
+    let truth = read_tiff(&p.truth_dem).unwrap().data;
+    let all = rmse(&dems[0], &truth);
+    (all, largest_difference(&dems[0], &dems[1]), halo)
+}
+
 /// Cast shadows on small tiles: the 512² scene of seed 3 under one Sun (105/30), which casts
 /// shadows a few pixels long, in tiles of 128 px against one tile. With each ray's step chosen
 /// outright (its largest slack alone) a shadowed crater-wall pixel ended 15.6 m apart (1.8 ×
@@ -1545,23 +1571,7 @@ fn several_observations_tile_without_seams() {
 #[test]
 fn cast_shadows_on_small_tiles_end_where_the_whole_region_does() {
     let (dir, p) = observation_products(512, 3, (&[(105.0, 30.0)], &[], false), "shadow-tiles");
-    let mut dems = Vec::new();
-    for tile in [512, 128] {
-        let out = dir.join(format!("out-{tile}"));
-        // The DEM's point spread as the plan estimates it (as `synth`'s products are run).
-        let text = workflow(&p, &out, tile, "")
-            .replace(
-                r#"layers = ["dem", "albedo", "residual", "mask", "input_dem"]"#,
-                r#"layers = ["dem"]"#,
-            )
-            .replace("dem_psf_sigma_px = 3.0\n", "");
-        let wf = write_workflow(&dir, &text);
-        run_ok(&["run", "--progress", "quiet"], &wf);
-        dems.push(read_tiff(&out.join("dem.tif")).unwrap().data);
-    }
-    let truth = read_tiff(&p.truth_dem).unwrap().data;
-    let all = rmse(&dems[0], &truth);
-    let worst = largest_difference(&dems[0], &dems[1]);
+    let (all, worst, _) = small_tiles_against_one(&dir, &p);
     eprintln!("one Sun, 128-px tiles: RMSE {all:.2} m, largest difference {worst:.3} m");
     assert!(worst < 0.1 * all, "tiled vs single tile: {worst:.3} m");
     std::fs::remove_dir_all(&dir).unwrap();
@@ -1576,26 +1586,9 @@ fn cast_shadows_on_small_tiles_end_where_the_whole_region_does() {
 fn several_observations_on_small_tiles_end_where_the_whole_region_does() {
     let suns = [(45.0, 30.0), (135.0, 30.0)];
     let (dir, p) = observation_products(512, 4, (&suns, &[], false), "several-tiles");
-    let mut dems = Vec::new();
-    for tile in [512, 128] {
-        let out = dir.join(format!("out-{tile}"));
-        let text = workflow(&p, &out, tile, "")
-            .replace(
-                r#"layers = ["dem", "albedo", "residual", "mask", "input_dem"]"#,
-                r#"layers = ["dem"]"#,
-            )
-            .replace("dem_psf_sigma_px = 3.0\n", "");
-        let wf = write_workflow(&dir, &text);
-        run_ok(&["run", "--progress", "quiet"], &wf);
-        let rec: serde_json::Value =
-            serde_json::from_slice(&std::fs::read(out.join("run.json")).unwrap()).unwrap();
-        assert_eq!(rec["halo"], 80);
-        dems.push(read_tiff(&out.join("dem.tif")).unwrap().data);
-    }
-    let truth = read_tiff(&p.truth_dem).unwrap().data;
-    let all = rmse(&dems[0], &truth);
-    let worst = largest_difference(&dems[0], &dems[1]);
+    let (all, worst, halo) = small_tiles_against_one(&dir, &p);
     eprintln!("two Suns, 128-px tiles: RMSE {all:.2} m, largest difference {worst:.3} m");
+    assert_eq!(halo, 80);
     assert!(worst < 0.1 * all, "tiled vs single tile: {worst:.3} m");
     std::fs::remove_dir_all(&dir).unwrap();
 }
