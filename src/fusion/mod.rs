@@ -383,6 +383,10 @@ pub struct FusionParams {
     pub shadow_tolerance_px: f64,
     /// E_S's factor on rays at pixels two or more other observations carry.
     pub shadow_weight_all: f64,
+    /// E_S's factor on rays at pixels no other observation sees (one observation alone, or
+    /// where strips do not overlap). A single ray per pixel made tiled runs end metres from
+    /// the whole region under low Suns (docs/science.md, "Cast shadows"); 0: none there.
+    pub shadow_weight_alone: f64,
     /// I/g/Ī_k from which a pixel counts as lit for E_S (the pixels between this and
     /// `shadow_threshold` are part in shadow and constrain nothing).
     pub shadow_lit_threshold: f64,
@@ -431,6 +435,7 @@ impl Default for FusionParams {
             shadow_weight: 1.0,
             shadow_tolerance_px: 0.0,
             shadow_weight_all: 0.1,
+            shadow_weight_alone: 0.0,
             shadow_lit_threshold: 0.5,
             shadow_reach_px: 24,
         }
@@ -791,7 +796,7 @@ pub(crate) fn objective<'a, 'p>(
     .with_shadows(
         params.shadow_weight,
         params.shadow_tolerance_px,
-        params.shadow_weight_all,
+        (params.shadow_weight_all, params.shadow_weight_alone),
         params.shadow_threshold,
         params.shadow_lit_threshold,
         params.shadow_reach_px,

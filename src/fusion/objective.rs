@@ -287,13 +287,13 @@ impl<'a, 'p> Objective<'a, 'p> {
     /// observation sees shadowed (I/g/Ī_k below `threshold`, as the photometric term drops it)
     /// or lit just past a shadow's end (I/g/Ī_k at least `lit_threshold`), each walked at most
     /// `reach_px` steps, forgiven `tolerance` pixels of shadow length, and weighing
-    /// `weight_all` instead of 1 where two or more other observations carry the pixel.
-    /// λ = 0 leaves the energy as it was.
+    /// `weight_all` instead of 1 where two or more other observations carry the pixel and
+    /// `weight_alone` where no other observation sees it. λ = 0 leaves the energy as it was.
     pub fn with_shadows(
         mut self,
         weight: f64,
         tolerance: f64,
-        weight_all: f64,
+        (weight_all, weight_alone): (f64, f64),
         threshold: f64,
         lit_threshold: f64,
         reach_px: usize,
@@ -309,13 +309,22 @@ impl<'a, 'p> Objective<'a, 'p> {
             .collect();
         let gains = w.gains.clone();
         let usable = &w.usable;
+        let observations = &self.problem.observations;
         // Where two or more other observations carry the pixel, its slopes in every direction
-        // are measured and the ray adds mostly its own sub-pixel error.
+        // are measured and the ray adds mostly its own sub-pixel error. Where no other
+        // observation sees it (lit or not), its ray is the only one: under a low Sun the
+        // surface there then ended metres apart on a tile and on the whole region.
         let factor = |k: usize, i: usize, j: usize| {
+            let seen = observations
+                .iter()
+                .enumerate()
+                .any(|(m, o)| m != k && o.image[(i, j)].is_finite());
             let others = (0..usable.len())
                 .filter(|&m| m != k && usable[m][(i, j)])
                 .count();
-            if others >= 2 {
+            if !seen {
+                weight_alone
+            } else if others >= 2 {
                 weight_all
             } else {
                 1.0

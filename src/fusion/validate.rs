@@ -109,7 +109,7 @@ pub fn validate_params(params: &FusionParams) -> Result<(), FusionError> {
 }
 
 /// E_S, the cast shadows' term ([`super::shadows`]).
-fn cast_shadows(params: &FusionParams) -> [Check; 5] {
+fn cast_shadows(params: &FusionParams) -> [Check; 6] {
     [
         (
             "shadow_weight",
@@ -127,6 +127,12 @@ fn cast_shadows(params: &FusionParams) -> [Check; 5] {
             "shadow_weight_all",
             params.shadow_weight_all,
             (0.0..=1.0).contains(&params.shadow_weight_all),
+            "must be in [0, 1]",
+        ),
+        (
+            "shadow_weight_alone",
+            params.shadow_weight_alone,
+            (0.0..=1.0).contains(&params.shadow_weight_alone),
             "must be in [0, 1]",
         ),
         (
