@@ -1899,11 +1899,14 @@ fn gains_drifting_along_the_track_are_followed() {
 /// drift would: the first's from none at its first line to 6 px (840 m) east at its last, the
 /// second's to 3 px (420 m) south. The plan registers each on two segments along the track
 /// (the first against the DEM, the second relative to the first, moved back by its own drift),
-/// finds every segment's displacement at its middle line, and the pair comes within 15 % of the
+/// finds every segment's displacement at its middle line, and the pair comes within 20 % of the
 /// pair in place (what is left is the estimate's own bias against the DEM, 0.2–0.3 px here:
-/// 5.29 against 4.72 m, 1.12×; 1.08× before the pixel-scale shrink, which takes 4.6 % off the
-/// pair in place and 1 % off the registered one, whose remaining error is that bias's, at the
-/// craters' scale rather than the pixel's). Left as they are the pair is at 20.8 m against
+/// 5.20 against 4.50 m, 1.16×; 1.12× before the shadows' coverage of the regularisers
+/// (`multi_shadow_coverage`), which takes 4.7 % off the pair in place and 1.7 % off the
+/// registered one, whose shadows lie the bias away from where the other image sees the floor;
+/// 1.08× before the pixel-scale shrink, which takes 4.6 % off the pair in place and 1 % off the
+/// registered one, whose remaining error is that bias's, at the craters' scale rather than the
+/// pixel's). Left as they are the pair is at 20.8 m against
 /// 5.00 m; one translation per observation, the displacement at the middle, leaves ±3 px at the
 /// ends (docs/science.md, "Registration").
 #[test]
@@ -1943,7 +1946,7 @@ fn a_displacement_drifting_along_the_strip_is_followed() {
         }
     }
     assert!(
-        e_reg <= 1.15 * e_base,
+        e_reg <= 1.2 * e_base,
         "registered {e_reg:.2} m against {e_base:.2} m in place"
     );
     std::fs::remove_dir_all(&dir).unwrap();

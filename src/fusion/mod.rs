@@ -341,6 +341,16 @@ pub struct FusionParams {
     /// a fixed η holds the surface to the DEM's gradients (docs/science.md, "Several
     /// observations").
     pub multi_eta_stiffness: f64,
+    /// κ: an observation that sees a pixel in shadow counts as κ of an observation towards
+    /// the membrane's multi-coverage (one that carries a pixel next to its own shadow, where
+    /// the shadow-edge factor lowers its weight, counts in full), scaled down as the
+    /// observations carrying the pixel cleanly measure slope more firmly
+    /// ([`observations::ShadowCover`], [`objective::Objective::set_membrane_weights`]). A low
+    /// Sun's shadowed crater floors, which a high Sun alone carries, then take the membrane of
+    /// two observations instead of being flattened as under one (docs/science.md, "A low
+    /// and a high Sun"). 0 turns it off; under two low Suns it changes nothing; with
+    /// `multi_eta_stiffness` = 0 it is off.
+    pub multi_shadow_coverage: f64,
     /// The first albedo stage is solved on the grid block-averaged by this factor and its
     /// correction z − z_DEM interpolated back ([`pyramid`]); 1 solves it on the full grid.
     pub coarse_factor: usize,
@@ -426,6 +436,7 @@ impl Default for FusionParams {
             multi_eta_factor: 8.0,
             multi_edge_membrane_slope: 0.01,
             multi_eta_stiffness: 4.0,
+            multi_shadow_coverage: 0.7,
             coarse_factor: 4,
             dem_height_length_px: 30.0,
             dem_track_weight: 0.1,
@@ -778,6 +789,11 @@ pub(crate) fn objective<'a, 'p>(
         pr.dem_psf_sigma,
         scale,
         w,
+    )
+    .with_shadow_cover(
+        params.multi_shadow_coverage,
+        (params.shadow_threshold, params.edge_ramp_px),
+        params.multi_eta_stiffness,
     )
     .with_multi_delta(
         params.multi_delta_factor,

@@ -184,6 +184,9 @@ pub struct Objective<'a, 'p> {
     /// r_η(x) = 1 − ω(x): the membrane's weight at x is η·ω(x)
     /// ([`Objective::set_membrane_weights`]); `None`: η everywhere.
     pub membrane_relief: Option<Array2<f64>>,
+    /// c_R(x), the multi-coverage of the regularisers where it differs from c(x)
+    /// ([`Objective::with_shadow_cover`]); `None`: c(x) of [`Weights::multiplicity`].
+    pub coverage: Option<Array2<f64>>,
     /// B_k of each observation coarser than the grid ([`super::blur`]); `None`: sharp.
     pub kernels: Vec<Option<blur::Kernel>>,
     /// E_S, the cast shadows' rays ([`Objective::with_shadows`]).
@@ -268,6 +271,7 @@ impl<'a, 'p> Objective<'a, 'p> {
                 .collect(),
             dem_relief: None,
             membrane_relief: None,
+            coverage: None,
             dem_height: 0.0,
             shadows: None,
         }
@@ -449,7 +453,7 @@ impl<'a, 'p> Objective<'a, 'p> {
         if m.slope <= 0.0 && !multi {
             return;
         }
-        let c = self.weights.multiplicity();
+        let c = self.regulariser_coverage();
         // a(x), only where the stiffness rule is on and observations overlap (1 elsewhere).
         let a = (m.stiffness > 0.0 && c.iter().any(|&c| c > 0.0)).then(|| {
             let s = self.level_stiffness(rho, &c);
@@ -471,6 +475,33 @@ impl<'a, 'p> Objective<'a, 'p> {
         }
     }
 
+    /// Σ_k u_k·|∇ ln R_k|² at pixel `ij` on a level surface of albedo `rho` over the
+    /// observations `k` for which `include(k)` holds ([`Objective::level_stiffness`]).
+    fn stiffness_at(&self, ij: (usize, usize), rho: f64, include: impl Fn(usize) -> bool) -> f64 {
+        let pr = self.problem;
+        let w = &self.weights;
+        let mut s = 0.0;
+        for (k, ((o, wk), &nu)) in pr
+            .observations
+            .iter()
+            .zip(&w.weight)
+            .zip(&w.noise)
+            .enumerate()
+        {
+            let u = f64::from(wk[ij]) / nu;
+            if u <= 0.0 || !include(k) {
+                continue;
+            }
+            let sh = pr
+                .model
+                .shade(0.0, 0.0, rho, &o.sun.at(ij.0, ij.1), &o.view.at(ij.0, ij.1));
+            if sh.r > 0.0 {
+                s += u * ((sh.dr_dp / sh.r).powi(2) + (sh.dr_dq / sh.r).powi(2));
+            }
+        }
+        s
+    }
+
     /// The photometric stiffness of a level surface, S(x) = Σ_k u_k(x)·|∇ ln R_k|², where
     /// c(x) > 0 (0 elsewhere): ∇ the derivative in the slopes (p, q) at p = q = 0 under the
     /// pixel's own Sun and view and albedo ρ(x), u_k = w_k/ν_k the edge ramp, incidence taper
@@ -479,28 +510,13 @@ impl<'a, 'p> Objective<'a, 'p> {
     /// in units of relative brightness: ≈ 2.6 for two Suns 30–35° above the horizon, ≈ 0.3
     /// for two at 55–60°. An observation that would see the level surface unlit adds nothing.
     pub fn level_stiffness(&self, rho: ArrayView2<f64>, c: &Array2<f64>) -> Array2<f64> {
-        let pr = self.problem;
-        let w = &self.weights;
         Zip::indexed(c)
             .and(rho)
             .par_map_collect(|(i, j), &c, &rho| {
                 if c <= 0.0 {
                     return 0.0;
                 }
-                let mut s = 0.0;
-                for ((o, wk), &nu) in pr.observations.iter().zip(&w.weight).zip(&w.noise) {
-                    let u = f64::from(wk[(i, j)]) / nu;
-                    if u <= 0.0 {
-                        continue;
-                    }
-                    let sh = pr
-                        .model
-                        .shade(0.0, 0.0, rho, &o.sun.at(i, j), &o.view.at(i, j));
-                    if sh.r > 0.0 {
-                        s += u * ((sh.dr_dp / sh.r).powi(2) + (sh.dr_dq / sh.r).powi(2));
-                    }
-                }
-                s
+                self.stiffness_at((i, j), rho, |_| true)
             })
     }
 
@@ -518,6 +534,72 @@ impl<'a, 'p> Objective<'a, 'p> {
             .map_collect(|&z, &d| z - d)
     }
 
+    /// Let an observation that sees a pixel shadowed, or next to its own shadow, count towards
+    /// the multi-coverage of the regularisers (the membrane's rule and δ·f): c_R = c + (1 −
+    /// a_c)·x, c of [`Weights::multiplicity`], x the extra coverage of
+    /// [`observations::shadow_cover`] (κ = `kappa`) and a_c = min(1, √(S_c/S₀)), S_c the
+    /// photometric stiffness of a level surface ([`Objective::level_stiffness`]) over only the
+    /// observations that carry the pixel away from their own shadows, at the albedo inverted
+    /// on the input DEM, S₀ = `stiffness`. Where those observations measure slope firmly (a
+    /// Sun 20° high: a_c = 1) c_R = c exactly; where they barely do (one Sun 60° high,
+    /// a_c ≈ 0.2) the pixel takes most of the regularisation of two observations. Nothing
+    /// changes with S₀ = 0 or κ = 0. Call it before [`Objective::with_multi_delta`].
+    pub fn with_shadow_cover(
+        mut self,
+        kappa: f64,
+        (threshold, edge_ramp_px): (f64, f64),
+        stiffness: f64,
+    ) -> Self {
+        if stiffness <= 0.0 {
+            return self;
+        }
+        let Some(cover) = observations::shadow_cover(
+            self.problem,
+            &self.weights,
+            self.scale,
+            (threshold, edge_ramp_px),
+            kappa,
+        ) else {
+            return self;
+        };
+        // The albedo of each pixel on the input DEM (where none inverts, the mean of those
+        // that do): S_c's albedo, as the stages' stiffness takes each stage's.
+        let (rho, ok, _) =
+            observations::invert_albedo(self.problem, &self.weights, self.problem.dem, 1.0);
+        let (sum, count) =
+            Zip::from(&rho).and(&ok).fold(
+                (0.0, 0usize),
+                |(s, n), &r, &k| if k { (s + r, n + 1) } else { (s, n) },
+            );
+        let mean = if count > 0 { sum / count as f64 } else { 0.0 };
+        let mut c = self.weights.multiplicity();
+        Zip::indexed(&mut c)
+            .and(&cover.extra)
+            .and(&rho)
+            .and(&ok)
+            .par_for_each(|(i, j), c, &x, &r, &k| {
+                if x <= 0.0 {
+                    return;
+                }
+                let r = if k { r } else { mean };
+                let s = self.stiffness_at((i, j), r, |k| cover.clean[k][(i, j)]);
+                if s > 0.0 {
+                    *c += (1.0 - (s / stiffness).min(1.0)) * x;
+                }
+            });
+        self.coverage = Some(c);
+        self
+    }
+
+    /// The multi-coverage of the regularisers: c_R where [`Objective::with_shadow_cover`] set
+    /// it, c(x) of [`Weights::multiplicity`] otherwise.
+    pub fn regulariser_coverage(&self) -> Array2<f64> {
+        match &self.coverage {
+            Some(c) => c.clone(),
+            None => self.weights.multiplicity(),
+        }
+    }
+
     /// Lower the DEM term's weight to δ·f(x) where several observations carry a pixel,
     /// blended by their multi-coverage c(x): δ(x) = δ·(1 − (1 − f(x))·c(x)), f(x) = the
     /// smaller of `factor` − (`factor` − `factor_all`)·φ(x) and `factor` − (`factor` −
@@ -529,7 +611,7 @@ impl<'a, 'p> Objective<'a, 'p> {
     /// which cast few shadows, more so (docs/science.md, "Several observations"). No effect
     /// where one observation carries a pixel.
     pub fn with_multi_delta(mut self, factor: f64, factor_all: f64, factor_high_sun: f64) -> Self {
-        let c = self.weights.multiplicity();
+        let c = self.regulariser_coverage();
         if factor < 1.0 && c.iter().any(|&c| c > 0.0) {
             let phi = (factor_all < factor && self.weights.weight.len() > 2)
                 .then(|| observations::every_direction(self.problem, &self.weights, &c));
@@ -1510,6 +1592,66 @@ mod tests {
             );
             assert_eq!(r[(3, 5)], 0.0, "one observation keeps η");
         }
+    }
+
+    /// The regularisers' coverage where one observation sees a block shadowed and another
+    /// carries it, against the closed form for Lambert (S_c = tan² i of the clean carrier,
+    /// whatever the albedo): c_R = c + (1 − min(1, S_c/S₀))·κ on the block. Under a Sun 60°
+    /// high (tan² 30° = 1/3) the block takes 0.7·(1 − 1/12) of an observation; under one 20°
+    /// high (tan² 70° = 7.5 ≥ S₀ = 4) nothing changes anywhere; nor with S₀ = 0.
+    #[test]
+    fn a_shadow_carried_by_a_high_sun_takes_the_coverage_of_two_observations() {
+        let n = 16;
+        let dem = Array2::zeros((n, n));
+        let a = Array2::from_shape_fn((n, n), |(i, j)| {
+            if (6..9).contains(&i) && (6..9).contains(&j) {
+                1e-4
+            } else {
+                0.2
+            }
+        });
+        let b = Array2::from_elem((n, n), 0.2);
+        let model = crate::photometry::Lambert;
+        let coverage = |zenith_b: f64, stiffness: f64| {
+            let mut pr = Problem::single(
+                a.view(),
+                Directions::Uniform(crate::synth::direction(60.0, 100.0)),
+                Directions::Uniform(crate::synth::direction(0.0, 0.0)),
+                dem.view(),
+                100.0,
+                0.0,
+                &model,
+            );
+            pr.observations.push(crate::fusion::Observation {
+                image: b.view(),
+                sun: Directions::Uniform(crate::synth::direction(zenith_b, 250.0)),
+                view: Directions::Uniform(crate::synth::direction(0.0, 0.0)),
+            });
+            let w = crate::fusion::observations::weights(
+                &pr,
+                vec![1.0, 1.0],
+                0.2,
+                None,
+                0.1,
+                0.0,
+                (0.25, 0.1),
+            );
+            let obj = Objective::new(&pr, 3.0, 0.2, 1.2, 0.0, 0.2, w).with_shadow_cover(
+                0.7,
+                (0.1, 0.0),
+                stiffness,
+            );
+            (obj.regulariser_coverage(), obj.weights.multiplicity())
+        };
+        let (high, c) = coverage(30.0, 4.0);
+        let want = 0.7 * (1.0 - 30f64.to_radians().tan().powi(2) / 4.0);
+        assert_eq!(c[(7, 7)], 0.0);
+        assert!((high[(7, 7)] - want).abs() < 1e-9, "{}", high[(7, 7)]);
+        assert_eq!(high[(1, 1)], c[(1, 1)]);
+        let (low, c) = coverage(70.0, 4.0);
+        assert_eq!(low, c);
+        let (off, c) = coverage(30.0, 0.0);
+        assert_eq!(off, c);
     }
 
     /// With the edge-aware membrane's per-pixel weights (and the plain, weaker membrane where

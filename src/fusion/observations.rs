@@ -391,6 +391,95 @@ pub fn shadow_edge_factors(
     }
 }
 
+/// Where an observation sees a pixel in shadow, or next to its own shadow, the pixel is still
+/// one it sees: a shadow bounds the heights ([`super::shadows`]), and the pixel next to one is
+/// left to the other observations only because the model has no partial shadow. The membrane
+/// counts such an observation towards its multi-coverage, so that a crater floor a low Sun
+/// shadows and a high Sun alone carries is not flattened as under one observation
+/// ([`super::objective::Objective::set_membrane_weights`]; docs/science.md, "A low and a high
+/// Sun").
+#[derive(Debug, Clone)]
+pub struct ShadowCover {
+    /// max(0, c_full − c) at the pixels some observation sees shadowed or carries within one
+    /// pixel of its own shadow, 0 elsewhere: c_full = min(1, Σ_k u'_k/max_{k carrying} u'_k
+    /// − 1), u'_k = e_k·τ_k (edge ramp and incidence taper, without the shadow-edge factor)
+    /// where k carries the pixel (w_k > 0), κ·e_k·τ_k where k sees it shadowed (within the
+    /// incidence selection), c the multi-coverage of [`Weights::multiplicity`].
+    pub extra: Array2<f64>,
+    /// Where observation k carries the pixel away from its own shadows (w_k > 0, not within
+    /// one pixel of one): the observations whose photometric stiffness decides how much of
+    /// `extra` the membrane takes.
+    pub clean: Vec<Array2<bool>>,
+}
+
+/// The [`ShadowCover`] of a problem with weights `w`, Ī = `scale`, the shadow threshold and
+/// edge ramp width `(threshold, edge_ramp_px)` of [`weights`] and κ = `kappa`. `None` with
+/// one observation, κ = 0, or where no pixel gains coverage.
+pub fn shadow_cover(
+    pr: &Problem,
+    w: &Weights,
+    scale: f64,
+    (threshold, edge_ramp_px): (f64, f64),
+    kappa: f64,
+) -> Option<ShadowCover> {
+    let n = pr.observations.len();
+    if n < 2 || kappa <= 0.0 {
+        return None;
+    }
+    let own_means: Vec<f64> = w.noise.iter().map(|&nu| own_mean(scale, nu)).collect();
+    let near: Vec<Array2<bool>> = pr
+        .observations
+        .iter()
+        .zip(&w.gains)
+        .zip(&own_means)
+        .map(|((o, &g), &m)| near_shadow(o, g, m, threshold))
+        .collect();
+    let footprints: Vec<Array2<bool>> = pr
+        .observations
+        .iter()
+        .map(|o| o.image.mapv(f64::is_finite))
+        .collect();
+    let edges = edge_weights(&footprints, edge_ramp_px);
+    let sel = pr.selection;
+    let c = w.multiplicity();
+    let extra = Zip::indexed(&c).par_map_collect(|(i, j), &c| {
+        let (mut sum, mut top, mut dark) = (0.0_f64, 0.0_f64, false);
+        for (k, o) in pr.observations.iter().enumerate() {
+            let inc = incidence_deg(&o.sun.at(i, j));
+            let u = edges[k][(i, j)] * incidence_taper(inc, sel.max_incidence_deg);
+            if w.weight[k][(i, j)] > 0.0 {
+                sum += u;
+                top = top.max(u);
+                dark |= near[k][(i, j)];
+            } else {
+                let v = o.image[(i, j)];
+                if v.is_finite()
+                    && image_shadowed(v, w.gains[k], own_means[k], threshold)
+                    && inc >= sel.min_incidence_deg
+                    && inc < sel.max_incidence_deg
+                {
+                    sum += kappa * u;
+                    dark = true;
+                }
+            }
+        }
+        if !dark || top <= 0.0 {
+            return 0.0;
+        }
+        ((sum / top - 1.0).min(1.0) - c).max(0.0)
+    });
+    if extra.iter().all(|&x| x == 0.0) {
+        return None;
+    }
+    let clean = w
+        .weight
+        .iter()
+        .zip(&near)
+        .map(|(wk, nk)| Zip::from(wk).and(nk).map_collect(|&w, &n| w > 0.0 && !n))
+        .collect();
+    Some(ShadowCover { extra, clean })
+}
+
 /// ν_k = Ī/Ī_k: the noise weight of an observation whose mean reflectance (over its valid
 /// pixels, divided by its gain) is `mean`, against the mean Ī = `scale` of all (the residuals
 /// of E_I are in units of Ī).
@@ -787,6 +876,62 @@ mod tests {
     /// observation 1 has no data (rows 13 on); observation 1 sees a shadow at rows 5..8,
     /// columns 9..11. With β = 0.25, 0's weight drops to β exactly on the eight-neighbour ring
     /// of its first shadow where 1 sees the pixel cleanly, and nowhere else.
+    /// Where one observation sees a block shadowed and another carries it, the block gains κ
+    /// of an observation and the ring beside it (where the shadow-edge factor β = 0.25 left
+    /// c = 0.25) the rest up to 1; nothing elsewhere, nothing with κ = 0 or one observation
+    /// (analytic values of `shadow_cover`).
+    #[test]
+    fn a_shadow_and_its_edge_count_towards_the_coverage_where_another_observation_carries_them() {
+        use crate::photometry::Hapke;
+        let n = 16;
+        let a = Array2::from_shape_fn((n, n), |(i, j)| {
+            if (6..9).contains(&i) && (6..9).contains(&j) {
+                1e-4
+            } else {
+                0.03
+            }
+        });
+        let b = Array2::from_elem((n, n), 0.03);
+        let dem = Array2::zeros((n, n));
+        let model = Hapke::moon();
+        let mut pr = uniform_problem(&[(&a, 40.0, 100.0), (&b, 45.0, 250.0)], &dem, &model);
+        let w = weights(
+            &pr,
+            vec![1.0, 1.0],
+            0.03,
+            Some(vec![1.0, 1.0]),
+            0.1,
+            0.0,
+            (0.25, 0.1),
+        );
+        let cover = shadow_cover(&pr, &w, 0.03, (0.1, 0.0), 0.7).unwrap();
+        for i in 0..n {
+            for j in 0..n {
+                let block = (6..9).contains(&i) && (6..9).contains(&j);
+                let ring = !block && (5..10).contains(&i) && (5..10).contains(&j);
+                let expected = if block {
+                    0.7
+                } else if ring {
+                    0.75
+                } else {
+                    0.0
+                };
+                assert!(
+                    (cover.extra[(i, j)] - expected).abs() < 1e-6,
+                    "({i}, {j}): {} against {expected}",
+                    cover.extra[(i, j)]
+                );
+                // The clean carriers: 1 everywhere, 0 away from its shadow's ring.
+                assert!(cover.clean[1][(i, j)]);
+                assert_eq!(cover.clean[0][(i, j)], !block && !ring, "({i}, {j})");
+            }
+        }
+        assert!(shadow_cover(&pr, &w, 0.03, (0.1, 0.0), 0.0).is_none());
+        pr.observations.truncate(1);
+        let one = weights(&pr, vec![1.0], 0.03, None, 0.1, 0.0, (0.25, 0.1));
+        assert!(shadow_cover(&pr, &one, 0.03, (0.1, 0.0), 0.7).is_none());
+    }
+
     #[test]
     fn a_pixel_next_to_a_shadow_weighs_less_only_where_another_observation_sees_it_cleanly() {
         use crate::photometry::Hapke;

@@ -288,7 +288,7 @@ fn dem_and_membrane(params: &FusionParams) -> [Check; 9] {
 }
 
 /// What acts only where several observations overlap.
-fn several_observations(params: &FusionParams) -> [Check; 12] {
+fn several_observations(params: &FusionParams) -> [Check; 13] {
     [
         (
             "multi_delta_factor",
@@ -339,6 +339,12 @@ fn several_observations(params: &FusionParams) -> [Check; 12] {
             params.multi_eta_stiffness,
             params.multi_eta_stiffness >= 0.0,
             "must be ≥ 0 (0: off)",
+        ),
+        (
+            "multi_shadow_coverage",
+            params.multi_shadow_coverage,
+            (0.0..=1.0).contains(&params.multi_shadow_coverage),
+            "must be in [0, 1] (0: off)",
         ),
         (
             "edge_ramp_px",
