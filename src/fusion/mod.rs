@@ -248,16 +248,6 @@ pub struct FusionParams {
     /// A stage stops when an iteration lowers E by less than this fraction (for `fast` a
     /// guard against stagnation: it stops on `step_tolerance`).
     pub tolerance: f64,
-    /// `fast`: an albedo stage before the last stops when no height changes by more than this
-    /// many grid spacings ε in a step (0.3: 42 m at 140 m/px). Such a stage only hands the
-    /// next one its surface, and the next stage's albedo moves the surface further than the
-    /// steps this skips: on the demo scenes the fused DEM is the same to 1 cm with 0.3 as with
-    /// every stage converged to `step_tolerance`, at 0.7–0.8× the time (docs/performance.md).
-    /// Not applied when the membrane is edge-aware (`edge_membrane_slope`, or
-    /// `multi_edge_membrane_slope` where several observations overlap): the next stage's
-    /// membrane weights then depend on where this one stops, and where a threshold stops it
-    /// depends on the window, so such a stage takes exactly [`EDGE_STAGE_STEPS`] steps.
-    pub stage_step_tolerance: f64,
     /// A `fast` stage stops when no height changes by more than this many grid spacings ε in
     /// one Gauss–Newton step (0.01: 1.4 m at 140 m/px), or when the contraction of the last two
     /// steps' largest changes says the steps to come would not (`fast::remaining`). The
@@ -418,7 +408,6 @@ impl Default for FusionParams {
             shadow_threshold: 0.1,
             max_iterations: 30,
             tolerance: 1e-9,
-            stage_step_tolerance: 0.3,
             step_tolerance: 0.01,
             curvature_residual: 0.05,
             cg_iterations: 60,
@@ -884,13 +873,17 @@ pub fn coarse_factor_at_least(
     (ny / f >= 8 && nx / f >= 8).then_some(f)
 }
 
-/// Gauss–Newton steps of an albedo stage before the last when the membrane is edge-aware
-/// ([`FusionParams::stage_step_tolerance`]): a fixed count, so that every window takes the same
-/// steps (fewer only where the energy stops decreasing).
-pub const EDGE_STAGE_STEPS: usize = 2;
+/// `fast`: Gauss–Newton steps of an albedo stage before the last. Such a stage only hands the
+/// next one its surface, from which the next inverts its albedo (and, where the membrane is
+/// edge-aware, weighs it): a fixed count, so that every window takes the same steps (fewer
+/// only where the energy stops decreasing). A threshold on the window's largest change
+/// stopped it after two steps in one window and three in another, and under a Sun 20° high
+/// one image's tiles then ended up to 0.44× the RMSE from the whole region (docs/science.md,
+/// "Solvers").
+pub const STAGE_STEPS: usize = 2;
 
 /// Gauss–Newton steps of each pass of the last stage where observations overlap but the final
-/// one ([`FusionParams::multi_albedo_passes`]): a fixed count, as [`EDGE_STAGE_STEPS`].
+/// one ([`FusionParams::multi_albedo_passes`]): a fixed count, as [`STAGE_STEPS`].
 pub const PASS_STEPS: usize = 1;
 
 /// The images of the observations coarser than the grid, each times R_k/(B_k R_k) at surface
@@ -1052,7 +1045,7 @@ fn albedo_stages(
         .last()
         .copied()
         .filter(|_| multi.is_some());
-    let early = early_stage_params(params, multi.is_some());
+    let early = early_stage_params(params);
     // The last stage's albedo, kept for the final albedo's sharpened images only where an
     // observation is coarser than the grid (otherwise not held past its stage).
     let keep_rho = pr.any_blurred();
@@ -1085,27 +1078,14 @@ fn albedo_stages(
     Ok(last_rho)
 }
 
-/// The parameters of a stage before the last. Such a stage only hands the next its surface:
-/// it stops on `stage_step_tolerance`, unless the next stage's membrane weights depend on where
-/// it stops (an edge-aware membrane, by default where several observations overlap:
-/// `overlap`). Where a threshold stops it depends on the window (the largest change over it),
-/// so a tile and the whole region would then weigh the next stage's membrane differently (two
-/// strips through `run`: 0.89 m apart); such a stage takes exactly `EDGE_STAGE_STEPS` steps
-/// instead, the same in every window (0.17 m; docs/science.md, "Several observations").
-fn early_stage_params(params: &FusionParams, overlap: bool) -> FusionParams {
-    let edge_aware =
-        params.edge_membrane_slope > 0.0 || (overlap && params.multi_edge_membrane_slope > 0.0);
-    if edge_aware {
-        FusionParams {
-            step_tolerance: 0.0,
-            max_iterations: EDGE_STAGE_STEPS.min(params.max_iterations),
-            ..params.clone()
-        }
-    } else {
-        FusionParams {
-            step_tolerance: params.step_tolerance.max(params.stage_step_tolerance),
-            ..params.clone()
-        }
+/// The parameters of a stage before the last: exactly [`STAGE_STEPS`] Gauss–Newton steps, the
+/// same in every window, where a threshold on the window's largest change would make a tile
+/// and the whole region hand the next stage different surfaces.
+fn early_stage_params(params: &FusionParams) -> FusionParams {
+    FusionParams {
+        step_tolerance: 0.0,
+        max_iterations: STAGE_STEPS.min(params.max_iterations),
+        ..params.clone()
     }
 }
 

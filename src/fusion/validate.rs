@@ -201,7 +201,7 @@ fn check_stages(params: &FusionParams) -> Result<(), FusionError> {
 }
 
 /// The solver's controls: step sizes, tolerances and the curvature rule.
-fn solver_controls(params: &FusionParams) -> [Check; 6] {
+fn solver_controls(params: &FusionParams) -> [Check; 5] {
     [
         ("gamma", params.gamma, params.gamma > 0.0, "must be > 0"),
         (
@@ -215,12 +215,6 @@ fn solver_controls(params: &FusionParams) -> [Check; 6] {
             params.cg_tolerance,
             params.cg_tolerance > 0.0 && params.cg_tolerance < 1.0,
             "must be in (0, 1) (a relative residual)",
-        ),
-        (
-            "stage_step_tolerance",
-            params.stage_step_tolerance,
-            params.stage_step_tolerance >= 0.0,
-            "must be ≥ 0 (grid spacings)",
         ),
         (
             "step_tolerance",
