@@ -1534,6 +1534,34 @@ mod tests {
         );
     }
 
+    /// Two Lambert observations seen from nadir over `dem` at 100 m pixels: `a` under a Sun 60°
+    /// from the zenith at azimuth 100°, `b` under `sun_b` (zenith, azimuth in degrees), the
+    /// DEM's point spread `dem_psf` pixels.
+    fn two_lambert<'a>(
+        (a, b): (&'a Array2<f64>, &'a Array2<f64>),
+        dem: &'a Array2<f64>,
+        sun_b: (f64, f64),
+        dem_psf: f64,
+        model: &'a crate::photometry::Lambert,
+    ) -> Problem<'a> {
+        let nadir = || Directions::Uniform(crate::synth::direction(0.0, 0.0));
+        let mut pr = Problem::single(
+            a.view(),
+            Directions::Uniform(crate::synth::direction(60.0, 100.0)),
+            nadir(),
+            dem.view(),
+            100.0,
+            dem_psf,
+            model,
+        );
+        pr.observations.push(crate::fusion::Observation {
+            image: b.view(),
+            sun: Directions::Uniform(crate::synth::direction(sun_b.0, sun_b.1)),
+            view: nadir(),
+        });
+        pr
+    }
+
     /// The level surface's photometric stiffness against its closed form for Lambert
     /// (ln R = ln μ0 + const, ∂ ln μ0/∂(p, q) = −(s_x, s_y)/s_z at p = q = 0, so
     /// S = Σ_k tan² i_k), and the several-observation membrane it scales: ω = f·√(S/S₀) where
@@ -1548,20 +1576,7 @@ mod tests {
             Array2::from_shape_fn((ny, nx), |(_, j)| if j < 20 { f64::NAN } else { 0.2 }),
         );
         let model = crate::photometry::Lambert;
-        let mut pr = Problem::single(
-            a.view(),
-            Directions::Uniform(crate::synth::direction(60.0, 100.0)),
-            Directions::Uniform(crate::synth::direction(0.0, 0.0)),
-            dem.view(),
-            100.0,
-            1.5,
-            &model,
-        );
-        pr.observations.push(crate::fusion::Observation {
-            image: b.view(),
-            sun: Directions::Uniform(crate::synth::direction(45.0, 220.0)),
-            view: Directions::Uniform(crate::synth::direction(0.0, 0.0)),
-        });
+        let pr = two_lambert((&a, &b), &dem, (45.0, 220.0), 1.5, &model);
         let mut obj = Objective::new(&pr, 3.0, 0.2, 1.2, 1.5, 0.2, weights_of(&pr, 0.2));
         let rho = Array2::from_elem((ny, nx), 0.5);
         let c = obj.weights.multiplicity();
@@ -1613,20 +1628,7 @@ mod tests {
         let b = Array2::from_elem((n, n), 0.2);
         let model = crate::photometry::Lambert;
         let coverage = |zenith_b: f64, stiffness: f64| {
-            let mut pr = Problem::single(
-                a.view(),
-                Directions::Uniform(crate::synth::direction(60.0, 100.0)),
-                Directions::Uniform(crate::synth::direction(0.0, 0.0)),
-                dem.view(),
-                100.0,
-                0.0,
-                &model,
-            );
-            pr.observations.push(crate::fusion::Observation {
-                image: b.view(),
-                sun: Directions::Uniform(crate::synth::direction(zenith_b, 250.0)),
-                view: Directions::Uniform(crate::synth::direction(0.0, 0.0)),
-            });
+            let pr = two_lambert((&a, &b), &dem, (zenith_b, 250.0), 0.0, &model);
             let w = crate::fusion::observations::weights(
                 &pr,
                 vec![1.0, 1.0],

@@ -344,6 +344,32 @@ fn near_shadow(o: &super::Observation, gain: f64, own_mean: f64, threshold: f64)
     near
 }
 
+/// [`near_shadow`] of every observation, with its gain and own mean Ī_k.
+fn near_shadows(
+    pr: &Problem,
+    gains: &[f64],
+    own_means: &[f64],
+    threshold: f64,
+) -> Vec<Array2<bool>> {
+    pr.observations
+        .iter()
+        .zip(gains)
+        .zip(own_means)
+        .map(|((o, &g), &m)| near_shadow(o, g, m, threshold))
+        .collect()
+}
+
+/// e_k of [`edge_weights`] over the observations' footprints (their finite pixels), with a ramp
+/// `width` pixels wide.
+fn footprint_edges(pr: &Problem, width: f64) -> Vec<Array2<f64>> {
+    let footprints: Vec<Array2<bool>> = pr
+        .observations
+        .iter()
+        .map(|o| o.image.mapv(f64::is_finite))
+        .collect();
+    edge_weights(&footprints, width)
+}
+
 /// s_k(x), the shadow-edge factors, applied to the weights in place: where observation k
 /// carries x (w_k > 0) within one pixel of a pixel it sees shadowed, β = `beta.0` if one other
 /// observation carries x with no shadow of its own that near, β_all = `beta.1` if two or more
@@ -367,13 +393,7 @@ pub fn shadow_edge_factors(
     if weight.len() < 2 || (beta >= 1.0 && beta_all >= 1.0) {
         return;
     }
-    let near: Vec<Array2<bool>> = pr
-        .observations
-        .iter()
-        .zip(gains)
-        .zip(own_means)
-        .map(|((o, &g), &m)| near_shadow(o, g, m, threshold))
-        .collect();
+    let near = near_shadows(pr, gains, own_means, threshold);
     // How many observations carry each pixel away from their own shadows.
     let mut clean = Array2::<u8>::zeros(weight[0].dim());
     for (w, n) in weight.iter().zip(&near) {
@@ -427,19 +447,8 @@ pub fn shadow_cover(
         return None;
     }
     let own_means: Vec<f64> = w.noise.iter().map(|&nu| own_mean(scale, nu)).collect();
-    let near: Vec<Array2<bool>> = pr
-        .observations
-        .iter()
-        .zip(&w.gains)
-        .zip(&own_means)
-        .map(|((o, &g), &m)| near_shadow(o, g, m, threshold))
-        .collect();
-    let footprints: Vec<Array2<bool>> = pr
-        .observations
-        .iter()
-        .map(|o| o.image.mapv(f64::is_finite))
-        .collect();
-    let edges = edge_weights(&footprints, edge_ramp_px);
+    let near = near_shadows(pr, &w.gains, &own_means, threshold);
+    let edges = footprint_edges(pr, edge_ramp_px);
     let sel = pr.selection;
     let c = w.multiplicity();
     let extra = Zip::indexed(&c).par_map_collect(|(i, j), &c| {
@@ -565,12 +574,7 @@ pub fn weights(
             *u = super::blur::erode(u, kernel.radius());
         }
     }
-    let footprints: Vec<Array2<bool>> = pr
-        .observations
-        .iter()
-        .map(|o| o.image.mapv(f64::is_finite))
-        .collect();
-    let edges = edge_weights(&footprints, edge_ramp_px);
+    let edges = footprint_edges(pr, edge_ramp_px);
     let mut weight: Vec<Array2<f64>> = pr
         .observations
         .iter()
