@@ -332,10 +332,11 @@ pub struct FusionParams {
     /// observations").
     pub multi_eta_stiffness: f64,
     /// κ: an observation that sees a pixel in shadow counts as κ of an observation towards
-    /// the membrane's multi-coverage (one that carries a pixel next to its own shadow, where
-    /// the shadow-edge factor lowers its weight, counts in full), scaled down as the
-    /// observations carrying the pixel cleanly measure slope more firmly
-    /// ([`observations::ShadowCover`], [`objective::Objective::set_membrane_weights`]). A low
+    /// the multi-coverage of the regularisers, the several-observation membrane and δ·f (one
+    /// that carries a pixel next to its own shadow, where the shadow-edge factor lowers its
+    /// weight, counts in full), scaled down as the observations carrying the pixel cleanly
+    /// measure slope more firmly ([`observations::ShadowCover`],
+    /// [`objective::Objective::with_shadow_cover`]). A low
     /// Sun's shadowed crater floors, which a high Sun alone carries, then take the membrane of
     /// two observations instead of being flattened as under one (docs/science.md, "A low
     /// and a high Sun"). 0 turns it off; under two low Suns it changes nothing; with

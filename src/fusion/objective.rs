@@ -536,14 +536,15 @@ impl<'a, 'p> Objective<'a, 'p> {
 
     /// Let an observation that sees a pixel shadowed, or next to its own shadow, count towards
     /// the multi-coverage of the regularisers (the membrane's rule and δ·f): c_R = c + (1 −
-    /// a_c)·x, c of [`Weights::multiplicity`], x the extra coverage of
-    /// [`observations::shadow_cover`] (κ = `kappa`) and a_c = min(1, √(S_c/S₀)), S_c the
-    /// photometric stiffness of a level surface ([`Objective::level_stiffness`]) over only the
-    /// observations that carry the pixel away from their own shadows, at the albedo inverted
-    /// on the input DEM, S₀ = `stiffness`. Where those observations measure slope firmly (a
-    /// Sun 20° high: a_c = 1) c_R = c exactly; where they barely do (one Sun 60° high,
-    /// a_c ≈ 0.2) the pixel takes most of the regularisation of two observations. Nothing
-    /// changes with S₀ = 0 or κ = 0. Call it before [`Objective::with_multi_delta`].
+    /// min(1, S_c/S₀))·x, c of [`Weights::multiplicity`], x the extra coverage of
+    /// [`observations::shadow_cover`] (κ = `kappa`), S_c the photometric stiffness of a level
+    /// surface ([`Objective::level_stiffness`]) over only the observations that carry the
+    /// pixel away from their own shadows, at the albedo inverted on the input DEM, S₀ =
+    /// `stiffness`. Where those observations measure slope firmly (a Sun 20° high: S_c ≥ S₀)
+    /// c_R = c exactly; where they barely do (one Sun 60° high, S_c ≈ 0.15) the pixel takes
+    /// nearly all of x. (√(S_c/S₀), the membrane's own scale, did 1 % worse on the low + high
+    /// pairs, docs/science.md.) Nothing changes with S₀ = 0 or κ = 0. Call it before
+    /// [`Objective::with_multi_delta`].
     pub fn with_shadow_cover(
         mut self,
         kappa: f64,

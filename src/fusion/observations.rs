@@ -413,10 +413,11 @@ pub fn shadow_edge_factors(
 
 /// Where an observation sees a pixel in shadow, or next to its own shadow, the pixel is still
 /// one it sees: a shadow bounds the heights ([`super::shadows`]), and the pixel next to one is
-/// left to the other observations only because the model has no partial shadow. The membrane
-/// counts such an observation towards its multi-coverage, so that a crater floor a low Sun
-/// shadows and a high Sun alone carries is not flattened as under one observation
-/// ([`super::objective::Objective::set_membrane_weights`]; docs/science.md, "A low and a high
+/// left to the other observations only because the model has no partial shadow. The
+/// regularisers (the several-observation membrane and δ·f) count such an observation towards
+/// their multi-coverage, so that a crater floor a low Sun shadows and a high Sun alone carries
+/// is not flattened as under one observation
+/// ([`super::objective::Objective::with_shadow_cover`]; docs/science.md, "A low and a high
 /// Sun").
 #[derive(Debug, Clone)]
 pub struct ShadowCover {
@@ -428,7 +429,7 @@ pub struct ShadowCover {
     pub extra: Array2<f64>,
     /// Where observation k carries the pixel away from its own shadows (w_k > 0, not within
     /// one pixel of one): the observations whose photometric stiffness decides how much of
-    /// `extra` the membrane takes.
+    /// `extra` the regularisers take.
     pub clean: Vec<Array2<bool>>,
 }
 
