@@ -1916,8 +1916,8 @@ fn gains_drifting_along_the_track_are_followed() {
 /// (the first against the DEM, the second relative to the first, moved back by its own drift),
 /// finds every segment's displacement at its middle line, and the pair comes within 20 % of the
 /// pair in place (what is left is the estimate's own bias against the DEM, 0.2–0.3 px here:
-/// 5.20 against 4.50 m, 1.16×; 1.12× before the shadows' coverage of the regularisers
-/// (`multi_shadow_coverage`), which takes 4.7 % off the pair in place and 1.7 % off the
+/// 5.19 against 4.46 m, 1.16×; 1.12× before the shadows' coverage of the regularisers
+/// (`multi_shadow_coverage`), which takes 5.5 % off the pair in place and 1.9 % off the
 /// registered one, whose shadows lie the bias away from where the other image sees the floor;
 /// 1.08× before the pixel-scale shrink, which takes 4.6 % off the pair in place and 1 % off the
 /// registered one, whose remaining error is that bias's, at the craters' scale rather than the

@@ -332,7 +332,8 @@ pub struct FusionParams {
     /// observations").
     pub multi_eta_stiffness: f64,
     /// κ: an observation that sees a pixel in shadow counts as κ of an observation towards
-    /// the multi-coverage of the regularisers, the several-observation membrane and δ·f (one
+    /// the multi-coverage of the regularisers, the several-observation membrane, δ·f and the
+    /// pixel-scale shrink (one
     /// that carries a pixel next to its own shadow, where the shadow-edge factor lowers its
     /// weight, counts in full), scaled down as the observations carrying the pixel cleanly
     /// measure slope more firmly ([`observations::ShadowCover`],
@@ -978,13 +979,15 @@ fn fine_stages(
         &mut stages,
     )?;
     // Where observations overlap, the correction's pixel-scale waves are shrunk (blended in
-    // by the multi-coverage c); beyond the support band the result is the input DEM, within
-    // it the correction fades. (s is formed again for the layers at the end: the final
-    // albedo's arrays need the memory in between.)
+    // by the regularisers' coverage c_R, which is the multi-coverage c unless a shadowing
+    // observation counts, `Objective::with_shadow_cover`); beyond the support band the
+    // result is the input DEM, within it the correction fades. (s is formed again for the
+    // layers at the end: the final albedo's arrays need the memory in between.)
     Zip::from(&mut z).and(pr.dem).par_for_each(|z, &d| *z -= d);
-    if let Some(c) = &multi {
+    if multi.is_some() || obj.coverage.is_some() {
+        let cover = obj.regulariser_coverage();
         let shrunk = ops::shrink_near_nyquist(z.view(), params.nyquist_shrink);
-        z = blend(&shrunk, &z, c);
+        z = blend(&shrunk, &z, &cover);
     }
     Zip::from(&mut z)
         .and(&obj.support())

@@ -535,7 +535,8 @@ impl<'a, 'p> Objective<'a, 'p> {
     }
 
     /// Let an observation that sees a pixel shadowed, or next to its own shadow, count towards
-    /// the multi-coverage of the regularisers (the membrane's rule and δ·f): c_R = c + (1 −
+    /// the multi-coverage of the regularisers (the membrane's rule, δ·f and the pixel-scale
+    /// shrink of the correction, `fusion::fine_stages`): c_R = c + (1 −
     /// min(1, S_c/S₀))·x, c of [`Weights::multiplicity`], x the extra coverage of
     /// [`observations::shadow_cover`] (κ = `kappa`), S_c the photometric stiffness of a level
     /// surface ([`Objective::level_stiffness`]) over only the observations that carry the

@@ -414,7 +414,8 @@ pub fn shadow_edge_factors(
 /// Where an observation sees a pixel in shadow, or next to its own shadow, the pixel is still
 /// one it sees: a shadow bounds the heights ([`super::shadows`]), and the pixel next to one is
 /// left to the other observations only because the model has no partial shadow. The
-/// regularisers (the several-observation membrane and δ·f) count such an observation towards
+/// regularisers (the several-observation membrane, δ·f and the pixel-scale shrink) count such
+/// an observation towards
 /// their multi-coverage, so that a crater floor a low Sun shadows and a high Sun alone carries
 /// is not flattened as under one observation
 /// ([`super::objective::Objective::with_shadow_cover`]; docs/science.md, "A low and a high
