@@ -333,15 +333,13 @@ pub struct FusionParams {
     pub multi_eta_stiffness: f64,
     /// κ: an observation that sees a pixel in shadow counts as κ of an observation towards
     /// the multi-coverage of the regularisers, the several-observation membrane, δ·f and the
-    /// pixel-scale shrink (one
-    /// that carries a pixel next to its own shadow, where the shadow-edge factor lowers its
-    /// weight, counts in full), scaled down as the observations carrying the pixel cleanly
-    /// measure slope more firmly ([`observations::ShadowCover`],
-    /// [`objective::Objective::with_shadow_cover`]). A low
-    /// Sun's shadowed crater floors, which a high Sun alone carries, then take the membrane of
-    /// two observations instead of being flattened as under one (docs/science.md, "A low
-    /// and a high Sun"). 0 turns it off; under two low Suns it changes nothing; with
-    /// `multi_eta_stiffness` = 0 it is off.
+    /// pixel-scale shrink (one that carries a pixel next to its own shadow, where the
+    /// shadow-edge factor lowers its weight, counts in full), scaled down as the observations
+    /// carrying the pixel cleanly measure slope more firmly ([`observations::ShadowCover`],
+    /// [`objective::Objective::with_shadow_cover`]). A low Sun's shadowed crater floors, which
+    /// a high Sun alone carries, then take the regularisation of two observations instead of
+    /// being flattened as under one (docs/science.md, "A low and a high Sun"). 0 turns it off;
+    /// under two low Suns it changes nothing; with `multi_eta_stiffness` = 0 it is off.
     pub multi_shadow_coverage: f64,
     /// The first albedo stage is solved on the grid block-averaged by this factor and its
     /// correction z − z_DEM interpolated back ([`pyramid`]); 1 solves it on the full grid.

@@ -552,12 +552,13 @@ impl<'a, 'p> Objective<'a, 'p> {
         (threshold, edge_ramp_px): (f64, f64),
         stiffness: f64,
     ) -> Self {
-        if stiffness <= 0.0 {
+        if stiffness <= 0.0 || kappa <= 0.0 || self.weights.weight.len() < 2 {
             return self;
         }
+        let mut c = self.weights.multiplicity();
         let Some(cover) = observations::shadow_cover(
             self.problem,
-            &self.weights,
+            (&self.weights, &c),
             self.scale,
             (threshold, edge_ramp_px),
             kappa,
@@ -574,7 +575,6 @@ impl<'a, 'p> Objective<'a, 'p> {
                 |(s, n), &r, &k| if k { (s + r, n + 1) } else { (s, n) },
             );
         let mean = if count > 0 { sum / count as f64 } else { 0.0 };
-        let mut c = self.weights.multiplicity();
         Zip::indexed(&mut c)
             .and(&cover.extra)
             .and(&rho)

@@ -56,6 +56,14 @@ impl Default for Selection {
     }
 }
 
+impl Selection {
+    /// Whether a pixel whose Sun stands at incidence `inc` (degrees) is within the selection:
+    /// `min_incidence_deg` ≤ inc < `max_incidence_deg`.
+    pub fn admits(&self, inc: f64) -> bool {
+        inc >= self.min_incidence_deg && inc < self.max_incidence_deg
+    }
+}
+
 /// Width, in degrees, over which τ fades to 0 at the maximum incidence.
 pub const INCIDENCE_FADE_DEG: f64 = 10.0;
 
@@ -434,12 +442,13 @@ pub struct ShadowCover {
     pub clean: Vec<Array2<bool>>,
 }
 
-/// The [`ShadowCover`] of a problem with weights `w`, Ī = `scale`, the shadow threshold and
-/// edge ramp width `(threshold, edge_ramp_px)` of [`weights`] and κ = `kappa`. `None` with
-/// one observation, κ = 0, or where no pixel gains coverage.
+/// The [`ShadowCover`] of a problem with weights `w` and their multi-coverage `c`
+/// ([`Weights::multiplicity`]), Ī = `scale`, the shadow threshold and edge ramp width
+/// `(threshold, edge_ramp_px)` of [`weights`] and κ = `kappa`. `None` with one observation,
+/// κ = 0, or where no pixel gains coverage.
 pub fn shadow_cover(
     pr: &Problem,
-    w: &Weights,
+    (w, c): (&Weights, &Array2<f64>),
     scale: f64,
     (threshold, edge_ramp_px): (f64, f64),
     kappa: f64,
@@ -452,8 +461,7 @@ pub fn shadow_cover(
     let near = near_shadows(pr, &w.gains, &own_means, threshold);
     let edges = footprint_edges(pr, edge_ramp_px);
     let sel = pr.selection;
-    let c = w.multiplicity();
-    let extra = Zip::indexed(&c).par_map_collect(|(i, j), &c| {
+    let extra = Zip::indexed(c).par_map_collect(|(i, j), &c| {
         let (mut sum, mut top, mut dark) = (0.0_f64, 0.0_f64, false);
         for (k, o) in pr.observations.iter().enumerate() {
             let inc = incidence_deg(&o.sun.at(i, j));
@@ -466,8 +474,7 @@ pub fn shadow_cover(
                 let v = o.image[(i, j)];
                 if v.is_finite()
                     && image_shadowed(v, w.gains[k], own_means[k], threshold)
-                    && inc >= sel.min_incidence_deg
-                    && inc < sel.max_incidence_deg
+                    && sel.admits(inc)
                 {
                     sum += kappa * u;
                     dark = true;
@@ -564,8 +571,7 @@ pub fn weights(
                 v.is_finite()
                     && v > 0.0
                     && !image_shadowed(v, g, m, shadow_threshold)
-                    && inc >= sel.min_incidence_deg
-                    && inc < sel.max_incidence_deg
+                    && sel.admits(inc)
             })
         })
         .collect();
@@ -910,7 +916,7 @@ mod tests {
             0.0,
             (0.25, 0.1),
         );
-        let cover = shadow_cover(&pr, &w, 0.03, (0.1, 0.0), 0.7).unwrap();
+        let cover = shadow_cover(&pr, (&w, &w.multiplicity()), 0.03, (0.1, 0.0), 0.7).unwrap();
         for i in 0..n {
             for j in 0..n {
                 let block = (6..9).contains(&i) && (6..9).contains(&j);
@@ -932,10 +938,10 @@ mod tests {
                 assert_eq!(cover.clean[0][(i, j)], !block && !ring, "({i}, {j})");
             }
         }
-        assert!(shadow_cover(&pr, &w, 0.03, (0.1, 0.0), 0.0).is_none());
+        assert!(shadow_cover(&pr, (&w, &w.multiplicity()), 0.03, (0.1, 0.0), 0.0).is_none());
         pr.observations.truncate(1);
         let one = weights(&pr, vec![1.0], 0.03, None, 0.1, 0.0, (0.25, 0.1));
-        assert!(shadow_cover(&pr, &one, 0.03, (0.1, 0.0), 0.7).is_none());
+        assert!(shadow_cover(&pr, (&one, &one.multiplicity()), 0.03, (0.1, 0.0), 0.7).is_none());
     }
 
     #[test]
