@@ -420,7 +420,7 @@ impl Default for FusionParams {
             multi_albedo_passes: 3,
             multi_delta_factor: 0.2,
             multi_delta_factor_all: 0.1,
-            multi_delta_factor_high_sun: 0.1,
+            multi_delta_factor_high_sun: 0.05,
             edge_membrane_slope: 0.0,
             multi_eta_factor: 8.0,
             multi_edge_membrane_slope: 0.01,
