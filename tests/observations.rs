@@ -104,7 +104,7 @@ fn pixels_next_to_a_shadow_count_less_where_another_sun_sees_them() {
 /// 250°/60°) and two Suns exactly 90° apart in azimuth, both 55° high. Under a high Sun the
 /// shading changes little with slope, and a membrane weighted as under a low one held the
 /// surface to the DEM's gradients: 0.805× and 0.766× the better single image before the
-/// membrane followed the images' stiffness and walls (this scene now: 0.466× and 0.496×,
+/// membrane followed the images' stiffness and walls (this scene now: 0.452× and 0.512×,
 /// docs/science.md).
 #[test]
 fn two_high_suns_beat_the_better_single_image() {

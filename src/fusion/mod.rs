@@ -424,7 +424,7 @@ impl Default for FusionParams {
             edge_membrane_slope: 0.0,
             multi_eta_factor: 8.0,
             multi_edge_membrane_slope: 0.01,
-            multi_eta_stiffness: 4.0,
+            multi_eta_stiffness: 8.0,
             multi_shadow_coverage: 0.7,
             coarse_factor: 4,
             dem_height_length_px: 30.0,
