@@ -126,6 +126,12 @@ fn two_high_suns_beat_the_better_single_image() {
         );
         assert!(h <= 0.65 * better, "{pair:?}: {h:.2} m vs {better:.2} m");
         assert!(albedo <= 0.008, "{pair:?}: albedo RMSE {albedo:.4}");
+        // The 5 m target, met by the example pair on this scene since the DEM term
+        // and the membrane yield further under high Suns (`multi_delta_factor_high_sun` 0.05,
+        // `multi_eta_stiffness` 8: 5.19 → 4.88 m; docs/science.md, "S₀ = 8").
+        if pair[0] == (110.0, 55.0) {
+            assert!(h <= 5.0, "{pair:?}: {h:.2} m over the 5 m target");
+        }
     }
 }
 
