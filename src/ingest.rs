@@ -145,6 +145,104 @@ pub struct Survey {
     /// and cosine of the to-Sun azimuth (clockwise from north) — the observation's mean
     /// illumination over the region ([`Survey::mean_sun`]).
     pub sun_sums: [f64; 3],
+    /// OBS's Sun against the ephemeris at the label's times over every pixel of the swath
+    /// ([`SunCheck`]; `None` where the label gives no START_TIME, as synthetic products).
+    pub sun_ephemeris: Option<SunCheck>,
+}
+
+/// Largest accepted angle, degrees, between the Sun of OBS (to-Sun azimuth and zenith at LOC's
+/// longitude and latitude, turned into the Moon's body-fixed frame) and the Sun of
+/// [`crate::ephemeris::sun_in_moon_frame`] at the label's time. They agree within 0.01° on
+/// the vendored M3 crops; another observation's OBS, azimuths counted another way (16–36° off
+/// on those crops) or a wrong time do not.
+pub const MAX_SUN_EPHEMERIS_DEG: f64 = 1.0;
+
+/// How far OBS's Sun lies from the ephemeris's over an observation's swath ([`survey`]).
+#[derive(Debug, Clone, Copy, PartialEq, serde::Serialize, serde::Deserialize)]
+pub struct SunCheck {
+    /// The largest angle over the pixels compared, degrees.
+    pub worst_deg: f64,
+    /// Where it is: line and sample, counted from 1 as in the label.
+    pub line: usize,
+    pub sample: usize,
+    /// The pixels compared (finite LOC and OBS, within 0.1° of neither pole).
+    pub pixels: usize,
+    /// The angle allowed: [`MAX_SUN_EPHEMERIS_DEG`] plus half the Sun's motion over the
+    /// Moon's sky between START_TIME and STOP_TIME (each pixel is compared with the Sun at
+    /// their midpoint; ≈ 0.5° an hour).
+    pub allowed_deg: f64,
+}
+
+/// The Sun at the midpoint of `obs`'s START_TIME and STOP_TIME in the Moon's body-fixed frame
+/// and the angle allowed from it ([`SunCheck::allowed_deg`]); `None` without START_TIME.
+fn sun_at_label_times(obs: &Observation) -> Option<(Vec3, f64)> {
+    use crate::ephemeris::{angle_deg, days_since_j2000, sun_in_moon_frame};
+    let a = days_since_j2000(obs.start_time.as_ref()?);
+    let b = obs.stop_time.as_ref().map_or(a, days_since_j2000);
+    let arc = angle_deg(sun_in_moon_frame(a), sun_in_moon_frame(b));
+    Some((
+        sun_in_moon_frame(0.5 * (a + b)),
+        MAX_SUN_EPHEMERIS_DEG + 0.5 * arc,
+    ))
+}
+
+impl SunCheck {
+    fn new(allowed_deg: f64) -> Self {
+        SunCheck {
+            worst_deg: 0.0,
+            line: 0,
+            sample: 0,
+            pixels: 0,
+            allowed_deg,
+        }
+    }
+}
+
+/// [`SunCheck`] of `obs` over its whole swath, read from its LOC and OBS files (what
+/// [`survey`] measures on the way; `None` where the label gives no START_TIME).
+pub fn sun_check(obs: &Observation) -> Result<Option<SunCheck>> {
+    let Some((sun, allowed_deg)) = sun_at_label_times(obs) else {
+        return Ok(None);
+    };
+    let (loc, obsr) = parts(obs)?;
+    let mut check = SunCheck::new(allowed_deg);
+    for start in (0..loc.lines).step_by(INDEX_BLOCK) {
+        let n = INDEX_BLOCK.min(loc.lines - start);
+        let lon = loc.read_band(0, start, n)?;
+        let lat = loc.read_band(1, start, n)?;
+        let az = obsr.read_band(0, start, n)?;
+        let zen = obsr.read_band(1, start, n)?;
+        sun_ephemeris_lines(
+            &mut check,
+            sun,
+            [&lon, &lat, &az, &zen],
+            (start, loc.samples),
+        );
+    }
+    Ok(Some(check))
+}
+
+/// Refuse `obs` when its [`SunCheck`] exceeds the angle allowed, naming the OBS file, the
+/// pixel and the label's times.
+pub fn check_sun_ephemeris(obs: &Observation, check: &SunCheck) -> Result<()> {
+    if check.worst_deg <= check.allowed_deg {
+        return Ok(());
+    }
+    let obs_path = obs
+        .part("OBS")
+        .map_or_else(|_| obs.label_path.clone(), |r| r.path);
+    let time = |t: &Option<pds::time::UtcTime>| t.map_or("?".to_string(), |t| t.to_string());
+    Err(Error::Usage(format!(
+        "{}: OBS (to-Sun azimuth and zenith, bands 1–2) at line {}, sample {} puts the Sun {:.2}° from where it stood over that pixel's LOC longitude and latitude between START_TIME {} and STOP_TIME {} UTC of {} (at most {:.2}° allowed; on real M3 products the two agree within 0.01°). The OBS file does not describe this observation: check that the label, LOC and OBS files are of one product (an OBS from another observation, or azimuths counted other than clockwise from north, do this). For simulated products whose label keeps a real observation's times, set [inputs] check_sun_ephemeris = false",
+        obs_path.display(),
+        check.line,
+        check.sample,
+        check.worst_deg,
+        time(&obs.start_time),
+        time(&obs.stop_time),
+        obs.label_path.display(),
+        check.allowed_deg
+    )))
 }
 
 impl Survey {
@@ -447,12 +545,19 @@ pub fn survey(
     let (mut sum, mut count) = (0.0, 0usize);
     let (mut on_grid_count, mut refused) = (0usize, Refusals::default());
     let mut sun_sums = [0.0; 3];
+    let sun_time = sun_at_label_times(obs);
+    let mut sun_check = sun_time.map(|(_, allowed_deg)| SunCheck::new(allowed_deg));
     for start in (0..loc.lines).step_by(INDEX_BLOCK) {
         let n = INDEX_BLOCK.min(loc.lines - start);
         let lon = loc.read_band(0, start, n)?;
         let lat = loc.read_band(1, start, n)?;
         let (refl, _, _, cause, [sun_az, sun_zen]) =
             reflectance_lines(obs, &obsr, solar, nm, (start, n), 0..loc.samples)?;
+        if let (Some((sun, _)), Some(check)) = (sun_time, sun_check.as_mut()) {
+            let zen = sun_zen.as_slice().expect("standard layout");
+            let az = sun_az.as_slice().expect("standard layout");
+            sun_ephemeris_lines(check, sun, [&lon, &lat, az, zen], (start, loc.samples));
+        }
         let mut b = [f64::MAX, f64::MIN, f64::MAX, f64::MIN];
         let mut any = false;
         // The projections in parallel; the sums below in the samples' order, as before.
@@ -501,7 +606,32 @@ pub fn survey(
         on_grid: on_grid_count,
         refused,
         sun_sums,
+        sun_ephemeris: sun_check,
     })
+}
+
+/// Fold lines `first..` of `samples` samples (LOC longitude and latitude and OBS to-Sun
+/// azimuth and zenith, degrees, line by line) into `check`: the angle between each pixel's Sun in the Moon's frame
+/// ([`crate::ephemeris::local_to_moon`]) and `sun`. The worst is the first of equal worst
+/// ones in line order, so the check does not depend on the thread count.
+fn sun_ephemeris_lines(
+    check: &mut SunCheck,
+    sun: Vec3,
+    [lon, lat, az, zen]: [&[f64]; 4],
+    (first, samples): (usize, usize),
+) {
+    use crate::ephemeris::{angle_deg, local_to_moon};
+    for ((((k, &lo), &la), &a), &z) in lon.iter().enumerate().zip(lat).zip(az).zip(zen) {
+        if ![lo, la, a, z].iter().all(|v| v.is_finite()) || la.abs() > 89.9 {
+            continue;
+        }
+        check.pixels += 1;
+        let off = angle_deg(local_to_moon(lo, la, a, z), sun);
+        if off > check.worst_deg {
+            (check.worst_deg, check.line, check.sample) =
+                (off, first + k / samples + 1, k % samples + 1);
+        }
+    }
 }
 
 /// Where LOC may put the pixels of an observation displaced by `shift` ([`m3_on_grid`]) that
@@ -1095,6 +1225,7 @@ mod tests {
                 let a = f64::to_radians(az);
                 [z + zen, s + a.sin(), c + a.cos()]
             }),
+            sun_ephemeris: None,
         };
         let (az, el) = survey(&[(350.0, 60.0), (20.0, 70.0)]).mean_sun().unwrap();
         assert!((az - 5.0).abs() < 1e-9, "{az}");

@@ -55,6 +55,13 @@ pub struct M3Inspection {
     pub sun_azimuth_deg: Option<Range>,
     /// Why OBS could not be read, if it could not.
     pub obs_problem: Option<String>,
+    /// START_TIME and STOP_TIME, UTC, as the label gives them.
+    pub start_time: Option<String>,
+    pub stop_time: Option<String>,
+    /// OBS's Sun against the ephemeris at those times ([`crate::ingest::SunCheck`]), when
+    /// the label gives START_TIME and LOC and OBS read; `run` refuses the observation above
+    /// its `allowed_deg`.
+    pub sun_ephemeris: Option<crate::ingest::SunCheck>,
     /// Whether LOC's, and OBS's, file is beside the label but cannot be read as it
     /// describes it (truncated, wrong size, a malformed object): bad input, which
     /// `sfsfuse inspect` reports by its exit status after the description. A part whose
@@ -273,6 +280,11 @@ fn inspect_m3(path: &Path) -> Result<Inspection> {
         Err(e) => (obs_problem, obs_unreadable) = note(e),
     }
     let [incidence_deg, emission_deg, phase_deg, sun_azimuth_deg] = ill;
+    let sun_ephemeris = if problem.is_none() && obs_problem.is_none() {
+        crate::ingest::sun_check(&o)?
+    } else {
+        None
+    };
     Ok(Inspection::M3(Box::new(M3Inspection {
         label: path.display().to_string(),
         mode: o.mode.keyword().into(),
@@ -292,6 +304,9 @@ fn inspect_m3(path: &Path) -> Result<Inspection> {
         phase_deg,
         sun_azimuth_deg,
         obs_problem,
+        start_time: o.start_time.map(|t| t.to_string()),
+        stop_time: o.stop_time.map(|t| t.to_string()),
+        sun_ephemeris,
         loc_unreadable,
         obs_unreadable,
     })))
@@ -383,6 +398,13 @@ impl Inspection {
             .find_map(|(p, &bad)| p.as_ref().filter(|_| bad))
             .map(|e| {
                 format!("{e} (the rest of the observation is described above; `run` refuses it)")
+            })
+            .or_else(|| {
+                let c = m.sun_ephemeris.filter(|c| c.worst_deg > c.allowed_deg)?;
+                Some(format!(
+                    "{}: OBS puts the Sun {:.2}° from where it stood at START_TIME–STOP_TIME (line {}, sample {}; at most {:.2}° allowed): its OBS does not describe this observation, and `run` refuses it",
+                    m.label, c.worst_deg, c.line, c.sample, c.allowed_deg
+                ))
             }),
             _ => None,
         }
@@ -415,6 +437,9 @@ impl Inspection {
                     phase_deg,
                     sun_azimuth_deg,
                     obs_problem,
+                    start_time,
+                    stop_time,
+                    sun_ephemeris,
                     ..
                 } = &**m;
                 let mut s = format!("{label}\n  kind           M3 Level 1B, {mode} mode\n  size           {lines} lines × {samples} samples × {bands} bands\n");
@@ -455,6 +480,19 @@ impl Inspection {
                 if let Some(p) = obs_problem {
                     s += &format!("  OBS            {p}\n");
                 }
+                let t = |t: &Option<String>| t.clone().unwrap_or_else(|| "—".into());
+                s += &format!(
+                    "  time           {} … {} UTC\n",
+                    t(start_time),
+                    t(stop_time)
+                );
+                s += &match sun_ephemeris {
+                    Some(c) => format!(
+                        "  Sun vs time    OBS's Sun at most {:.3}° from the ephemeris's over {} px (refused above {:.2}°)\n",
+                        c.worst_deg, c.pixels, c.allowed_deg
+                    ),
+                    None => "  Sun vs time    not checked (no START_TIME, or LOC/OBS unreadable)\n".into(),
+                };
                 s
             }
             Inspection::GeoTiff {

@@ -15,6 +15,7 @@ pub const BUILD: &str = concat!(
 pub mod bench;
 pub mod cluster;
 pub mod demo;
+pub mod ephemeris;
 pub mod error;
 pub mod export;
 pub mod fetch;

@@ -140,6 +140,13 @@ pub struct OrbitalInputs {
     /// "Several observations").
     #[serde(default = "default_true")]
     pub gain_trend: bool,
+    /// Refuse an observation whose OBS Sun lies more than
+    /// [`crate::ingest::MAX_SUN_EPHEMERIS_DEG`] from where the Sun stood at its label's
+    /// START_TIME–STOP_TIME ([`crate::ingest::check_sun_ephemeris`]; default true; labels
+    /// without START_TIME, as `synth`'s, are not checked). False only for simulated products
+    /// whose labels keep a real observation's times.
+    #[serde(default = "default_true")]
+    pub check_sun_ephemeris: bool,
 }
 
 fn default_true() -> bool {

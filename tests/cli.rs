@@ -346,6 +346,13 @@ fn inspect_shows_the_illumination_and_describes_geotiffs() {
             "{k}"
         );
     }
+    // The label's times, and OBS's Sun against the ephemeris at them (0.003° measured).
+    assert_eq!(r["start_time"], "2009-01-06T11:34:23.000");
+    assert_eq!(r["stop_time"], "2009-01-06T11:34:47.000");
+    assert!(
+        r["sun_ephemeris"]["worst_deg"].as_f64().unwrap() < 0.02,
+        "{r}"
+    );
 
     // A GeoTIFF we write is described: size, CRS, pixel, band metadata.
     let tmp = std::env::temp_dir().join(format!("sfsfuse-inspect-{}", std::process::id()));

@@ -650,3 +650,40 @@ fn a_solar_table_in_another_unit_is_refused() {
         );
     }
 }
+
+/// The Sun that OBS gives at each pixel of the three vendored M3 crops (to-Sun azimuth and
+/// zenith at LOC's longitude and latitude; computed by the M3 team from the mission's SPICE
+/// kernels) agrees with `ephemeris` at the label's START_TIME–STOP_TIME within 0.02°
+/// (measured 0.002–0.006°) over 2008-11, 2009-01 and 2009-06, near 29° S, 9° N and 63° N.
+/// Counting the azimuths the other way (counter-clockwise from north) puts it 16–36° off.
+#[test]
+fn obs_suns_of_real_crops_agree_with_the_ephemeris() {
+    use sfsfuse::ephemeris::{angle_deg, days_since_j2000, local_to_moon, sun_in_moon_frame};
+    let data = test_data().unwrap();
+    for (dir, stem) in [
+        ("forwardAscending", "M3T20090630T083407"),
+        ("forwardDescending", "M3G20081129T171431"),
+        ("reverseDescending", "M3G20090106T113423"),
+    ] {
+        let o = Observation::open(
+            &data
+                .join("m3_l1b_crops")
+                .join(dir)
+                .join(format!("{stem}_V03_L1B_cropped.LBL")),
+        )
+        .unwrap();
+        let c = sfsfuse::ingest::sun_check(&o).unwrap().unwrap();
+        assert_eq!(c.pixels, o.rdn.lines * o.rdn.samples, "{dir}");
+        assert!(c.worst_deg < 0.02, "{dir}: {c:?}");
+        assert!(c.allowed_deg < 1.01, "{dir}: {c:?}");
+        // The same pixels with mirrored azimuths, against the Sun at START_TIME.
+        let (loc, obs) = (o.part("LOC").unwrap(), o.part("OBS").unwrap());
+        let band = |r: &pds::raw::Raster, b| r.read_band(b, 0, r.lines).unwrap();
+        let (lon, lat, az, zen) = (band(&loc, 0), band(&loc, 1), band(&obs, 0), band(&obs, 1));
+        let sun = sun_in_moon_frame(days_since_j2000(&o.start_time.unwrap()));
+        let least = (0..lon.len())
+            .map(|k| angle_deg(local_to_moon(lon[k], lat[k], 360.0 - az[k], zen[k]), sun))
+            .fold(f64::INFINITY, f64::min);
+        assert!(least > 10.0, "{dir}: {least}");
+    }
+}

@@ -59,6 +59,11 @@ fn synthetic_products_through_run_meet_the_accuracy_bar() {
     // A DEM ≈ 4× coarser than the grid keeps the plain membrane (fusion::coarse_dem_membrane
     // starts at 5×).
     assert_eq!(rec["membrane"], "plain, η 0.1");
+    // Synthetic labels give no START_TIME: the Sun is not checked against the ephemeris.
+    assert_eq!(
+        rec["observations"][0]["sun_ephemeris"],
+        "not checked: the label gives no START_TIME"
+    );
     // The plan's coarse reference stands for the first albedo stage: the halo covers the
     // second (4 × 10 px) and E_DEM's track weighting, 9 px along the columns through the DEM
     // term's blur of 3.6 px (σ_DEM 2 ⊕ the point spread 3): 4·√(9² + 3.6²) = 38.8 px.
@@ -984,23 +989,21 @@ fn an_observation_listed_twice_is_refused() {
     std::fs::remove_dir_all(&dir).unwrap();
 }
 
-/// A real five-line M3 crop with LOLA LDEM_4 (σ_B ≈ 35 px at 150 m) on a region far wider
-/// than the swath: the DEM changes only along the swath, by tens of metres at most, and not
-/// at all beyond the band; the fused DEM explains the image better than LDEM_4.
-#[test]
-fn a_real_swath_over_ldem_4_changes_the_dem_only_along_the_swath() {
+/// The workflow of the vendored real swath M3G20081129T171431 (its crop in `crop`, a
+/// directory) over LDEM_4 with a black-body solar table, `extra` added to `[inputs]`.
+fn real_swath_workflow(dir: &Path, crop: &Path, out: &Path, extra: &str) -> String {
     let data = std::path::PathBuf::from(env!("CARGO_MANIFEST_DIR")).join("tests/data");
-    let dir = scratch("real");
     let table = dir.join("M3G_BLACKBODY_SOLAR_SPEC.TAB");
+    std::fs::create_dir_all(dir).unwrap();
     support::blackbody_table(&table, pds::m3::Mode::Global);
-    let out = dir.join("out");
-    let text = format!(
+    format!(
         r#"kind = "orbital"
 [inputs]
 m3 = ["{m3}"]
 lola = ["{lola}"]
 solar_spectrum = "{table}"
 wavelength_nm = 500.92  # the crop keeps only the first three bands
+{extra}
 [region]
 lon_min = 173.6
 lon_max = 175.4
@@ -1009,13 +1012,24 @@ lat_max = -28.1
 [output]
 directory = "{out}"
 "#,
-        m3 = data
-            .join("m3_l1b_crops/forwardDescending/M3G20081129T171431_V03_L1B_cropped.LBL")
+        m3 = crop
+            .join("M3G20081129T171431_V03_L1B_cropped.LBL")
             .display(),
         lola = data.join("lola_ldem4/LDEM_4.LBL").display(),
         table = table.display(),
         out = out.display()
-    );
+    )
+}
+
+/// A real five-line M3 crop with LOLA LDEM_4 (σ_B ≈ 35 px at 150 m) on a region far wider
+/// than the swath: the DEM changes only along the swath, by tens of metres at most, and not
+/// at all beyond the band; the fused DEM explains the image better than LDEM_4.
+#[test]
+fn a_real_swath_over_ldem_4_changes_the_dem_only_along_the_swath() {
+    let data = std::path::PathBuf::from(env!("CARGO_MANIFEST_DIR")).join("tests/data");
+    let dir = scratch("real");
+    let out = dir.join("out");
+    let text = real_swath_workflow(&dir, &data.join("m3_l1b_crops/forwardDescending"), &out, "");
     run_ok(
         &["run", "--progress", "lines"],
         &write_workflow(&dir, &text),
@@ -1048,6 +1062,58 @@ directory = "{out}"
         membrane.starts_with("edge-aware for a DEM") && membrane.contains("η 0.800"),
         "{membrane}"
     );
+    // OBS's Sun agrees with the ephemeris at the label's times (measured: 0.006°).
+    let sun = &rec["observations"][0]["sun_ephemeris"];
+    assert!(sun["worst_deg"].as_f64().unwrap() < 0.02, "{sun}");
+    assert_eq!(sun["pixels"], 5 * 304, "{sun}");
+    std::fs::remove_dir_all(&dir).unwrap();
+}
+
+/// The same real swath with its OBS azimuths counted counter-clockwise (360° − a) is refused
+/// before anything is written, naming the OBS file, the pixel and the label's times: its Sun
+/// lies 34° from where the Sun stood at START_TIME. `check_sun_ephemeris = false` lets it
+/// through (for simulated products that keep a real label's times), and the record keeps the
+/// angle measured.
+#[test]
+fn a_real_swath_whose_obs_sun_is_not_the_suns_is_refused() {
+    let data = std::path::PathBuf::from(env!("CARGO_MANIFEST_DIR")).join("tests/data");
+    let dir = scratch("real-sun");
+    let crop = dir.join("crop");
+    std::fs::create_dir_all(&crop).unwrap();
+    for e in std::fs::read_dir(data.join("m3_l1b_crops/forwardDescending")).unwrap() {
+        let p = e.unwrap().path();
+        std::fs::copy(&p, crop.join(p.file_name().unwrap())).unwrap();
+    }
+    let obs = crop.join("M3G20081129T171431_V03_OBS_cropped.IMG");
+    support::edit_bil(
+        &obs,
+        10,
+        304,
+        |_, b, _, v| if b == 0 { 360.0 - v } else { v },
+    );
+    let out = dir.join("out");
+    let wf = write_workflow(&dir, &real_swath_workflow(&dir, &crop, &out, ""));
+    let err = run_err(&wf);
+    for want in [
+        "M3G20081129T171431_V03_OBS_cropped.IMG",
+        "START_TIME 2008-11-29T17:14:31",
+        "line ",
+        "check_sun_ephemeris = false",
+    ] {
+        assert!(err.contains(want), "{want}: {err}");
+    }
+    assert!(!out.join("dem.tif").exists());
+    let wf = write_workflow(
+        &dir,
+        &real_swath_workflow(&dir, &crop, &out, "check_sun_ephemeris = false"),
+    );
+    run_ok(&["run", "--progress", "lines"], &wf);
+    let rec: serde_json::Value =
+        serde_json::from_slice(&std::fs::read(out.join("run.json")).unwrap()).unwrap();
+    let worst = rec["observations"][0]["sun_ephemeris"]["worst_deg"]
+        .as_f64()
+        .unwrap();
+    assert!((30.0..40.0).contains(&worst), "{worst}");
     std::fs::remove_dir_all(&dir).unwrap();
 }
 

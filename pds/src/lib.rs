@@ -9,6 +9,7 @@ pub mod m3;
 pub mod odl;
 pub mod raw;
 pub mod solar;
+pub mod time;
 
 pub use error::{Error, Result};
 pub use lola::{read_label, read_label_bytes};

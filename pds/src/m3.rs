@@ -15,8 +15,9 @@
 
 use crate::error::{Error, Result};
 use crate::lola::{read_label, resolve};
-use crate::odl::Label;
+use crate::odl::{Label, Value};
 use crate::raw::{locate, Raster};
+use crate::time::UtcTime;
 use std::path::{Path, PathBuf};
 
 /// M3's two instrument modes.
@@ -71,6 +72,10 @@ pub struct Observation {
     pub wavelengths: Vec<f64>,
     /// Where the wavelengths came from.
     pub wavelength_source: String,
+    /// START_TIME and STOP_TIME, UTC ([`time_of`]; `None` where the label has none or says
+    /// N/A, UNK or NULL).
+    pub start_time: Option<UtcTime>,
+    pub stop_time: Option<UtcTime>,
 }
 
 /// Two bands around a wavelength and the linear weight of the second.
@@ -79,6 +84,34 @@ pub struct Bracket {
     pub lower: usize,
     pub upper: usize,
     pub weight_upper: f64,
+}
+
+/// The UTC time of `keyword` in `label` (PDS3 date/time, [`UtcTime::parse`]): `None` where
+/// the label has no such keyword or gives one of PDS3's missing-value constants (N/A, UNK,
+/// NULL); an error naming the keyword where the value is not a time.
+pub fn time_of(path: &Path, label: &Label, keyword: &str) -> Result<Option<UtcTime>> {
+    let Some(v) = label.get(keyword) else {
+        return Ok(None);
+    };
+    let text = match v.bare() {
+        Value::Symbol(s) | Value::Text(s) => s.as_str(),
+        other => {
+            return Err(Error::invalid(
+                path,
+                &label.root.at(keyword),
+                format!("{other:?} is not a date/time"),
+            ))
+        }
+    };
+    if ["N/A", "UNK", "NULL"]
+        .iter()
+        .any(|m| text.trim().eq_ignore_ascii_case(m))
+    {
+        return Ok(None);
+    }
+    UtcTime::parse(text)
+        .map(Some)
+        .map_err(|why| Error::invalid(path, &label.root.at(keyword), format!("{text}: {why}")))
 }
 
 impl Observation {
@@ -140,6 +173,8 @@ impl Observation {
             ));
         }
         let wavelengths = wl[..rdn.bands].to_vec();
+        let start_time = time_of(path, &label, "START_TIME")?;
+        let stop_time = time_of(path, &label, "STOP_TIME")?;
         Ok(Observation {
             label_path: path.into(),
             label,
@@ -148,6 +183,8 @@ impl Observation {
             rdn,
             wavelengths,
             wavelength_source: src,
+            start_time,
+            stop_time,
         })
     }
 

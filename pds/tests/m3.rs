@@ -272,3 +272,55 @@ fn radiance_to_reflectance_on_the_target_crop() {
     );
     assert!(mean > 0.01 && mean < 0.3, "mean I/F {mean}");
 }
+
+#[test]
+fn start_and_stop_times_are_read_from_the_labels() {
+    let Some(data) = test_data() else { return };
+    for ((dir, lbl), (start, stop)) in SETS.into_iter().zip([
+        ("2009-06-30T08:34:07", "2009-06-30T08:34:36"),
+        ("2008-11-29T17:14:31", "2008-11-29T17:14:57"),
+        ("2009-01-06T11:34:23", "2009-01-06T11:34:47"),
+    ]) {
+        let path = data.join("m3_l1b_crops").join(dir).join(lbl);
+        let o = Observation::open(&path).unwrap();
+        let (a, b) = (o.start_time.unwrap(), o.stop_time.unwrap());
+        assert_eq!(a.to_string()[..19], *start, "{dir}");
+        assert_eq!(b.to_string()[..19], *stop, "{dir}");
+        // Each line of the crop's TIM table: UTC, year, and the day of the year counted from
+        // 0 at January 1st, 00:00 (the table's own independent form of the same instant).
+        let tim = path.with_file_name(lbl.replace("L1B", "TIM").replace(".LBL", ".TAB"));
+        for row in std::fs::read_to_string(&tim).unwrap().lines() {
+            let f: Vec<&str> = row.split_whitespace().collect();
+            let t = pds::time::UtcTime::parse(f[1]).unwrap();
+            let jan1 = pds::time::UtcTime::parse(&format!("{}-01-01", f[2])).unwrap();
+            let doy: f64 = f[3].parse().unwrap();
+            let days = t.julian_date() - jan1.julian_date();
+            assert!((days - doy).abs() * 86_400.0 < 1e-3, "{dir}: {row}: {days}");
+            // Every line lies between START_TIME and STOP_TIME (which M3 writes to ±2 s).
+            let (da, db) = (
+                t.julian_date() - a.julian_date(),
+                b.julian_date() - t.julian_date(),
+            );
+            assert!(da * 86_400.0 > -2.0 && db * 86_400.0 > -2.0, "{dir}: {row}");
+        }
+    }
+}
+
+#[test]
+fn missing_value_constants_are_absent_times_and_bad_times_name_their_keyword() {
+    let label = pds::parse_label(
+        b"START_TIME = N/A\r\nSTOP_TIME = 2009-13-01T00:00:00\r\nOTHER_TIME = \"UNK\"\r\nEND\r\n",
+    )
+    .unwrap();
+    let path = std::path::Path::new("X.LBL");
+    assert_eq!(pds::m3::time_of(path, &label, "START_TIME").unwrap(), None);
+    assert_eq!(pds::m3::time_of(path, &label, "OTHER_TIME").unwrap(), None);
+    assert_eq!(pds::m3::time_of(path, &label, "ABSENT_TIME").unwrap(), None);
+    let e = pds::m3::time_of(path, &label, "STOP_TIME")
+        .unwrap_err()
+        .to_string();
+    assert!(
+        e.contains("X.LBL") && e.contains("STOP_TIME (line 2)") && e.contains("month 13"),
+        "{e}"
+    );
+}

@@ -258,6 +258,17 @@ pub(super) struct ObservationRecord {
     /// Its mean Sun over its usable pixels on the grid, degrees ([`super::plan::Plan::sun_deg`]).
     #[serde(skip_serializing_if = "Option::is_none")]
     pub(super) sun: Option<MeanSun>,
+    /// Its OBS Sun against the ephemeris at its label's times ([`crate::ingest::SunCheck`]);
+    /// a note instead where the label gives no START_TIME.
+    pub(super) sun_ephemeris: SunEphemeris,
+}
+
+/// What the run record says of an observation's Sun check.
+#[derive(Debug, Clone, Serialize)]
+#[serde(untagged)]
+pub(super) enum SunEphemeris {
+    Checked(crate::ingest::SunCheck),
+    NotChecked(String),
 }
 
 /// An observation's mean Sun over the region, degrees.
@@ -580,6 +591,12 @@ fn observation_records(
                     azimuth_deg: az,
                     elevation_deg: el,
                 }),
+            sun_ephemeris: match plan.sun_ephemeris.get(k).copied().flatten() {
+                Some(c) => SunEphemeris::Checked(c),
+                None => {
+                    SunEphemeris::NotChecked("not checked: the label gives no START_TIME".into())
+                }
+            },
         })
         .collect()
 }

@@ -72,6 +72,10 @@ pub struct Plan {
     /// input order.
     #[serde(default)]
     pub sun_deg: Vec<Option<[f64; 2]>>,
+    /// Each observation's OBS Sun against the ephemeris at its label's times
+    /// ([`ingest::SunCheck`]; `None`: the label gives no START_TIME), in input order.
+    #[serde(default)]
+    pub sun_ephemeris: Vec<Option<ingest::SunCheck>>,
 }
 
 /// σ_k, grid pixels, of each observation's blur on a grid of `spacing` metres, from its pixel
@@ -554,6 +558,7 @@ pub(super) fn plan(
         means,
         sums,
         sun_deg,
+        sun_ephemeris,
     } = survey_all(o, inputs, &grid, &pr)?;
     let dem = dem_terms(o, inputs, &grid, &pr);
     let (params, dem_psf_sigma) = (&dem.params, dem.dem_psf_sigma);
@@ -649,6 +654,7 @@ pub(super) fn plan(
         registration,
         pixel_size_m,
         sun_deg,
+        sun_ephemeris,
     };
     write_atomic(
         &path,
@@ -853,6 +859,8 @@ struct Surveyed {
     means: Vec<Option<f64>>,
     sums: Vec<f64>,
     sun_deg: Vec<Option<[f64; 2]>>,
+    /// Per observation: its OBS Sun against the ephemeris ([`ingest::SunCheck`]).
+    sun_ephemeris: Vec<Option<ingest::SunCheck>>,
 }
 
 /// Survey every observation on the grid ([`ingest::survey`]): its swath index, the sums of Ī
@@ -869,9 +877,18 @@ fn survey_all(
     let mut means = Vec::new();
     let mut sums = Vec::new();
     let mut sun_deg = Vec::new();
+    let mut sun_ephemeris = Vec::new();
     let mut why = Vec::new();
     for (k, obs) in inputs.obs.iter().enumerate() {
         let s = ingest::survey(obs, inputs.solar(k), o.inputs.wavelength_nm, grid, pr)?;
+        if let Some(check) = s
+            .sun_ephemeris
+            .as_ref()
+            .filter(|_| o.inputs.check_sun_ephemeris)
+        {
+            ingest::check_sun_ephemeris(obs, check)?;
+        }
+        sun_ephemeris.push(s.sun_ephemeris);
         sum += s.sum;
         count += s.count;
         means.push((s.count > 0).then(|| s.sum / s.count as f64));
@@ -909,6 +926,7 @@ fn survey_all(
         means,
         sums,
         sun_deg,
+        sun_ephemeris,
     })
 }
 
