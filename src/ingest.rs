@@ -621,15 +621,24 @@ fn sun_ephemeris_lines(
     (first, samples): (usize, usize),
 ) {
     use crate::ephemeris::{angle_deg, local_to_moon};
-    for ((((k, &lo), &la), &a), &z) in lon.iter().enumerate().zip(lat).zip(az).zip(zen) {
-        if ![lo, la, a, z].iter().all(|v| v.is_finite()) || la.abs() > 89.9 {
-            continue;
-        }
+    use rayon::prelude::*;
+    // The angles in parallel (NaN where a pixel is not compared), the fold in line order.
+    let off: Vec<f64> = (0..lon.len())
+        .into_par_iter()
+        .map(|k| {
+            let (lo, la, a, z) = (lon[k], lat[k], az[k], zen[k]);
+            if [lo, la, a, z].iter().all(|v| v.is_finite()) && la.abs() <= 89.9 {
+                angle_deg(local_to_moon(lo, la, a, z), sun)
+            } else {
+                f64::NAN
+            }
+        })
+        .collect();
+    for (k, &o) in off.iter().enumerate().filter(|(_, o)| !o.is_nan()) {
         check.pixels += 1;
-        let off = angle_deg(local_to_moon(lo, la, a, z), sun);
-        if off > check.worst_deg {
+        if o > check.worst_deg {
             (check.worst_deg, check.line, check.sample) =
-                (off, first + k / samples + 1, k % samples + 1);
+                (o, first + k / samples + 1, k % samples + 1);
         }
     }
 }
