@@ -171,41 +171,48 @@ pub struct SunCheck {
     /// Moon's sky between START_TIME and STOP_TIME (each pixel is compared with the Sun at
     /// their midpoint; ≈ 0.5° an hour).
     pub allowed_deg: f64,
+    /// The Moon's distance from the Sun at that midpoint, AU, which the label's
+    /// SOLAR_DISTANCE must match within `distance_allowed_au` ([`MAX_SOLAR_DISTANCE_OFF_AU`]
+    /// plus half its change between START_TIME and STOP_TIME).
+    pub distance_au: f64,
+    pub distance_allowed_au: f64,
 }
 
-/// The Sun at the midpoint of `obs`'s START_TIME and STOP_TIME in the Moon's body-fixed frame
-/// and the angle allowed from it ([`SunCheck::allowed_deg`]); `None` without START_TIME.
-fn sun_at_label_times(obs: &Observation) -> Option<(Vec3, f64)> {
-    use crate::ephemeris::{angle_deg, days_since_j2000, sun_in_moon_frame};
+/// Largest accepted difference, AU, between the label's SOLAR_DISTANCE and the Moon's distance
+/// from the Sun at its START_TIME–STOP_TIME ([`crate::ephemeris::sun_distance_au`]): they
+/// agree within 1.3·10⁻⁴ AU on the vendored M3 labels; 10⁻³ AU scales the reflectance by
+/// 0.2 % (d²), while the range [`pds::m3::Observation::open`] accepts (0.98–1.02 AU) spans
+/// 8 %.
+pub const MAX_SOLAR_DISTANCE_OFF_AU: f64 = 1e-3;
+
+/// What the ephemeris says at the midpoint of `obs`'s START_TIME and STOP_TIME: the Sun in the
+/// Moon's body-fixed frame, the angle allowed from it ([`SunCheck::allowed_deg`]) and the
+/// Sun's distance; `None` without START_TIME.
+fn sun_at_label_times(obs: &Observation) -> Option<(Vec3, SunCheck)> {
+    use crate::ephemeris::{angle_deg, days_since_j2000, sun_distance_au, sun_in_moon_frame};
     let a = days_since_j2000(obs.start_time.as_ref()?);
     let b = obs.stop_time.as_ref().map_or(a, days_since_j2000);
     let arc = angle_deg(sun_in_moon_frame(a), sun_in_moon_frame(b));
-    Some((
-        sun_in_moon_frame(0.5 * (a + b)),
-        MAX_SUN_EPHEMERIS_DEG + 0.5 * arc,
-    ))
-}
-
-impl SunCheck {
-    fn new(allowed_deg: f64) -> Self {
-        SunCheck {
-            worst_deg: 0.0,
-            line: 0,
-            sample: 0,
-            pixels: 0,
-            allowed_deg,
-        }
-    }
+    let (ra, rb) = (sun_distance_au(a), sun_distance_au(b));
+    let check = SunCheck {
+        worst_deg: 0.0,
+        line: 0,
+        sample: 0,
+        pixels: 0,
+        allowed_deg: MAX_SUN_EPHEMERIS_DEG + 0.5 * arc,
+        distance_au: 0.5 * (ra + rb),
+        distance_allowed_au: MAX_SOLAR_DISTANCE_OFF_AU + 0.5 * (ra - rb).abs(),
+    };
+    Some((sun_in_moon_frame(0.5 * (a + b)), check))
 }
 
 /// [`SunCheck`] of `obs` over its whole swath, read from its LOC and OBS files (what
 /// [`survey`] measures on the way; `None` where the label gives no START_TIME).
 pub fn sun_check(obs: &Observation) -> Result<Option<SunCheck>> {
-    let Some((sun, allowed_deg)) = sun_at_label_times(obs) else {
+    let Some((sun, mut check)) = sun_at_label_times(obs) else {
         return Ok(None);
     };
     let (loc, obsr) = parts(obs)?;
-    let mut check = SunCheck::new(allowed_deg);
     for start in (0..loc.lines).step_by(INDEX_BLOCK) {
         let n = INDEX_BLOCK.min(loc.lines - start);
         let lon = loc.read_band(0, start, n)?;
@@ -222,27 +229,45 @@ pub fn sun_check(obs: &Observation) -> Result<Option<SunCheck>> {
     Ok(Some(check))
 }
 
-/// Refuse `obs` when its [`SunCheck`] exceeds the angle allowed, naming the OBS file, the
-/// pixel and the label's times.
+/// Refuse `obs` when its label's SOLAR_DISTANCE is not the Moon's distance from the Sun at its
+/// times, or when its [`SunCheck`] exceeds the angle allowed, naming the label or the OBS
+/// file, the pixel and the label's times.
 pub fn check_sun_ephemeris(obs: &Observation, check: &SunCheck) -> Result<()> {
+    let off_au = obs.solar_distance_au - check.distance_au;
+    if off_au.abs() > check.distance_allowed_au {
+        return Err(Error::Usage(format!(
+            "{}: SOLAR_DISTANCE = {} AU, but the Moon was {:.5} AU from the Sun between START_TIME {} and STOP_TIME {} UTC ({:+.5} AU off, at most {:.4} allowed; real M3 labels agree within 0.00013 AU). Every reflectance scales with its square ({:+.2} %): the label's SOLAR_DISTANCE or its times are not this observation's. For simulated products whose label keeps a real observation's times, set [inputs] check_sun_ephemeris = false",
+            obs.label_path.display(),
+            obs.solar_distance_au,
+            check.distance_au,
+            fmt_time(&obs.start_time),
+            fmt_time(&obs.stop_time),
+            off_au,
+            check.distance_allowed_au,
+            100.0 * ((obs.solar_distance_au / check.distance_au).powi(2) - 1.0)
+        )));
+    }
     if check.worst_deg <= check.allowed_deg {
         return Ok(());
     }
     let obs_path = obs
         .part("OBS")
         .map_or_else(|_| obs.label_path.clone(), |r| r.path);
-    let time = |t: &Option<pds::time::UtcTime>| t.map_or("?".to_string(), |t| t.to_string());
     Err(Error::Usage(format!(
         "{}: OBS (to-Sun azimuth and zenith, bands 1–2) at line {}, sample {} puts the Sun {:.2}° from where it stood over that pixel's LOC longitude and latitude between START_TIME {} and STOP_TIME {} UTC of {} (at most {:.2}° allowed; on real M3 products the two agree within 0.01°). The OBS file does not describe this observation: check that the label, LOC and OBS files are of one product (an OBS from another observation, or azimuths counted other than clockwise from north, do this). For simulated products whose label keeps a real observation's times, set [inputs] check_sun_ephemeris = false",
         obs_path.display(),
         check.line,
         check.sample,
         check.worst_deg,
-        time(&obs.start_time),
-        time(&obs.stop_time),
+        fmt_time(&obs.start_time),
+        fmt_time(&obs.stop_time),
         obs.label_path.display(),
         check.allowed_deg
     )))
+}
+
+fn fmt_time(t: &Option<pds::time::UtcTime>) -> String {
+    t.map_or("?".to_string(), |t| t.to_string())
 }
 
 impl Survey {
@@ -546,17 +571,17 @@ pub fn survey(
     let (mut on_grid_count, mut refused) = (0usize, Refusals::default());
     let mut sun_sums = [0.0; 3];
     let sun_time = sun_at_label_times(obs);
-    let mut sun_check = sun_time.map(|(_, allowed_deg)| SunCheck::new(allowed_deg));
+    let mut sun_check = sun_time.map(|(_, check)| check);
     for start in (0..loc.lines).step_by(INDEX_BLOCK) {
         let n = INDEX_BLOCK.min(loc.lines - start);
         let lon = loc.read_band(0, start, n)?;
         let lat = loc.read_band(1, start, n)?;
         let (refl, _, _, cause, [sun_az, sun_zen]) =
             reflectance_lines(obs, &obsr, solar, nm, (start, n), 0..loc.samples)?;
-        if let (Some((sun, _)), Some(check)) = (sun_time, sun_check.as_mut()) {
+        if let (Some((sun, _)), Some(check)) = (sun_time.as_ref(), sun_check.as_mut()) {
             let zen = sun_zen.as_slice().expect("standard layout");
             let az = sun_az.as_slice().expect("standard layout");
-            sun_ephemeris_lines(check, sun, [&lon, &lat, az, zen], (start, loc.samples));
+            sun_ephemeris_lines(check, *sun, [&lon, &lat, az, zen], (start, loc.samples));
         }
         let mut b = [f64::MAX, f64::MIN, f64::MAX, f64::MIN];
         let mut any = false;

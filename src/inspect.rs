@@ -62,6 +62,9 @@ pub struct M3Inspection {
     /// the label gives START_TIME and LOC and OBS read; `run` refuses the observation above
     /// its `allowed_deg`.
     pub sun_ephemeris: Option<crate::ingest::SunCheck>,
+    /// Why `run` refuses the observation on that check, if it does
+    /// ([`crate::ingest::check_sun_ephemeris`]).
+    pub sun_problem: Option<String>,
     /// Whether LOC's, and OBS's, file is beside the label but cannot be read as it
     /// describes it (truncated, wrong size, a malformed object): bad input, which
     /// `sfsfuse inspect` reports by its exit status after the description. A part whose
@@ -285,6 +288,11 @@ fn inspect_m3(path: &Path) -> Result<Inspection> {
     } else {
         None
     };
+    let sun_problem = sun_ephemeris.and_then(|c| {
+        crate::ingest::check_sun_ephemeris(&o, &c)
+            .err()
+            .map(|e| e.to_string())
+    });
     Ok(Inspection::M3(Box::new(M3Inspection {
         label: path.display().to_string(),
         mode: o.mode.keyword().into(),
@@ -307,6 +315,7 @@ fn inspect_m3(path: &Path) -> Result<Inspection> {
         start_time: o.start_time.map(|t| t.to_string()),
         stop_time: o.stop_time.map(|t| t.to_string()),
         sun_ephemeris,
+        sun_problem,
         loc_unreadable,
         obs_unreadable,
     })))
@@ -400,10 +409,9 @@ impl Inspection {
                 format!("{e} (the rest of the observation is described above; `run` refuses it)")
             })
             .or_else(|| {
-                let c = m.sun_ephemeris.filter(|c| c.worst_deg > c.allowed_deg)?;
+                let p = m.sun_problem.as_ref()?;
                 Some(format!(
-                    "{}: OBS puts the Sun {:.2}° from where it stood at START_TIME–STOP_TIME (line {}, sample {}; at most {:.2}° allowed): its OBS does not describe this observation, and `run` refuses it",
-                    m.label, c.worst_deg, c.line, c.sample, c.allowed_deg
+                    "{p} (the observation is described above; `run` refuses it)"
                 ))
             }),
             _ => None,
@@ -488,8 +496,8 @@ impl Inspection {
                 );
                 s += &match sun_ephemeris {
                     Some(c) => format!(
-                        "  Sun vs time    OBS's Sun at most {:.3}° from the ephemeris's over {} px (refused above {:.2}°)\n",
-                        c.worst_deg, c.pixels, c.allowed_deg
+                        "  Sun vs time    OBS's Sun at most {:.3}° from the ephemeris's over {} px (refused above {:.2}°); the Sun {:.5} AU away (SOLAR_DISTANCE refused beyond ±{:.4} AU of it)\n",
+                        c.worst_deg, c.pixels, c.allowed_deg, c.distance_au, c.distance_allowed_au
                     ),
                     None => "  Sun vs time    not checked (no START_TIME, or LOC/OBS unreadable)\n".into(),
                 };

@@ -142,7 +142,9 @@ pub struct OrbitalInputs {
     pub gain_trend: bool,
     /// Refuse an observation whose OBS Sun lies more than
     /// [`crate::ingest::MAX_SUN_EPHEMERIS_DEG`] from where the Sun stood at its label's
-    /// START_TIME–STOP_TIME ([`crate::ingest::check_sun_ephemeris`]; default true; labels
+    /// START_TIME–STOP_TIME, or whose SOLAR_DISTANCE is more than
+    /// [`crate::ingest::MAX_SOLAR_DISTANCE_OFF_AU`] from the Moon's distance from the Sun
+    /// then ([`crate::ingest::check_sun_ephemeris`]; default true; labels
     /// without START_TIME, as `synth`'s, are not checked). False only for simulated products
     /// whose labels keep a real observation's times.
     #[serde(default = "default_true")]

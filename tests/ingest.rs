@@ -656,6 +656,7 @@ fn a_solar_table_in_another_unit_is_refused() {
 /// kernels) agrees with `ephemeris` at the label's START_TIME–STOP_TIME within 0.02°
 /// (measured 0.002–0.006°) over 2008-11, 2009-01 and 2009-06, near 29° S, 9° N and 63° N.
 /// Counting the azimuths the other way (counter-clockwise from north) puts it 16–36° off.
+/// The labels' SOLAR_DISTANCE agrees with the ephemeris's distance within 1.3·10⁻⁴ AU.
 #[test]
 fn obs_suns_of_real_crops_agree_with_the_ephemeris() {
     use sfsfuse::ephemeris::{angle_deg, days_since_j2000, local_to_moon, sun_in_moon_frame};
@@ -685,5 +686,32 @@ fn obs_suns_of_real_crops_agree_with_the_ephemeris() {
             .map(|k| angle_deg(local_to_moon(lon[k], lat[k], 360.0 - az[k], zen[k]), sun))
             .fold(f64::INFINITY, f64::min);
         assert!(least > 10.0, "{dir}: {least}");
+    }
+    // The labels' SOLAR_DISTANCE (computed by the M3 team) against the Moon's distance from
+    // the Sun at START_TIME–STOP_TIME: within 1.3·10⁻⁴ AU on all four labels, where the
+    // Earth's differs from it by up to 2.5·10⁻³ AU.
+    for (dir, stem) in [
+        ("forwardAscending", "M3T20090630T083407"),
+        ("forwardDescending", "M3G20081129T171431"),
+        ("reverseDescending", "M3G20090106T113423"),
+        ("linerateNotConstant", "M3G20081118T223204"),
+    ] {
+        let o = Observation::open(
+            &data
+                .join("m3_l1b_crops")
+                .join(dir)
+                .join(format!("{stem}_V03_L1B_cropped.LBL")),
+        )
+        .unwrap();
+        let (a, b) = (
+            days_since_j2000(&o.start_time.unwrap()),
+            days_since_j2000(&o.stop_time.unwrap()),
+        );
+        let d = sfsfuse::ephemeris::sun_distance_au(0.5 * (a + b));
+        assert!(
+            (d - o.solar_distance_au).abs() < 2e-4,
+            "{dir}: {d} against {}",
+            o.solar_distance_au
+        );
     }
 }

@@ -1073,7 +1073,7 @@ fn a_real_swath_over_ldem_4_changes_the_dem_only_along_the_swath() {
 /// before anything is written, naming the OBS file, the pixel and the label's times: its Sun
 /// lies 34° from where the Sun stood at START_TIME. `check_sun_ephemeris = false` lets it
 /// through (for simulated products that keep a real label's times), and the record keeps the
-/// angle measured.
+/// angle measured. A SOLAR_DISTANCE that is not the Moon's at those times is refused too.
 #[test]
 fn a_real_swath_whose_obs_sun_is_not_the_suns_is_refused() {
     let data = std::path::PathBuf::from(env!("CARGO_MANIFEST_DIR")).join("tests/data");
@@ -1114,6 +1114,27 @@ fn a_real_swath_whose_obs_sun_is_not_the_suns_is_refused() {
         .as_f64()
         .unwrap();
     assert!((30.0..40.0).contains(&worst), "{worst}");
+    // The OBS restored, the label's SOLAR_DISTANCE 0.995 AU instead of 0.983 748 796 177
+    // (reflectances 2.3 % too bright): refused naming the label and the keyword.
+    let src = data.join("m3_l1b_crops/forwardDescending");
+    std::fs::copy(src.join("M3G20081129T171431_V03_OBS_cropped.IMG"), &obs).unwrap();
+    let label = crop.join("M3G20081129T171431_V03_L1B_cropped.LBL");
+    let text = std::fs::read_to_string(&label).unwrap();
+    assert!(text.contains("SOLAR_DISTANCE = 0.983748796177"));
+    std::fs::write(
+        &label,
+        text.replace("SOLAR_DISTANCE = 0.983748796177", "SOLAR_DISTANCE = 0.995"),
+    )
+    .unwrap();
+    std::fs::remove_dir_all(&out).unwrap();
+    let wf = write_workflow(&dir, &real_swath_workflow(&dir, &crop, &out, ""));
+    let err = run_err(&wf);
+    assert!(
+        err.contains("M3G20081129T171431_V03_L1B_cropped.LBL: SOLAR_DISTANCE = 0.995 AU")
+            && err.contains("+2.30 %"),
+        "{err}"
+    );
+    assert!(!out.join("dem.tif").exists());
     std::fs::remove_dir_all(&dir).unwrap();
 }
 
