@@ -108,4 +108,13 @@ fn torture_label_from_isis() {
     assert!(!l.root.children.is_empty());
     let n: usize = l.root.children.iter().map(|c| c.attributes.len()).sum();
     assert!(n > 10, "{n}");
+    // The original PDS formatting (padded to 80 columns, CRLF) keeps its times readable.
+    let path = std::path::Path::new("BILtestData_cropped.LBL");
+    let start = pds::m3::time_of(path, &l, "START_TIME").unwrap().unwrap();
+    let stop = pds::m3::time_of(path, &l, "STOP_TIME").unwrap().unwrap();
+    assert_eq!(start.to_string(), "2008-11-18T22:26:04.000");
+    assert_eq!(
+        ((stop.julian_date() - start.julian_date()) * 86_400.0).round(),
+        120.0
+    );
 }
