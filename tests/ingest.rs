@@ -651,6 +651,12 @@ fn a_solar_table_in_another_unit_is_refused() {
     }
 }
 
+/// The vendored M3 crop `stem` in `m3_l1b_crops/dir`, opened.
+fn real_crop(data: &std::path::Path, dir: &str, stem: &str) -> Observation {
+    let dir = data.join("m3_l1b_crops").join(dir);
+    Observation::open(&dir.join(format!("{stem}_V03_L1B_cropped.LBL"))).unwrap()
+}
+
 /// The Sun that OBS gives at each pixel of the three vendored M3 crops (to-Sun azimuth and
 /// zenith at LOC's longitude and latitude; computed by the M3 team from the mission's SPICE
 /// kernels) agrees with `ephemeris` at the label's START_TIME–STOP_TIME within 0.02°
@@ -666,13 +672,7 @@ fn obs_suns_of_real_crops_agree_with_the_ephemeris() {
         ("forwardDescending", "M3G20081129T171431"),
         ("reverseDescending", "M3G20090106T113423"),
     ] {
-        let o = Observation::open(
-            &data
-                .join("m3_l1b_crops")
-                .join(dir)
-                .join(format!("{stem}_V03_L1B_cropped.LBL")),
-        )
-        .unwrap();
+        let o = real_crop(&data, dir, stem);
         let c = sfsfuse::ingest::sun_check(&o).unwrap().unwrap();
         assert_eq!(c.pixels, o.rdn.lines * o.rdn.samples, "{dir}");
         assert!(c.worst_deg < 0.02, "{dir}: {c:?}");
@@ -696,13 +696,7 @@ fn obs_suns_of_real_crops_agree_with_the_ephemeris() {
         ("reverseDescending", "M3G20090106T113423"),
         ("linerateNotConstant", "M3G20081118T223204"),
     ] {
-        let o = Observation::open(
-            &data
-                .join("m3_l1b_crops")
-                .join(dir)
-                .join(format!("{stem}_V03_L1B_cropped.LBL")),
-        )
-        .unwrap();
+        let o = real_crop(&data, dir, stem);
         let (a, b) = (
             days_since_j2000(&o.start_time.unwrap()),
             days_since_j2000(&o.stop_time.unwrap()),
