@@ -148,6 +148,65 @@ pub struct Survey {
     /// OBS's Sun against the ephemeris at the label's times over every pixel of the swath
     /// ([`SunCheck`]; `None` where the label gives no START_TIME, as synthetic products).
     pub sun_ephemeris: Option<SunCheck>,
+    /// LOC's surface heights at a sample of the usable pixels on the grid (every
+    /// [`LOC_HEIGHT_STEP`]-th line and sample): longitude, latitude (degrees) and radius less
+    /// the 1737.4 km sphere (metres), to hold the DEM against ([`LocHeights`]).
+    pub loc_heights: LocHeights,
+}
+
+/// Every how many lines and samples the survey samples LOC's heights.
+pub const LOC_HEIGHT_STEP: usize = 8;
+
+/// LOC's heights at sampled swath pixels ([`Survey::loc_heights`]).
+#[derive(Debug, Clone, Default, PartialEq)]
+pub struct LocHeights {
+    pub lon: Vec<f64>,
+    pub lat: Vec<f64>,
+    pub height_m: Vec<f64>,
+}
+
+/// How an observation's LOC heights compare with the DEM at the same points ([`dem_vs_loc`]).
+#[derive(Debug, Clone, Copy, PartialEq, serde::Serialize, serde::Deserialize)]
+pub struct DemVsLoc {
+    /// The sampled pixels compared (usable, on the grid, the DEM defined there).
+    pub pixels: usize,
+    /// Median of LOC's height less the DEM's, metres.
+    pub median_m: f64,
+    /// Median absolute deviation about it, metres.
+    pub mad_m: f64,
+}
+
+/// |median| of LOC's heights less the DEM's above which a run warns, metres. On the vendored
+/// crops over LDEM_4 the median is 1–23 m (LOC's radii come from a LOLA-based surface; RMS
+/// 150–220 m at LDEM_4's 7.6 km posting). A DEM on a sphere 600 m off (1738 km), in feet, or
+/// in kilometres over terrain more than 300 m from the datum lies beyond it.
+pub const MAX_DEM_LOC_OFFSET_M: f64 = 300.0;
+
+/// LOC's heights against `dem` (the DEM's heights at the same points, NaN where it has none):
+/// `None` where no point has both.
+pub fn dem_vs_loc(loc: &LocHeights, dem: &[f64]) -> Option<DemVsLoc> {
+    let median = |v: &mut Vec<f64>| {
+        v.sort_by(f64::total_cmp);
+        let n = v.len();
+        0.5 * (v[(n - 1) / 2] + v[n / 2])
+    };
+    let mut d: Vec<f64> = loc
+        .height_m
+        .iter()
+        .zip(dem)
+        .map(|(l, h)| l - h)
+        .filter(|d| d.is_finite())
+        .collect();
+    if d.is_empty() {
+        return None;
+    }
+    let median_m = median(&mut d);
+    let mut dev: Vec<f64> = d.iter().map(|x| (x - median_m).abs()).collect();
+    Some(DemVsLoc {
+        pixels: d.len(),
+        median_m,
+        mad_m: median(&mut dev),
+    })
 }
 
 /// Largest accepted angle, degrees, between the Sun of OBS (to-Sun azimuth and zenith at LOC's
@@ -572,6 +631,7 @@ pub fn survey(
     let mut sun_sums = [0.0; 3];
     let sun_time = sun_at_label_times(obs);
     let mut sun_check = sun_time.map(|(_, check)| check);
+    let mut loc_heights = LocHeights::default();
     for start in (0..loc.lines).step_by(INDEX_BLOCK) {
         let n = INDEX_BLOCK.min(loc.lines - start);
         let lon = loc.read_band(0, start, n)?;
@@ -583,18 +643,24 @@ pub fn survey(
             let az = sun_az.as_slice().expect("standard layout");
             sun_ephemeris_lines(check, *sun, [&lon, &lat, az, zen], (start, loc.samples));
         }
+        // LOC's radius on the sampled lines of this block.
+        let radius: Vec<Vec<f64>> = (start..start + n)
+            .step_by(LOC_HEIGHT_STEP)
+            .map(|l| loc.read_band(2, l, 1))
+            .collect::<std::result::Result<_, _>>()?;
         let mut b = [f64::MAX, f64::MIN, f64::MAX, f64::MIN];
         let mut any = false;
         // The projections in parallel; the sums below in the samples' order, as before.
         let xy = Zip::from(&lon)
             .and(&lat)
             .par_map_collect(|&lo, &la| pr.forward(lo, la));
-        for ((((xy, &r), &c), &az), &zen) in xy
+        for (k, ((((xy, &r), &c), &az), &zen)) in xy
             .iter()
             .zip(refl.iter())
             .zip(cause.iter())
             .zip(sun_az.iter())
             .zip(sun_zen.iter())
+            .enumerate()
         {
             let Some((x, y)) = *xy else {
                 continue;
@@ -616,6 +682,15 @@ pub fn survey(
                     sun_sums[0] += zen;
                     sun_sums[1] += a.sin();
                     sun_sums[2] += a.cos();
+                    let (i, j) = (k / loc.samples, k % loc.samples);
+                    if i % LOC_HEIGHT_STEP == 0 && j % LOC_HEIGHT_STEP == 0 {
+                        let h = radius[i / LOC_HEIGHT_STEP][j] - grid::MOON_RADIUS_M;
+                        if h.is_finite() {
+                            loc_heights.lon.push(lon[k]);
+                            loc_heights.lat.push(lat[k]);
+                            loc_heights.height_m.push(h);
+                        }
+                    }
                 }
             }
         }
@@ -632,6 +707,7 @@ pub fn survey(
         refused,
         sun_sums,
         sun_ephemeris: sun_check,
+        loc_heights,
     })
 }
 
@@ -1242,6 +1318,22 @@ pub fn geotiff_on_grid(
 mod tests {
     use super::*;
 
+    /// LOC against the DEM: the median and the median absolute deviation of the differences
+    /// where both are defined (NaN DEM points skipped); none without such a point.
+    #[test]
+    fn loc_heights_against_the_dem_are_a_median_and_its_spread() {
+        let loc = LocHeights {
+            lon: vec![0.0; 5],
+            lat: vec![0.0; 5],
+            height_m: vec![-100.0, 0.0, 50.0, 700.0, 10.0],
+        };
+        // Differences 500, 600, NaN, 610, 0 → sorted 0, 500, 600, 610: median 550;
+        // deviations 550, 50, 50, 60 → median 55.
+        let c = dem_vs_loc(&loc, &[-600.0, -600.0, f64::NAN, 90.0, 10.0]).unwrap();
+        assert_eq!((c.pixels, c.median_m, c.mad_m), (4, 550.0, 55.0));
+        assert_eq!(dem_vs_loc(&loc, &[f64::NAN; 5]), None);
+    }
+
     /// The mean Sun: the azimuth's circular mean (350° and 20° average to 5°, not 185°), the
     /// elevation 90° − the mean zenith; none without a usable pixel.
     #[test]
@@ -1260,6 +1352,7 @@ mod tests {
                 [z + zen, s + a.sin(), c + a.cos()]
             }),
             sun_ephemeris: None,
+            loc_heights: LocHeights::default(),
         };
         let (az, el) = survey(&[(350.0, 60.0), (20.0, 70.0)]).mean_sun().unwrap();
         assert!((az - 5.0).abs() < 1e-9, "{az}");

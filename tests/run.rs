@@ -957,6 +957,48 @@ fn a_solar_table_of_the_other_mode_is_refused() {
     std::fs::remove_dir_all(&dir).unwrap();
 }
 
+/// A DEM whose heights stand on another sphere (the LOLA label's OFFSET 1738 km instead of
+/// 1737.4 km: every height 600 m higher) runs, but the record gives each observation's LOC
+/// heights against the DEM (a median of −600 m) and the run warns naming the observation;
+/// the products as written agree with LOC within metres.
+#[test]
+fn a_dem_on_another_sphere_is_named_in_a_warning() {
+    let src = scene_products(256, 10);
+    let dir = scratch("datum");
+    let p = support::copy_products(src, &dir.join("products"));
+    let text = std::fs::read_to_string(&p.lola_label).unwrap();
+    assert!(text.contains("OFFSET = 1737400.\r\n"));
+    std::fs::write(
+        &p.lola_label,
+        text.replace("OFFSET = 1737400.\r\n", "OFFSET = 1738000.\r\n"),
+    )
+    .unwrap();
+    let median = |out: &Path| {
+        let rec: serde_json::Value =
+            serde_json::from_slice(&std::fs::read(out.join("run.json")).unwrap()).unwrap();
+        let m = rec["observations"][0]["dem_vs_loc"]["median_m"]
+            .as_f64()
+            .unwrap();
+        (m, rec["sanity"]["warnings"].clone())
+    };
+    for (products, want) in [(src, 0.0), (&p, -600.0)] {
+        let out = dir.join(format!("out{want}"));
+        run_ok(
+            &["run", "--progress", "lines"],
+            &write_workflow(&dir, &workflow(products, &out, 512, "")),
+        );
+        let (m, warnings) = median(&out);
+        assert!((m - want).abs() < 10.0, "{m}");
+        let named = warnings.as_array().unwrap().iter().any(|w| {
+            w.as_str()
+                .unwrap()
+                .contains("M3G20991231T000000_V03_L1B.LBL (-60")
+        });
+        assert_eq!(named, want != 0.0, "{warnings}");
+    }
+    std::fs::remove_dir_all(&dir).unwrap();
+}
+
 /// The same observation listed twice — by one label, or by a copy of it elsewhere — is refused
 /// naming both entries, before anything is written: it would count each pixel twice (and as
 /// two observations in the `observations` layer) where one image sees the ground.
@@ -1062,6 +1104,9 @@ fn a_real_swath_over_ldem_4_changes_the_dem_only_along_the_swath() {
         membrane.starts_with("edge-aware for a DEM") && membrane.contains("η 0.800"),
         "{membrane}"
     );
+    // LOC's heights agree with LDEM_4's (at its 7.6 km posting) within tens of metres.
+    let dem = &rec["observations"][0]["dem_vs_loc"];
+    assert!(dem["median_m"].as_f64().unwrap().abs() < 100.0, "{dem}");
     // OBS's Sun agrees with the ephemeris at the label's times (measured: 0.006°).
     let sun = &rec["observations"][0]["sun_ephemeris"];
     assert!(sun["worst_deg"].as_f64().unwrap() < 0.02, "{sun}");

@@ -261,6 +261,9 @@ pub(super) struct ObservationRecord {
     /// Its OBS Sun against the ephemeris at its label's times ([`crate::ingest::SunCheck`]);
     /// a note instead where the label gives no START_TIME.
     pub(super) sun_ephemeris: SunEphemeris,
+    /// Its LOC heights against the DEM at sampled pixels ([`crate::ingest::DemVsLoc`]).
+    #[serde(skip_serializing_if = "Option::is_none")]
+    pub(super) dem_vs_loc: Option<crate::ingest::DemVsLoc>,
 }
 
 /// What the run record says of an observation's Sun check.
@@ -597,6 +600,7 @@ fn observation_records(
                     SunEphemeris::NotChecked("not checked: the label gives no START_TIME".into())
                 }
             },
+            dem_vs_loc: plan.dem_vs_loc.get(k).copied().flatten(),
         })
         .collect()
 }
@@ -742,7 +746,37 @@ fn run_sanity(plan: &Plan, records: &[TileRecord], labels: &[String]) -> (Sanity
     sanity
         .warnings
         .extend(low_sun_warning(labels, &used, &plan.sun_deg));
+    sanity
+        .warnings
+        .extend(dem_datum_warning(labels, &plan.dem_vs_loc));
     (sanity, usage)
+}
+
+/// The warning for observations whose LOC heights lie a median of more than
+/// [`crate::ingest::MAX_DEM_LOC_OFFSET_M`] from the DEM's at the same points: the DEM is then
+/// likely on another reference sphere or in another unit, which the fused DEM inherits.
+pub(super) fn dem_datum_warning(
+    labels: &[String],
+    dem_vs_loc: &[Option<crate::ingest::DemVsLoc>],
+) -> Option<String> {
+    let off: Vec<String> = labels
+        .iter()
+        .zip(dem_vs_loc)
+        .filter_map(|(label, c)| {
+            let c = c.filter(|c| c.median_m.abs() > crate::ingest::MAX_DEM_LOC_OFFSET_M)?;
+            Some(format!(
+                "{label} ({:+.0} m, spread {:.0} m, {} px)",
+                c.median_m, c.mad_m, c.pixels
+            ))
+        })
+        .collect();
+    (!off.is_empty()).then(|| {
+        format!(
+            "the observations' own surface heights (LOC radius − 1737.4 km) lie a median of more than {:.0} m from the DEM's at the same points: {}. On real M3 products over LOLA they agree within a few tens of metres; the DEM's heights are likely above another sphere than 1737.4 km, or in another unit (kilometres, feet), and the fused DEM keeps them so (docs/formats.md, \"The DEM against LOC\"). Check the DEM's datum and unit",
+            crate::ingest::MAX_DEM_LOC_OFFSET_M,
+            off.join(", ")
+        )
+    })
 }
 
 /// Blend every tile into the products and write the run record. `files`: the inputs with

@@ -76,6 +76,10 @@ pub struct Plan {
     /// ([`ingest::SunCheck`]; `None`: the label gives no START_TIME), in input order.
     #[serde(default)]
     pub sun_ephemeris: Vec<Option<ingest::SunCheck>>,
+    /// Each observation's LOC heights against the DEM ([`ingest::DemVsLoc`]; `None`: no
+    /// sampled pixel where both are defined), in input order.
+    #[serde(default)]
+    pub dem_vs_loc: Vec<Option<ingest::DemVsLoc>>,
 }
 
 /// σ_k, grid pixels, of each observation's blur on a grid of `spacing` metres, from its pixel
@@ -559,6 +563,7 @@ pub(super) fn plan(
         sums,
         sun_deg,
         sun_ephemeris,
+        dem_vs_loc,
     } = survey_all(o, inputs, &grid, &pr)?;
     let dem = dem_terms(o, inputs, &grid, &pr);
     let (params, dem_psf_sigma) = (&dem.params, dem.dem_psf_sigma);
@@ -655,6 +660,7 @@ pub(super) fn plan(
         pixel_size_m,
         sun_deg,
         sun_ephemeris,
+        dem_vs_loc,
     };
     write_atomic(
         &path,
@@ -861,6 +867,8 @@ struct Surveyed {
     sun_deg: Vec<Option<[f64; 2]>>,
     /// Per observation: its OBS Sun against the ephemeris ([`ingest::SunCheck`]).
     sun_ephemeris: Vec<Option<ingest::SunCheck>>,
+    /// Per observation: LOC's heights against the DEM ([`ingest::DemVsLoc`]).
+    dem_vs_loc: Vec<Option<ingest::DemVsLoc>>,
 }
 
 /// Survey every observation on the grid ([`ingest::survey`]): its swath index, the sums of Ī
@@ -878,6 +886,7 @@ fn survey_all(
     let mut sums = Vec::new();
     let mut sun_deg = Vec::new();
     let mut sun_ephemeris = Vec::new();
+    let mut dem_vs_loc = Vec::new();
     let mut why = Vec::new();
     for (k, obs) in inputs.obs.iter().enumerate() {
         let s = ingest::survey(obs, inputs.solar(k), o.inputs.wavelength_nm, grid, pr)?;
@@ -889,6 +898,7 @@ fn survey_all(
             ingest::check_sun_ephemeris(obs, check)?;
         }
         sun_ephemeris.push(s.sun_ephemeris);
+        dem_vs_loc.push(loc_against_dem(o, inputs, &s.loc_heights)?);
         sum += s.sum;
         count += s.count;
         means.push((s.count > 0).then(|| s.sum / s.count as f64));
@@ -927,7 +937,31 @@ fn survey_all(
         sums,
         sun_deg,
         sun_ephemeris,
+        dem_vs_loc,
     })
+}
+
+/// LOC's sampled heights against the DEM at the same points ([`ingest::dem_vs_loc`]).
+fn loc_against_dem(
+    o: &Orbital,
+    inputs: &Inputs,
+    loc: &ingest::LocHeights,
+) -> Result<Option<ingest::DemVsLoc>> {
+    let n = loc.lon.len();
+    if n == 0 {
+        return Ok(None);
+    }
+    let row = |v: &[f64]| Array2::from_shape_vec((1, n), v.to_vec()).expect("1 × n");
+    let geo = crate::grid::Geographic {
+        lon: row(&loc.lon),
+        lat: row(&loc.lat),
+        bearing: Array2::zeros((1, n)),
+    };
+    let dem = super::inputs::dem_on(o, inputs, &geo)?;
+    Ok(ingest::dem_vs_loc(
+        loc,
+        dem.as_slice().expect("standard layout"),
+    ))
 }
 
 /// The plan in `out`'s plan.json when it has the run's `key` and its reference file (if it has
