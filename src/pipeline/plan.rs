@@ -871,9 +871,11 @@ struct Surveyed {
     dem_vs_loc: Vec<Option<ingest::DemVsLoc>>,
 }
 
-/// Survey every observation on the grid ([`ingest::survey`]): its swath index, the sums of Ī
-/// and its mean Sun. An error naming each observation and what became of its pixels when no
-/// usable pixel falls on the grid.
+/// Survey every observation on the grid ([`ingest::survey`]): its swath index, the sums of Ī,
+/// its mean Sun, its OBS Sun and SOLAR_DISTANCE against the ephemeris (refused beyond what
+/// [`ingest::check_sun_ephemeris`] allows, unless `[inputs] check_sun_ephemeris = false`) and
+/// its LOC heights against the DEM. An error naming each observation and what became of its
+/// pixels when no usable pixel falls on the grid.
 fn survey_all(
     o: &Orbital,
     inputs: &Inputs,
