@@ -265,6 +265,13 @@ fn sun_at_label_times(obs: &Observation) -> Option<(Vec3, SunCheck)> {
     Some((sun_in_moon_frame(0.5 * (a + b)), check))
 }
 
+/// [`SunCheck`] of `obs` from its label alone: the Sun's distance at its times, no pixel
+/// compared (`pixels` 0); `None` where the label gives no START_TIME. What can be checked of
+/// an observation whose LOC or OBS is not at hand.
+pub fn label_sun_check(obs: &Observation) -> Option<SunCheck> {
+    sun_at_label_times(obs).map(|(_, check)| check)
+}
+
 /// [`SunCheck`] of `obs` over its whole swath, read from its LOC and OBS files (what
 /// [`survey`] measures on the way; `None` where the label gives no START_TIME).
 pub fn sun_check(obs: &Observation) -> Result<Option<SunCheck>> {

@@ -58,9 +58,10 @@ pub struct M3Inspection {
     /// START_TIME and STOP_TIME, UTC, as the label gives them.
     pub start_time: Option<String>,
     pub stop_time: Option<String>,
-    /// OBS's Sun against the ephemeris at those times ([`crate::ingest::SunCheck`]), when
-    /// the label gives START_TIME and LOC and OBS read; `run` refuses the observation above
-    /// its `allowed_deg`.
+    /// OBS's Sun and the label's SOLAR_DISTANCE against the ephemeris at those times
+    /// ([`crate::ingest::SunCheck`]), when the label gives START_TIME (the distance alone,
+    /// `pixels` 0, where LOC or OBS does not read); `run` refuses the observation beyond what
+    /// it allows.
     pub sun_ephemeris: Option<crate::ingest::SunCheck>,
     /// Why `run` refuses the observation on that check, if it does
     /// ([`crate::ingest::check_sun_ephemeris`]).
@@ -286,7 +287,7 @@ fn inspect_m3(path: &Path) -> Result<Inspection> {
     let sun_ephemeris = if problem.is_none() && obs_problem.is_none() {
         crate::ingest::sun_check(&o)?
     } else {
-        None
+        crate::ingest::label_sun_check(&o)
     };
     let sun_problem = sun_ephemeris.and_then(|c| {
         crate::ingest::check_sun_ephemeris(&o, &c)
@@ -495,11 +496,15 @@ impl Inspection {
                     t(stop_time)
                 );
                 s += &match sun_ephemeris {
+                    Some(c) if c.pixels == 0 => format!(
+                        "  Sun vs time    the Sun {:.5} AU away (SOLAR_DISTANCE refused beyond ±{:.4} AU of it); OBS not compared (no LOC/OBS pixel read)\n",
+                        c.distance_au, c.distance_allowed_au
+                    ),
                     Some(c) => format!(
                         "  Sun vs time    OBS's Sun at most {:.3}° from the ephemeris's over {} px (refused above {:.2}°); the Sun {:.5} AU away (SOLAR_DISTANCE refused beyond ±{:.4} AU of it)\n",
                         c.worst_deg, c.pixels, c.allowed_deg, c.distance_au, c.distance_allowed_au
                     ),
-                    None => "  Sun vs time    not checked (no START_TIME, or LOC/OBS unreadable)\n".into(),
+                    None => "  Sun vs time    not checked (no START_TIME)\n".into(),
                 };
                 s
             }

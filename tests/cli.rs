@@ -771,3 +771,56 @@ fn version_names_the_build() {
         "source hash {hash:?}"
     );
 }
+
+/// An observation whose LOC and OBS files are not at hand (the RDN-only `linerateNotConstant`
+/// crop) still has its label's SOLAR_DISTANCE checked against the Moon's distance from the Sun
+/// at START_TIME–STOP_TIME (0.988 783 AU in the label, the ephemeris within 2·10⁻⁴ AU of it);
+/// the same label with SOLAR_DISTANCE 1.005 AU is described, then refused (exit status 1).
+#[test]
+fn inspect_checks_the_solar_distance_of_an_rdn_only_observation() {
+    let data = test_data().unwrap();
+    let src = data.join("m3_l1b_crops/linerateNotConstant");
+    let label = src.join("M3G20081118T223204_V03_L1B_cropped.LBL");
+    let o = sfsfuse()
+        .args(["inspect", "--json"])
+        .arg(&label)
+        .output()
+        .unwrap();
+    let r = json_of(&o);
+    let c = &r["sun_ephemeris"];
+    assert_eq!(c["pixels"], 0, "{r}");
+    let d = c["distance_au"].as_f64().unwrap();
+    assert!((d - 0.988783).abs() < 2e-4, "{d}");
+    let dir = scratch("rdn-only-distance");
+    std::fs::create_dir_all(&dir).unwrap();
+    for e in std::fs::read_dir(&src).unwrap() {
+        let p = e.unwrap().path();
+        std::fs::copy(&p, dir.join(p.file_name().unwrap())).unwrap();
+    }
+    let copy = dir.join(label.file_name().unwrap());
+    let text = std::fs::read_to_string(&copy).unwrap();
+    let edited = with_line_replaced(&text, "SOLAR_DISTANCE", "SOLAR_DISTANCE = 1.005 <AU>");
+    std::fs::write(&copy, edited).unwrap();
+    let o = sfsfuse().arg("inspect").arg(&copy).output().unwrap();
+    let err = String::from_utf8_lossy(&o.stderr);
+    assert_eq!(o.status.code(), Some(1), "{err}");
+    assert!(
+        err.contains("SOLAR_DISTANCE = 1.005 AU") && err.contains("AU off"),
+        "{err}"
+    );
+    std::fs::remove_dir_all(&dir).unwrap();
+}
+
+/// `text` with the line that starts with `key` replaced by `line`.
+fn with_line_replaced(text: &str, key: &str, line: &str) -> String {
+    text.split_inclusive('\n')
+        .map(|l| {
+            if l.trim_start().starts_with(key) {
+                let end = &l[l.trim_end_matches(['\r', '\n']).len()..];
+                format!("{line}{end}")
+            } else {
+                l.to_string()
+            }
+        })
+        .collect()
+}
