@@ -11,6 +11,25 @@ fn sfsfuse() -> Command {
 }
 
 /// The JSON a successful command printed (its stderr shown when it failed).
+/// `sfsfuse inspect --json` of `path`, which must succeed.
+fn inspect_json(path: &std::path::Path) -> serde_json::Value {
+    json_of(
+        &sfsfuse()
+            .args(["inspect", "--json"])
+            .arg(path)
+            .output()
+            .unwrap(),
+    )
+}
+
+/// Copy every file of `src` into `dir`.
+fn copy_files(src: &std::path::Path, dir: &std::path::Path) {
+    for e in std::fs::read_dir(src).unwrap() {
+        let p = e.unwrap().path();
+        std::fs::copy(&p, dir.join(p.file_name().unwrap())).unwrap();
+    }
+}
+
 fn json_of(o: &std::process::Output) -> serde_json::Value {
     assert!(o.status.success(), "{}", String::from_utf8_lossy(&o.stderr));
     serde_json::from_slice(&o.stdout).unwrap()
@@ -177,12 +196,7 @@ fn bad_arguments_fail_with_a_clear_message() {
 #[test]
 fn inspect_describes_real_products() {
     let Some(data) = test_data() else { return };
-    let o = sfsfuse()
-        .args(["inspect", "--json"])
-        .arg(data.join("lola_ldem4/LDEM_4.LBL"))
-        .output()
-        .unwrap();
-    let r = json_of(&o);
+    let r = inspect_json(&data.join("lola_ldem4/LDEM_4.LBL"));
     assert_eq!(r["kind"], "LOLA GDR");
     assert_eq!(r["lines"], 720);
     // MANIFEST.md: DN −17757 … 21008, heights are DN × 0.5 m.
@@ -215,12 +229,9 @@ fn inspect_describes_real_products() {
     );
     std::fs::remove_dir_all(&dir).unwrap();
 
-    let o = sfsfuse()
-        .args(["inspect", "--json"])
-        .arg(data.join("m3_l1b_crops/forwardDescending/M3G20081129T171431_V03_L1B_cropped.LBL"))
-        .output()
-        .unwrap();
-    let r = json_of(&o);
+    let r = inspect_json(
+        &data.join("m3_l1b_crops/forwardDescending/M3G20081129T171431_V03_L1B_cropped.LBL"),
+    );
     assert_eq!(r["kind"], "M3 L1B");
     assert_eq!(r["mode"], "GLOBAL");
     assert_eq!(r["samples"], 304);
@@ -273,10 +284,7 @@ fn inspect_refuses_a_truncated_part_and_describes_an_absent_one() {
     let src = data.join("m3_l1b_crops/forwardDescending");
     let dir = scratch("inspect-truncated");
     std::fs::create_dir_all(&dir).unwrap();
-    for e in std::fs::read_dir(&src).unwrap() {
-        let p = e.unwrap().path();
-        std::fs::copy(&p, dir.join(p.file_name().unwrap())).unwrap();
-    }
+    copy_files(&src, &dir);
     let label = dir.join("M3G20081129T171431_V03_L1B_cropped.LBL");
     let loc = dir.join("M3G20081129T171431_V03_LOC_cropped.IMG");
     // The label's LOC: 5 lines × 304 samples × 3 bands of 8-byte reals = 36 480 bytes.
@@ -298,12 +306,7 @@ fn inspect_refuses_a_truncated_part_and_describes_an_absent_one() {
         "{err}"
     );
     std::fs::remove_file(&loc).unwrap();
-    let o = sfsfuse()
-        .args(["inspect", "--json"])
-        .arg(&label)
-        .output()
-        .unwrap();
-    let r = json_of(&o);
+    let r = inspect_json(&label);
     assert!(
         r["loc_problem"]
             .as_str()
@@ -321,12 +324,7 @@ fn inspect_refuses_a_truncated_part_and_describes_an_absent_one() {
 fn inspect_shows_the_illumination_and_describes_geotiffs() {
     let data = test_data().unwrap();
     let dir = data.join("m3_l1b_crops/reverseDescending");
-    let o = sfsfuse()
-        .args(["inspect", "--json"])
-        .arg(dir.join("M3G20090106T113423_V03_L1B_cropped.LBL"))
-        .output()
-        .unwrap();
-    let r = json_of(&o);
+    let r = inspect_json(&dir.join("M3G20090106T113423_V03_L1B_cropped.LBL"));
     let bytes = std::fs::read(dir.join("M3G20090106T113423_V03_OBS_cropped.IMG")).unwrap();
     let samples = 304;
     let zen: Vec<f64> = bytes
@@ -382,12 +380,7 @@ fn inspect_shows_the_illumination_and_describes_geotiffs() {
         },
     )
     .unwrap();
-    let o = sfsfuse()
-        .args(["inspect", "--json"])
-        .arg(&tif)
-        .output()
-        .unwrap();
-    let r = json_of(&o);
+    let r = inspect_json(&tif);
     assert_eq!(r["kind"], "GeoTIFF");
     assert_eq!(
         (r["width"].as_u64(), r["height"].as_u64()),
@@ -781,22 +774,14 @@ fn inspect_checks_the_solar_distance_of_an_rdn_only_observation() {
     let data = test_data().unwrap();
     let src = data.join("m3_l1b_crops/linerateNotConstant");
     let label = src.join("M3G20081118T223204_V03_L1B_cropped.LBL");
-    let o = sfsfuse()
-        .args(["inspect", "--json"])
-        .arg(&label)
-        .output()
-        .unwrap();
-    let r = json_of(&o);
+    let r = inspect_json(&label);
     let c = &r["sun_ephemeris"];
     assert_eq!(c["pixels"], 0, "{r}");
     let d = c["distance_au"].as_f64().unwrap();
     assert!((d - 0.988783).abs() < 2e-4, "{d}");
     let dir = scratch("rdn-only-distance");
     std::fs::create_dir_all(&dir).unwrap();
-    for e in std::fs::read_dir(&src).unwrap() {
-        let p = e.unwrap().path();
-        std::fs::copy(&p, dir.join(p.file_name().unwrap())).unwrap();
-    }
+    copy_files(&src, &dir);
     let copy = dir.join(label.file_name().unwrap());
     let text = std::fs::read_to_string(&copy).unwrap();
     let edited = with_line_replaced(&text, "SOLAR_DISTANCE", "SOLAR_DISTANCE = 1.005 <AU>");
