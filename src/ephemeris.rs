@@ -199,9 +199,7 @@ pub fn sun_in_moon_frame(d: f64) -> Vec3 {
 pub fn local_to_moon(lon_deg: f64, lat_deg: f64, azimuth_deg: f64, zenith_deg: f64) -> Vec3 {
     let (sl, cl) = lon_deg.to_radians().sin_cos();
     let (sp, cp) = lat_deg.to_radians().sin_cos();
-    let (sa, ca) = azimuth_deg.to_radians().sin_cos();
-    let (sz, cz) = zenith_deg.to_radians().sin_cos();
-    let (e, n) = (sz * sa, sz * ca);
+    let [e, n, cz] = crate::synth::direction(zenith_deg, azimuth_deg);
     [
         -e * sl - n * sp * cl + cz * cp * cl,
         e * cl - n * sp * sl + cz * cp * sl,
