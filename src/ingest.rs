@@ -98,11 +98,16 @@ pub const INDEX_BLOCK: usize = 64;
 
 /// Where each block of [`INDEX_BLOCK`] swath lines falls in one map projection: the bounding
 /// box (x_min, x_max, y_min, y_max) in metres of its pixel centres, `None` where no pixel
-/// projects. Lets each tile read only the lines it needs.
+/// projects. Lets each tile read only the lines it needs. It also carries what every read of
+/// the swath applies: its detector columns' relative gains.
 #[derive(Debug, Clone, PartialEq, serde::Serialize, serde::Deserialize)]
 pub struct SwathIndex {
     pub lines: usize,
     pub boxes: Vec<Option<[f64; 4]>>,
+    /// The relative gain of each detector column (sample), which every read of the swath
+    /// divides its radiance by ([`crate::striping`]; `None`: none applied).
+    #[serde(default)]
+    pub column_gains: Option<Vec<f64>>,
 }
 
 impl SwathIndex {
@@ -148,6 +153,10 @@ pub struct Survey {
     /// OBS's Sun against the ephemeris at the label's times over every pixel of the swath
     /// ([`SunCheck`]; `None` where the label gives no START_TIME, as synthetic products).
     pub sun_ephemeris: Option<SunCheck>,
+    /// Its detector columns' relative gains, estimated over every line of the swath
+    /// ([`crate::striping`]; `None` for a swath too short to measure a block). Not yet in
+    /// `index`: the plan puts them there when `[inputs] destripe` is on.
+    pub striping: Option<crate::striping::ColumnGains>,
     /// LOC's surface heights at a sample of the usable pixels on the grid (every
     /// [`LOC_HEIGHT_STEP`]-th line and sample): longitude, latitude (degrees) and radius less
     /// the 1737.4 km sphere (metres), to hold the DEM against ([`LocHeights`]).
@@ -547,7 +556,8 @@ type Lines = (
 /// sample `samples.start`): r = L·d²/E, L blended linearly between the two bands around `nm`,
 /// d = SOLAR_DISTANCE + OBS band 6; NaN where [`check_pixel`] refuses the pixel, whose cause
 /// is returned per pixel too. Each pixel's values depend on that pixel alone, so a range of
-/// samples gives the same values there as whole lines.
+/// samples gives the same values there as whole lines. With `column_gains` (one per sample of
+/// the swath, [`crate::striping`]) each sample's radiance is divided by its gain first.
 fn reflectance_lines(
     obs: &Observation,
     obsr: &pds::raw::Raster,
@@ -555,6 +565,7 @@ fn reflectance_lines(
     nm: f64,
     (first, n): (usize, usize),
     samples: std::ops::Range<usize>,
+    column_gains: Option<&[f64]>,
 ) -> Result<Lines> {
     let bracket = obs.bracket(nm)?;
     let (lo, up, w) = if bracket.weight_upper >= 1.0 {
@@ -562,6 +573,7 @@ fn reflectance_lines(
     } else {
         (bracket.lower, bracket.upper, bracket.weight_upper)
     };
+    let gains = column_gains.map(|g| &g[samples.clone()]);
     let cols = s![.., samples.clone()];
     let read = |r: &pds::raw::Raster, band: usize| -> Result<Array2<f64>> {
         Ok(read2(r, band, first, n)?.slice(cols).to_owned())
@@ -582,6 +594,7 @@ fn reflectance_lines(
         .and(&mut cause)
         .par_for_each(|ij, r, c| {
             let l = (1.0 - w) * l_lo[ij] + w * l_up[ij];
+            let l = gains.map_or(l, |g| l / g[ij.1]);
             let dd = d_off[ij];
             let v = if l.is_finite() && dd.is_finite() {
                 reflectance(l, d0 + dd, e)
@@ -639,12 +652,18 @@ pub fn survey(
     let sun_time = sun_at_label_times(obs);
     let mut sun_check = sun_time.map(|(_, check)| check);
     let mut loc_heights = LocHeights::default();
+    let mut columns = crate::striping::ColumnProfiles::default();
     for start in (0..loc.lines).step_by(INDEX_BLOCK) {
         let n = INDEX_BLOCK.min(loc.lines - start);
         let lon = loc.read_band(0, start, n)?;
         let lat = loc.read_band(1, start, n)?;
         let (refl, _, _, cause, [sun_az, sun_zen]) =
-            reflectance_lines(obs, &obsr, solar, nm, (start, n), 0..loc.samples)?;
+            reflectance_lines(obs, &obsr, solar, nm, (start, n), 0..loc.samples, None)?;
+        // Dark pixels (0) and refused ones (NaN) are not measured.
+        columns.add_lines(
+            refl.mapv(|r| if r > 0.0 { r.ln() } else { f64::NAN })
+                .view(),
+        );
         if let (Some((sun, _)), Some(check)) = (sun_time.as_ref(), sun_check.as_mut()) {
             let zen = sun_zen.as_slice().expect("standard layout");
             let az = sun_az.as_slice().expect("standard layout");
@@ -707,6 +726,7 @@ pub fn survey(
         index: SwathIndex {
             lines: loc.lines,
             boxes,
+            column_gains: None,
         },
         sum,
         count,
@@ -714,6 +734,7 @@ pub fn survey(
         refused,
         sun_sums,
         sun_ephemeris: sun_check,
+        striping: columns.gains(),
         loc_heights,
     })
 }
@@ -845,6 +866,15 @@ pub fn m3_on_grid_with_lines(
         )));
     };
     let n = end - first;
+    let gains = index.and_then(|ix| ix.column_gains.as_deref());
+    if let Some(g) = gains.filter(|g| g.len() != obs.rdn.samples) {
+        return Err(Error::Usage(format!(
+            "{}: {} column gains for {} samples: the plan belongs to another product; delete plan.json",
+            label.display(),
+            g.len(),
+            obs.rdn.samples
+        )));
+    }
     // Only the samples that can reach the grid are projected (those of a superset found from
     // every 8th sample: a tile is often narrower than the swath) and resampled; sample
     // positions still count from the line's first sample.
@@ -857,7 +887,7 @@ pub fn m3_on_grid_with_lines(
     drop((gr, gc));
     let cols = s![.., s0..s1];
     let (mut refl, (lo, up), e, _, _) =
-        reflectance_lines(obs, &obsr, solar, nm, (first, n), s0..s1)?;
+        reflectance_lines(obs, &obsr, solar, nm, (first, n), s0..s1, gains)?;
     // A swath finer than the grid is averaged over each grid pixel's extent first: sampled
     // at a point, it would alias relief finer than a grid pixel into the image the fusion
     // explains (and keep all of its noise).
@@ -1349,6 +1379,7 @@ mod tests {
             index: SwathIndex {
                 lines: 0,
                 boxes: Vec::new(),
+                column_gains: None,
             },
             sum: 0.0,
             count: pixels.len(),
@@ -1359,6 +1390,7 @@ mod tests {
                 [z + zen, s + a.sin(), c + a.cos()]
             }),
             sun_ephemeris: None,
+            striping: None,
             loc_heights: LocHeights::default(),
         };
         let (az, el) = survey(&[(350.0, 60.0), (20.0, 70.0)]).mean_sun().unwrap();

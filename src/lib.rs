@@ -33,6 +33,7 @@ pub mod registration;
 pub mod rng;
 pub mod sanity;
 pub mod spectral;
+pub mod striping;
 pub mod synth;
 pub mod tiling;
 pub mod workflow;

@@ -276,6 +276,13 @@ struct SynthArgs {
     /// docs/science.md, "Several observations").
     #[arg(long = "gain-trend", allow_hyphen_values = true)]
     gain_trends: Vec<f64>,
+    /// Residual detector column striping of each observation (in `--sun` order; missing
+    /// ones are 0): each detector column's radiance multiplied by its own gain
+    /// exp(S·N(0, 1)), S the RMS of ln g, e.g. `--column-striping 0.01` for 1 %. `run`
+    /// estimates the gains over each swath and divides them out (`[inputs] destripe`, on by
+    /// default; docs/science.md, "Detector column striping").
+    #[arg(long = "column-striping")]
+    column_striping: Vec<f64>,
     /// Each observation's detector pixel as F grid pixels (in `--sun` order; missing ones
     /// are 1): its swath holds F × F block means of the image, as M3's second optical
     /// period (200 km, ≈ 280 m pixels) sees a region gridded at the first's 140 m, e.g.
@@ -306,6 +313,7 @@ fn synth(a: SynthArgs) -> Result<(), sfsfuse::Error> {
         loc_offsets,
         loc_drifts,
         gain_trends,
+        column_striping,
         pixel_factors,
         center,
         json,
@@ -321,6 +329,7 @@ fn synth(a: SynthArgs) -> Result<(), sfsfuse::Error> {
         ("--loc-offset", loc_offsets.len()),
         ("--loc-drift", loc_drifts.len()),
         ("--gain-trend", gain_trends.len()),
+        ("--column-striping", column_striping.len()),
     ] {
         if n > suns.len().max(1) {
             return Err(sfsfuse::Error::Usage(format!(
@@ -337,15 +346,25 @@ fn synth(a: SynthArgs) -> Result<(), sfsfuse::Error> {
             "--gain-trend {t}: a change of ln g per 1000 lines must be a number within ±10"
         )));
     }
+    if let Some(s) = column_striping
+        .iter()
+        .find(|s| !(s.is_finite() && (0.0..=0.5).contains(*s)))
+    {
+        return Err(sfsfuse::Error::Usage(format!(
+            "--column-striping {s}: the RMS of ln g over the detector columns must be a number from 0 to 0.5"
+        )));
+    }
     let n = loc_offsets
         .len()
         .max(loc_drifts.len())
-        .max(gain_trends.len());
+        .max(gain_trends.len())
+        .max(column_striping.len());
     let loc_errors: Vec<sfsfuse::synth::products::ProductErrors> = (0..n)
         .map(|k| sfsfuse::synth::products::ProductErrors {
             offset_m: loc_offsets.get(k).copied().unwrap_or_default(),
             drift_m: loc_drifts.get(k).copied().unwrap_or_default(),
             gain_trend: gain_trends.get(k).copied().unwrap_or_default(),
+            column_striping: column_striping.get(k).copied().unwrap_or_default(),
         })
         .collect();
     if let Some(g) = gains.iter().find(|g| !(g.is_finite() && **g > 0.0)) {

@@ -149,6 +149,13 @@ pub struct OrbitalInputs {
     /// whose labels keep a real observation's times.
     #[serde(default = "default_true")]
     pub check_sun_ephemeris: bool,
+    /// Divide each observation's radiance by its detector columns' relative gains, estimated
+    /// over the whole swath ([`crate::striping`]; default true). The estimate shrinks towards
+    /// no correction where the terrain, not a stripe, explains a column's difference, so
+    /// images without striping are left as they are. False to use the radiance as
+    /// calibrated; run.json records the estimate either way.
+    #[serde(default = "default_true")]
+    pub destripe: bool,
 }
 
 fn default_true() -> bool {

@@ -264,6 +264,18 @@ pub(super) struct ObservationRecord {
     /// Its LOC heights against the DEM at sampled pixels ([`crate::ingest::DemVsLoc`]).
     #[serde(skip_serializing_if = "Option::is_none")]
     pub(super) dem_vs_loc: Option<crate::ingest::DemVsLoc>,
+    /// Its detector column gains ([`crate::striping::Striping`]) and whether they were
+    /// divided out (`[inputs] destripe`, and any column off 1).
+    #[serde(skip_serializing_if = "Option::is_none")]
+    pub(super) column_striping: Option<ColumnStriping>,
+}
+
+/// What the run record says of an observation's detector column gains.
+#[derive(Debug, Clone, Copy, Serialize)]
+pub(super) struct ColumnStriping {
+    #[serde(flatten)]
+    pub(super) estimate: crate::striping::Striping,
+    pub(super) applied: bool,
 }
 
 /// What the run record says of an observation's Sun check.
@@ -601,6 +613,13 @@ fn observation_records(
                 }
             },
             dem_vs_loc: plan.dem_vs_loc.get(k).copied().flatten(),
+            column_striping: plan.striping.get(k).copied().flatten().map(|estimate| {
+                ColumnStriping {
+                    estimate,
+                    applied: estimate.columns > 0
+                        && plan.swaths.get(k).is_some_and(|s| s.column_gains.is_some()),
+                }
+            }),
         })
         .collect()
 }

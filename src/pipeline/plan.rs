@@ -80,6 +80,11 @@ pub struct Plan {
     /// sampled pixel where both are defined), in input order.
     #[serde(default)]
     pub dem_vs_loc: Vec<Option<ingest::DemVsLoc>>,
+    /// Each observation's detector column gain estimate ([`crate::striping::Striping`];
+    /// `None`: the swath is too short to measure), in input order. The gains themselves are in
+    /// `swaths` when `[inputs] destripe` applies them.
+    #[serde(default)]
+    pub striping: Vec<Option<crate::striping::Striping>>,
 }
 
 /// σ_k, grid pixels, of each observation's blur on a grid of `spacing` metres, from its pixel
@@ -564,6 +569,7 @@ pub(super) fn plan(
         sun_deg,
         sun_ephemeris,
         dem_vs_loc,
+        striping,
     } = survey_all(o, inputs, &grid, &pr)?;
     let dem = dem_terms(o, inputs, &grid, &pr);
     let (params, dem_psf_sigma) = (&dem.params, dem.dem_psf_sigma);
@@ -661,6 +667,7 @@ pub(super) fn plan(
         sun_deg,
         sun_ephemeris,
         dem_vs_loc,
+        striping,
     };
     write_atomic(
         &path,
@@ -869,12 +876,15 @@ struct Surveyed {
     sun_ephemeris: Vec<Option<ingest::SunCheck>>,
     /// Per observation: LOC's heights against the DEM ([`ingest::DemVsLoc`]).
     dem_vs_loc: Vec<Option<ingest::DemVsLoc>>,
+    /// Per observation: its detector column gain estimate ([`crate::striping`]).
+    striping: Vec<Option<crate::striping::Striping>>,
 }
 
 /// Survey every observation on the grid ([`ingest::survey`]): its swath index, the sums of Ī,
 /// its mean Sun, its OBS Sun and SOLAR_DISTANCE against the ephemeris (refused beyond what
 /// [`ingest::check_sun_ephemeris`] allows, unless `[inputs] check_sun_ephemeris = false`) and
-/// its LOC heights against the DEM. An error naming each observation and what became of its
+/// its LOC heights against the DEM, and its detector columns' gains (put in its swath index,
+/// which every read of it goes through, when `[inputs] destripe` is on). An error naming each observation and what became of its
 /// pixels when no usable pixel falls on the grid.
 fn survey_all(
     o: &Orbital,
@@ -889,9 +899,14 @@ fn survey_all(
     let mut sun_deg = Vec::new();
     let mut sun_ephemeris = Vec::new();
     let mut dem_vs_loc = Vec::new();
+    let mut striping = Vec::new();
     let mut why = Vec::new();
     for (k, obs) in inputs.obs.iter().enumerate() {
-        let s = ingest::survey(obs, inputs.solar(k), o.inputs.wavelength_nm, grid, pr)?;
+        let mut s = ingest::survey(obs, inputs.solar(k), o.inputs.wavelength_nm, grid, pr)?;
+        if o.inputs.destripe {
+            s.index.column_gains = s.striping.as_ref().map(|g| g.gain.clone());
+        }
+        striping.push(s.striping.as_ref().map(|g| g.summary));
         if let Some(check) = s
             .sun_ephemeris
             .as_ref()
@@ -940,6 +955,7 @@ fn survey_all(
         sun_deg,
         sun_ephemeris,
         dem_vs_loc,
+        striping,
     })
 }
 

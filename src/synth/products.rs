@@ -66,12 +66,23 @@ pub fn write(scene: &Scene, grid: &Grid, dir: &Path) -> Result<Products> {
 ///   from where it lies — a constant error, and one that drifts along the strip as an
 ///   attitude error growing with time would;
 /// - its radiance multiplied by exp(τ·(l − (L − 1)/2)/1000), τ = `gain_trend`: a gain
-///   drifting along the track (`fusion::gains::GainTrend`).
+///   drifting along the track (`fusion::gains::GainTrend`);
+/// - each detector column's radiance multiplied by its own gain exp(σ·N(0, 1)), σ =
+///   `column_striping` ([`column_gains`]): residual striping, which `run` estimates and
+///   divides out (`crate::striping`).
 #[derive(Debug, Clone, Copy, Default, PartialEq)]
 pub struct ProductErrors {
     pub offset_m: [f64; 2],
     pub drift_m: [f64; 2],
     pub gain_trend: f64,
+    pub column_striping: f64,
+}
+
+/// The detector column gains exp(σ·N(0, 1)) of observation `k` of a scene of seed `seed`,
+/// `columns` of them: the same for the same arguments on every platform.
+pub fn column_gains(sigma: f64, seed: u64, k: usize, columns: usize) -> Vec<f64> {
+    let mut rng = crate::rng::Rng::new(seed ^ 0x0C01_D572_19E5_u64.wrapping_add(k as u64));
+    (0..columns).map(|_| (sigma * rng.normal()).exp()).collect()
 }
 
 /// [`write()`] with observation k's LOC and gain errors `loc_errors[k]` (missing entries:
@@ -115,6 +126,8 @@ pub fn write_observed(
             columns,
             loc_error: loc_errors.get(k).copied().unwrap_or_default(),
             factor: pixel_factors.get(k).copied().unwrap_or(1),
+            index: k,
+            seed: scene.spec.seed,
         };
         m3_labels.push(write_m3(dir, &id, shot, scene, grid, &geo)?);
     }
@@ -152,11 +165,16 @@ fn check_observed(
     }
     if let Some(o) = loc_errors
         .iter()
-        .flat_map(|e| e.offset_m.iter().chain(&e.drift_m).chain([&e.gain_trend]))
+        .flat_map(|e| {
+            e.offset_m
+                .iter()
+                .chain(&e.drift_m)
+                .chain([&e.gain_trend, &e.column_striping])
+        })
         .find(|v| !v.is_finite())
     {
         return Err(Error::Usage(format!(
-            "a LOC error of {o} m is not a number of metres"
+            "a LOC error, gain trend or column striping of {o} is not a finite number"
         )));
     }
     let (rows, cols) = scene.image.dim();
@@ -223,6 +241,10 @@ struct Shot<'a> {
     loc_error: ProductErrors,
     /// F: the detector's pixels are F × F grid pixels ([`write_observed`]).
     factor: usize,
+    /// Its place among the scene's observations and the scene's seed (which seed its column
+    /// gains).
+    index: usize,
+    seed: u64,
 }
 
 /// One M3-like L1B product set (label, RDN + ENVI header, LOC, OBS) named `id`: swath sample
@@ -322,7 +344,7 @@ impl Swath {
 
 /// RDN: radiance, LINE_INTERLEAVED (for each line, every band's samples in turn), f32. Each
 /// swath pixel is its block's mean reflectance (times the gain trend exp(T·(l − l_mid)/1000)
-/// at line l), shaped by a smooth, red-sloped lunar spectrum normalised at 1209.57 nm, times
+/// at line l and its column's gain, [`column_gains`]), shaped by a smooth, red-sloped lunar spectrum normalised at 1209.57 nm, times
 /// the blackbody solar irradiance at [`SOLAR_DISTANCE`].
 fn write_rdn(path: &Path, swath: &Swath, shot: &Shot, wl: &[f64]) -> Result<()> {
     let band_1209 = wl
@@ -334,6 +356,9 @@ fn write_rdn(path: &Path, swath: &Swath, shot: &Shot, wl: &[f64]) -> Result<()> 
     write_atomic_with(path, |w| {
         let mut line = Vec::with_capacity(cols * wl.len() * 4);
         let tau = shot.loc_error.gain_trend;
+        let striping = shot.loc_error.column_striping;
+        let column_gain =
+            (striping != 0.0).then(|| column_gains(striping, shot.seed, shot.index, cols));
         for i in 0..rows {
             line.clear();
             let mut values: Vec<f64> = (0..cols)
@@ -342,6 +367,9 @@ fn write_rdn(path: &Path, swath: &Swath, shot: &Shot, wl: &[f64]) -> Result<()> 
             if tau != 0.0 {
                 let g = (tau * (i as f64 - 0.5 * (rows - 1) as f64) / 1000.0).exp();
                 values.iter_mut().for_each(|v| *v *= g);
+            }
+            if let Some(gains) = &column_gain {
+                values.iter_mut().zip(gains).for_each(|(v, g)| *v *= g);
             }
             for (b, &wv) in wl.iter().enumerate() {
                 let shape = (wv / wl[band_1209]).powf(0.6);
