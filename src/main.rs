@@ -281,7 +281,7 @@ struct SynthArgs {
     /// exp(S·N(0, 1)), S the RMS of ln g, e.g. `--column-striping 0.01` for 1 %. `run`
     /// estimates the gains over each swath and divides them out (`[inputs] destripe`, on by
     /// default; docs/science.md, "Detector column striping").
-    #[arg(long = "column-striping")]
+    #[arg(long = "column-striping", allow_hyphen_values = true)]
     column_striping: Vec<f64>,
     /// Each observation's detector pixel as F grid pixels (in `--sun` order; missing ones
     /// are 1): its swath holds F × F block means of the image, as M3's second optical

@@ -540,8 +540,10 @@ fn a_closed_pipe_is_neither_a_panic_nor_a_failure() {
 /// pixel by that many metres on the 1737.4 km sphere (checked against the same scene written
 /// without it), `--loc-drift` one whose error grows from none at the first line to that at the
 /// last in proportion to the line, `--gain-trend` one whose radiance at line l is the plain
-/// one's times exp(T·(l − 15.5)/1000) over its 32 lines; the others are left alone, and what is
-/// not an offset or a trend is refused.
+/// one's times exp(T·(l − 15.5)/1000) over its 32 lines, `--column-striping S` one whose every
+/// detector column (sample) is the plain one's times a gain of its own, the same on every line
+/// and band, with ln g spread by about S over the columns; the others are left alone, and what
+/// is not an offset, a trend or a striping is refused.
 #[test]
 fn synth_writes_product_errors_where_asked() {
     let base = scratch("loc-offset");
@@ -553,6 +555,10 @@ fn synth_writes_product_errors_where_asked() {
     );
     let drifting = write("drifting", &["--loc-drift", "-310/620"]);
     let trending = write("trending", &["--gain-trend", "0", "--gain-trend", "0.5"]);
+    let striped = write(
+        "striped",
+        &["--column-striping", "0", "--column-striping", "0.02"],
+    );
     let loc =
         |dir: &std::path::Path, id: &str| le_values(&dir.join(format!("{id}_V03_LOC.IMG")), 8);
     let first = "M3G20991231T000000";
@@ -595,10 +601,23 @@ fn synth_writes_product_errors_where_asked() {
             assert!((y - g * x).abs() <= 1e-6 * x.abs());
         }
     }
+    assert_eq!(rdn(&plain, first), rdn(&striped, first));
+    let b = rdn(&striped, second);
+    // Line-interleaved: each line holds every band's 32 samples in turn.
+    let ln_gain: Vec<f64> = (0..32).map(|s| (b[s] / a[s]).ln()).collect();
+    for (k, (x, y)) in a.iter().zip(&b).enumerate() {
+        let g = ln_gain[k % 32].exp();
+        assert!((y - g * x).abs() <= 2e-6 * x.abs(), "value {k}");
+    }
+    let mean = ln_gain.iter().sum::<f64>() / 32.0;
+    let spread = (ln_gain.iter().map(|l| (l - mean).powi(2)).sum::<f64>() / 31.0).sqrt();
+    assert!((0.012..0.028).contains(&spread), "ln g spread {spread}");
     synth_refuses(
         &base,
         &[
             (vec!["--gain-trend", "inf"], "within ±10"),
+            (vec!["--column-striping", "0.9"], "from 0 to 0.5"),
+            (vec!["--column-striping", "-0.01"], "from 0 to 0.5"),
             (vec!["--loc-offset", "300"], "EAST/NORTH"),
             (vec!["--loc-offset", "1e9/0"], "within 100 km"),
             (vec!["--loc-drift", "0/nan"], "within 100 km"),

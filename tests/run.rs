@@ -2046,7 +2046,7 @@ fn gains_drifting_along_the_track_are_followed() {
 /// exp(0.01·N(0, 1)) (`synth --column-striping`), as residual flat-field errors of a pushbroom
 /// imager are: the stripes cost the fused DEM, the plan finds their size from the images
 /// alone (run.json's `column_striping`), and dividing the estimated gains out takes back part
-/// of what they cost: 3.66 → 3.57 m against 3.24 m without stripes. Products without striping
+/// of what they cost: 3.66 → 3.56 m against 3.24 m without stripes. Products without striping
 /// are found to have none and are left exactly as they are. A 256-line swath leaves ≈ 0.45 %
 /// of terrain in each column's estimate, which is then shrunk towards no correction; at 512
 /// lines the same estimate takes back about half of what the stripes cost (docs/science.md,
@@ -2090,7 +2090,8 @@ fn detector_column_striping_is_estimated_and_divided_out() {
         let c = &o["column_striping"];
         let rms = c["stripe_rms"].as_f64().unwrap();
         assert!((0.008..0.013).contains(&rms), "{c}");
-        assert!(c["applied"] == true && c["columns"] == 256, "{c}");
+        // Every detector column but the first and the last (no neighbour on one side).
+        assert!(c["applied"] == true && c["columns"] == 254, "{c}");
         assert_eq!(off["column_striping"]["applied"], false);
         assert_eq!(off["column_striping"]["stripe_rms"], c["stripe_rms"]);
     }
