@@ -66,6 +66,13 @@ pub struct M3Inspection {
     /// Why `run` refuses the observation on that check, if it does
     /// ([`crate::ingest::check_sun_ephemeris`]).
     pub sun_problem: Option<String>,
+    /// Detector column striping of the radiance at `column_striping_nm`, the band nearest
+    /// the run's default wavelength ([`crate::striping`], on every line; what `run` measures
+    /// on the reflectance and divides out with `[inputs] destripe`), and why it was not
+    /// measured where it was not.
+    pub column_striping_nm: Option<f64>,
+    pub column_striping: Option<crate::striping::Striping>,
+    pub column_striping_note: Option<String>,
     /// Whether LOC's, and OBS's, file is beside the label but cannot be read as it
     /// describes it (truncated, wrong size, a malformed object): bad input, which
     /// `sfsfuse inspect` reports by its exit status after the description. A part whose
@@ -294,6 +301,7 @@ fn inspect_m3(path: &Path) -> Result<Inspection> {
             .err()
             .map(|e| e.to_string())
     });
+    let (column_striping_nm, column_striping, column_striping_note) = striping_of(&o)?;
     Ok(Inspection::M3(Box::new(M3Inspection {
         label: path.display().to_string(),
         mode: o.mode.keyword().into(),
@@ -317,9 +325,52 @@ fn inspect_m3(path: &Path) -> Result<Inspection> {
         stop_time: o.stop_time.map(|t| t.to_string()),
         sun_ephemeris,
         sun_problem,
+        column_striping_nm,
+        column_striping,
+        column_striping_note,
         loc_unreadable,
         obs_unreadable,
     })))
+}
+
+/// The column striping of `o`'s radiance in the band nearest the run's default wavelength
+/// ([`crate::workflow::DEFAULT_WAVELENGTH_NM`]): ln L of every positive radiance, block by
+/// block over every line ([`crate::striping::ColumnProfiles`]); the band's wavelength, the
+/// estimate, and why there is none (the band set does not reach that wavelength, too few
+/// lines).
+fn striping_of(
+    o: &Observation,
+) -> Result<(
+    Option<f64>,
+    Option<crate::striping::Striping>,
+    Option<String>,
+)> {
+    use crate::striping::{BLOCK_LINES, MIN_BLOCKS};
+    let nm = crate::workflow::DEFAULT_WAVELENGTH_NM;
+    let band = match o.bracket(nm) {
+        Ok(b) if b.weight_upper >= 0.5 => b.upper,
+        Ok(b) => b.lower,
+        Err(e) => return Ok((None, None, Some(format!("not measured: {e}")))),
+    };
+    let mut profiles = crate::striping::ColumnProfiles::default();
+    let (lines, samples) = (o.rdn.lines, o.rdn.samples);
+    for first in (0..lines).step_by(WINDOW) {
+        let n = WINDOW.min(lines - first);
+        let v = o.rdn.read_band(band, first, n)?;
+        let ln = ndarray::Array2::from_shape_vec((n, samples), v)
+            .map_err(|e| Error::Usage(e.to_string()))?
+            .mapv(|l| if l > 0.0 { l.ln() } else { f64::NAN });
+        profiles.add_lines(ln.view());
+    }
+    let estimate = profiles.gains().map(|g| g.summary);
+    let note = match estimate {
+        Some(e) if e.blocks >= MIN_BLOCKS => None,
+        _ => Some(format!(
+            "not measured: {lines} lines make {} blocks of {BLOCK_LINES} with a usable column, {MIN_BLOCKS} needed",
+            estimate.map_or(0, |e| e.blocks)
+        )),
+    };
+    Ok((Some(o.wavelengths[band]), estimate, note))
 }
 
 /// Why a LOLA product's height range cannot be the Moon's: an end outside
@@ -449,6 +500,9 @@ impl Inspection {
                     start_time,
                     stop_time,
                     sun_ephemeris,
+                    column_striping_nm,
+                    column_striping,
+                    column_striping_note,
                     ..
                 } = &**m;
                 let mut s = format!("{label}\n  kind           M3 Level 1B, {mode} mode\n  size           {lines} lines × {samples} samples × {bands} bands\n");
@@ -505,6 +559,19 @@ impl Inspection {
                         c.worst_deg, c.pixels, c.allowed_deg, c.distance_au, c.distance_allowed_au
                     ),
                     None => "  Sun vs time    not checked (no START_TIME)\n".into(),
+                };
+                let at = column_striping_nm.map_or(String::new(), |nm| format!(" at {nm:.2} nm"));
+                s += &match (column_striping, column_striping_note) {
+                    (_, Some(note)) => format!("  striping       {note}\n"),
+                    (Some(c), None) if c.columns == 0 => format!(
+                        "  striping       none stands out between neighbouring detector columns{at} (terrain left in each column's estimate {:.2} %, {} blocks)\n",
+                        100.0 * c.noise_rms, c.blocks
+                    ),
+                    (Some(c), None) => format!(
+                        "  striping       {:.2} % RMS between neighbouring detector columns{at} (terrain left {:.2} %, {} blocks; `run` divides {} columns' gains out, {:.2} % RMS)\n",
+                        100.0 * c.stripe_rms, 100.0 * c.noise_rms, c.blocks, c.columns, 100.0 * c.correction_rms
+                    ),
+                    (None, None) => String::new(),
                 };
                 s
             }

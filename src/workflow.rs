@@ -182,8 +182,12 @@ impl OrbitalInputs {
     }
 }
 
+/// The wavelength a run uses unless told otherwise, nm: M3's band at 1209.57 nm, where the
+/// Moon's reflectance is high and mostly free of mineral absorptions.
+pub const DEFAULT_WAVELENGTH_NM: f64 = 1209.6;
+
 fn default_wavelength() -> f64 {
-    1209.6
+    DEFAULT_WAVELENGTH_NM
 }
 
 /// The region to reconstruct: a longitude/latitude box, or a box in map metres of the grid's

@@ -275,6 +275,49 @@ fn inspect_describes_real_products() {
     );
 }
 
+/// `inspect` measures an observation's detector column striping over its lines, at the band
+/// nearest the run's default 1209.6 nm: 2 % drawn per column (`synth --column-striping 0.02`,
+/// 128 lines: 4 blocks) reads as about that, the same scene without stripes as none, and a
+/// crop whose bands stop short of 1209.6 nm says why it is not measured.
+#[test]
+fn inspect_measures_detector_column_striping() {
+    let base = scratch("inspect-striping");
+    let write = |name: &str, extra: &[&str]| {
+        let out = base.join(name);
+        let o = sfsfuse()
+            .args(["synth", "--size", "128", "--out"])
+            .arg(&out)
+            .args(extra)
+            .output()
+            .unwrap();
+        assert!(o.status.success(), "{}", String::from_utf8_lossy(&o.stderr));
+        inspect_json(&out.join("M3G20991231T000000_V03_L1B.LBL"))
+    };
+    let striped = write("striped", &["--column-striping", "0.02"]);
+    let c = &striped["column_striping"];
+    let rms = c["stripe_rms"].as_f64().unwrap();
+    assert!((0.014..0.026).contains(&rms), "{c}");
+    assert!(
+        c["columns"].as_u64().unwrap() >= 120 && c["blocks"] == 4,
+        "{c}"
+    );
+    assert_eq!(striped["column_striping_nm"], 1209.57);
+    let clean = write("clean", &[]);
+    let c = &clean["column_striping"];
+    assert!(c["columns"] == 0 && c["stripe_rms"] == 0.0, "{c}");
+    assert!(clean["column_striping_note"].is_null(), "{clean}");
+    std::fs::remove_dir_all(&base).unwrap();
+    let Some(data) = test_data() else { return };
+    let r = inspect_json(
+        &data.join("m3_l1b_crops/forwardDescending/M3G20081129T171431_V03_L1B_cropped.LBL"),
+    );
+    let note = r["column_striping_note"].as_str().unwrap();
+    assert!(
+        note.contains("not measured") && note.contains("only the first 3 bands"),
+        "{note}"
+    );
+}
+
 /// A part the label names whose file is cut short is bad input: `inspect` still describes the
 /// rest, then names the file and the bytes the label needs and exits non-zero. A part whose
 /// file is absent is only described as absent (exit 0).
