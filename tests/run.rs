@@ -1997,6 +1997,23 @@ fn a_displaced_observation_is_registered_to_the_dem() {
     std::fs::remove_dir_all(&dir).unwrap();
 }
 
+/// The demo's first three Suns over the 256² seed-10 scene, written as products as they are
+/// and with `errors` (`support::observation_products_moved`), and the scene's true DEM.
+fn three_suns_moved(
+    errors: &[sfsfuse::synth::products::ProductErrors],
+    name: &str,
+) -> (
+    std::path::PathBuf,
+    sfsfuse::synth::products::Products,
+    sfsfuse::synth::products::Products,
+    ndarray::Array2<f64>,
+) {
+    let (dir, p, q) =
+        support::observation_products_moved(256, 10, &sfsfuse::synth::DEMO_SUNS[..3], errors, name);
+    let truth = read_tiff(&p.truth_dem).unwrap().data;
+    (dir, p, q, truth)
+}
+
 /// Three Suns (256², seed 10), the gains of the second and third observations drifting along
 /// their strips relative to the first's (ln g changing by −0.3 and +0.2 per 1000 lines: ±3.8 %
 /// and ±2.5 % over the scene, as a detector's drift or the photometric model's error drifting
@@ -2010,14 +2027,7 @@ fn gains_drifting_along_the_track_are_followed() {
         gain_trend,
         ..ProductErrors::default()
     };
-    let (dir, p, q) = support::observation_products_moved(
-        256,
-        10,
-        &sfsfuse::synth::DEMO_SUNS[..3],
-        &[trend(0.0), trend(-0.3), trend(0.2)],
-        "gain-trend",
-    );
-    let truth = read_tiff(&p.truth_dem).unwrap().data;
+    let (dir, p, q, truth) = three_suns_moved(&[trend(0.0), trend(-0.3), trend(0.2)], "gain-trend");
     let run = |name: &str, products: &sfsfuse::synth::products::Products, on: bool| {
         run_with(&dir, name, products, &format!("gain_trend = {on}"), &truth)
     };
@@ -2058,14 +2068,7 @@ fn detector_column_striping_is_estimated_and_divided_out() {
         column_striping: 0.01,
         ..ProductErrors::default()
     };
-    let (dir, p, q) = support::observation_products_moved(
-        256,
-        10,
-        &sfsfuse::synth::DEMO_SUNS[..3],
-        &[striped; 3],
-        "column-striping",
-    );
-    let truth = read_tiff(&p.truth_dem).unwrap().data;
+    let (dir, p, q, truth) = three_suns_moved(&[striped; 3], "column-striping");
     let run = |name: &str, products: &sfsfuse::synth::products::Products, on: bool| {
         run_with(&dir, name, products, &format!("destripe = {on}"), &truth)
     };
