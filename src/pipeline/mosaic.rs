@@ -265,7 +265,7 @@ pub(super) struct ObservationRecord {
     #[serde(skip_serializing_if = "Option::is_none")]
     pub(super) dem_vs_loc: Option<crate::ingest::DemVsLoc>,
     /// Its detector column gains ([`crate::striping::Striping`]) and whether they were
-    /// divided out (`[inputs] destripe`, and any column off 1).
+    /// divided out (`[inputs] destripe`, and some column off 1).
     #[serde(skip_serializing_if = "Option::is_none")]
     pub(super) column_striping: Option<ColumnStriping>,
 }
@@ -616,8 +616,7 @@ fn observation_records(
             column_striping: plan.striping.get(k).copied().flatten().map(|estimate| {
                 ColumnStriping {
                     estimate,
-                    applied: estimate.columns > 0
-                        && plan.swaths.get(k).is_some_and(|s| s.column_gains.is_some()),
+                    applied: plan.swaths.get(k).is_some_and(|s| s.column_gains.is_some()),
                 }
             }),
         })

@@ -904,7 +904,12 @@ fn survey_all(
     for (k, obs) in inputs.obs.iter().enumerate() {
         let mut s = ingest::survey(obs, inputs.solar(k), o.inputs.wavelength_nm, grid, pr)?;
         if o.inputs.destripe {
-            s.index.column_gains = s.striping.as_ref().map(|g| g.gain.clone());
+            // Only gains other than 1 are worth dividing by.
+            s.index.column_gains = s
+                .striping
+                .as_ref()
+                .filter(|g| g.summary.columns > 0)
+                .map(|g| g.gain.clone());
         }
         striping.push(s.striping.as_ref().map(|g| g.summary));
         if let Some(check) = s
