@@ -28,8 +28,9 @@
 //!
 //! Only what changes within R columns is seen: the part of the stripes that is smooth over
 //! them (about a fifth of their variance for independent column gains) stays. Wider windows
-//! would see it, but on the synthetic scenes they take craters that span several blocks for
-//! stripes (docs/science.md, "Detector column striping").
+//! would see it, but on the synthetic scenes they take the scene's own structure, which at
+//! that width runs over several blocks, for stripes (docs/science.md, "Detector column
+//! striping").
 //!
 //! Images without striping get s² = 0 and gains of exactly 1; a long strip
 //! (thousands of lines) measures its stripes closely, a short one shrinks them towards 1.
