@@ -194,11 +194,7 @@ pub const MAX_DEM_LOC_OFFSET_M: f64 = 300.0;
 /// LOC's heights against `dem` (the DEM's heights at the same points, NaN where it has none):
 /// `None` where no point has both.
 pub fn dem_vs_loc(loc: &LocHeights, dem: &[f64]) -> Option<DemVsLoc> {
-    let median = |v: &mut Vec<f64>| {
-        v.sort_by(f64::total_cmp);
-        let n = v.len();
-        0.5 * (v[(n - 1) / 2] + v[n / 2])
-    };
+    use crate::fusion::ops::median;
     let mut d: Vec<f64> = loc
         .height_m
         .iter()
@@ -206,15 +202,12 @@ pub fn dem_vs_loc(loc: &LocHeights, dem: &[f64]) -> Option<DemVsLoc> {
         .map(|(l, h)| l - h)
         .filter(|d| d.is_finite())
         .collect();
-    if d.is_empty() {
-        return None;
-    }
-    let median_m = median(&mut d);
+    let median_m = median(&mut d)?;
     let mut dev: Vec<f64> = d.iter().map(|x| (x - median_m).abs()).collect();
     Some(DemVsLoc {
         pixels: d.len(),
         median_m,
-        mad_m: median(&mut dev),
+        mad_m: median(&mut dev)?,
     })
 }
 

@@ -37,6 +37,7 @@
 //! Dividing each column's reflectance by g(c) removes its stripe. A gain trend across the
 //! whole swath looks like the illumination's and is left to the observation's gain.
 
+use crate::fusion::ops::median;
 use serde::{Deserialize, Serialize};
 
 /// Lines per block (the last, shorter, block of a swath counts from half this).
@@ -108,7 +109,7 @@ impl ColumnProfiles {
                 if 2 * v.len() < lines {
                     f64::NAN
                 } else {
-                    median(&mut v)
+                    median(&mut v).unwrap_or(f64::NAN)
                 }
             })
             .collect();
@@ -171,7 +172,7 @@ impl ColumnProfiles {
                         if m[c].is_nan() || 2 * pairs.len() < w {
                             f64::NAN
                         } else {
-                            m[c] - median(&mut pairs)
+                            median(&mut pairs).map_or(f64::NAN, |r| m[c] - r)
                         }
                     })
                     .collect()
@@ -185,9 +186,9 @@ impl ColumnProfiles {
                 if b < MIN_BLOCKS {
                     return None;
                 }
-                let mu = median(&mut v);
+                let mu = median(&mut v)?;
                 let mut dev: Vec<f64> = v.iter().map(|x| (x - mu).abs()).collect();
-                let sigma = 1.4826 * median(&mut dev);
+                let sigma = 1.4826 * median(&mut dev)?;
                 Some((
                     mu,
                     std::f64::consts::FRAC_PI_2 * sigma * sigma / b as f64,
@@ -226,19 +227,6 @@ impl ColumnProfiles {
     }
 }
 
-/// The median of `v` (not empty; reordered), the mean of the middle two for an even count.
-fn median(v: &mut [f64]) -> f64 {
-    let n = v.len();
-    let mid = n / 2;
-    let (_, &mut upper, _) = v.select_nth_unstable_by(mid, f64::total_cmp);
-    if n % 2 == 1 {
-        upper
-    } else {
-        let lower = v[..mid].iter().copied().fold(f64::MIN, f64::max);
-        0.5 * (lower + upper)
-    }
-}
-
 #[cfg(test)]
 mod tests {
     use super::*;
@@ -261,13 +249,6 @@ mod tests {
 
     fn rms(v: impl Iterator<Item = f64>, n: usize) -> f64 {
         (v.map(|x| x * x).sum::<f64>() / n as f64).sqrt()
-    }
-
-    #[test]
-    fn the_median_of_odd_and_even_counts() {
-        assert_eq!(median(&mut [3.0, 1.0, 2.0]), 2.0);
-        assert_eq!(median(&mut [4.0, 1.0, 3.0, 2.0]), 2.5);
-        assert_eq!(median(&mut [5.0]), 5.0);
     }
 
     #[test]

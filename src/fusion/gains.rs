@@ -3,24 +3,11 @@
 //! its track ([`estimate_gain_trends`], [`GainTrend`]), both estimated where observations overlap
 //! on a given surface, relative to the first observation of each overlapping group.
 
+use super::ops::median;
 use super::Problem;
 use crate::photometry::{Albedo, ReflectanceModel};
 use ndarray::{Array2, ArrayView2, Zip};
 use rayon::prelude::*;
-
-/// Median of `v` (sorted in place); `None` when empty.
-fn median(v: &mut [f64]) -> Option<f64> {
-    if v.is_empty() {
-        return None;
-    }
-    v.sort_by(f64::total_cmp);
-    let n = v.len();
-    Some(if n % 2 == 1 {
-        v[n / 2]
-    } else {
-        0.5 * (v[n / 2 - 1] + v[n / 2])
-    })
-}
 
 /// The most pixels a pair of observations is sampled at for its gain ratio.
 pub const GAIN_SAMPLES: usize = 1 << 16;

@@ -378,6 +378,21 @@ fn shrink_axis(a: ArrayView2<f64>, s: f64, axis: Axis) -> Array2<f64> {
     out
 }
 
+/// The median of `v` (sorted in place): its middle value, the mean of the middle two for an
+/// even count; `None` when empty.
+pub fn median(v: &mut [f64]) -> Option<f64> {
+    if v.is_empty() {
+        return None;
+    }
+    v.sort_by(f64::total_cmp);
+    let n = v.len();
+    Some(if n % 2 == 1 {
+        v[n / 2]
+    } else {
+        0.5 * (v[n / 2 - 1] + v[n / 2])
+    })
+}
+
 /// max |aᵢ| in f64 (0 for an empty array); f32 values are widened exactly.
 pub fn max_abs<T: Copy + Into<f64>>(a: ArrayView2<T>) -> f64 {
     a.iter().fold(0.0, |m, &x| m.max(x.into().abs()))
@@ -428,6 +443,14 @@ pub fn sum_row_parts<const N: usize>(parts: ArrayView1<[f64; N]>) -> [f64; N] {
 #[cfg(test)]
 mod tests {
     use super::*;
+
+    #[test]
+    fn the_median_of_odd_and_even_counts() {
+        assert_eq!(median(&mut [3.0, 1.0, 2.0]), Some(2.0));
+        assert_eq!(median(&mut [4.0, 1.0, 3.0, 2.0]), Some(2.5));
+        assert_eq!(median(&mut [5.0]), Some(5.0));
+        assert_eq!(median(&mut []), None);
+    }
 
     /// A DCT-II basis function cos(ω_y(i + ½))·cos(ω_x(j + ½)) is scaled by exactly
     /// (1 − s·sin⁸(ω_y/2))(1 − s·sin⁸(ω_x/2)) at every pixel, edges included (the analytic

@@ -884,8 +884,8 @@ struct Surveyed {
 /// its mean Sun, its OBS Sun and SOLAR_DISTANCE against the ephemeris (refused beyond what
 /// [`ingest::check_sun_ephemeris`] allows, unless `[inputs] check_sun_ephemeris = false`) and
 /// its LOC heights against the DEM, and its detector columns' gains (put in its swath index,
-/// which every read of it goes through, when `[inputs] destripe` is on). An error naming each observation and what became of its
-/// pixels when no usable pixel falls on the grid.
+/// which every read of it goes through, when `[inputs] destripe` is on). An error naming each
+/// observation and what became of its pixels when no usable pixel falls on the grid.
 fn survey_all(
     o: &Orbital,
     inputs: &Inputs,
