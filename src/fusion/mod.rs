@@ -310,6 +310,12 @@ pub struct FusionParams {
     /// δ × this ([`observations::high_sun`]); the smaller of this rule's factor and
     /// `multi_delta_factor_all`'s is used.
     pub multi_delta_factor_high_sun: f64,
+    /// Where the observations at a pixel measure east–west slopes free of albedo (their Suns
+    /// not mirrored about the east–west line), δ is lowered further, towards δ × this
+    /// ([`observations::east_west_open`]); the smallest of the three rules' factors is used.
+    /// Where they do not, the DEM holds those slopes, in which its track offsets lie, with
+    /// δ × `multi_delta_factor`.
+    pub multi_delta_factor_east_west: f64,
     /// k of the edge-aware membrane (a slope, dimensionless): from the second albedo stage on,
     /// the membrane weight at a pixel where one observation carries it is η/√(1 + |∇(z −
     /// z_DEM)|²/k²) of the surface the stage starts from
@@ -421,6 +427,7 @@ impl Default for FusionParams {
             multi_delta_factor: 0.2,
             multi_delta_factor_all: 0.1,
             multi_delta_factor_high_sun: 0.05,
+            multi_delta_factor_east_west: 0.12,
             edge_membrane_slope: 0.0,
             multi_eta_factor: 8.0,
             multi_edge_membrane_slope: 0.01,
@@ -784,11 +791,7 @@ pub(crate) fn objective<'a, 'p>(
         (params.shadow_threshold, params.edge_ramp_px),
         params.multi_eta_stiffness,
     )
-    .with_multi_delta(
-        params.multi_delta_factor,
-        params.multi_delta_factor_all,
-        params.multi_delta_factor_high_sun,
-    )
+    .with_multi_delta(objective::MultiDelta::of(params))
     .with_dem_height_length(params.dem_height_length_px * pr.spacing)
     .with_dem_tracks(
         track_weight(

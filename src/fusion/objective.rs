@@ -143,6 +143,42 @@ impl MembraneRule {
     }
 }
 
+/// The DEM term's factors where several observations carry a pixel
+/// ([`Objective::with_multi_delta`]).
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub struct MultiDelta {
+    /// f: δ × f where several observations carry a pixel (1: δ everywhere).
+    pub factor: f64,
+    /// f_all: towards δ × f_all where they measure slope free of albedo in every direction.
+    pub all: f64,
+    /// f_high: towards δ × f_high where their Suns stand high.
+    pub high_sun: f64,
+    /// f_ew: towards δ × f_ew where they measure east–west slopes free of albedo.
+    pub east_west: f64,
+}
+
+impl MultiDelta {
+    /// The factors of `params`.
+    pub fn of(params: &super::FusionParams) -> Self {
+        Self {
+            factor: params.multi_delta_factor,
+            all: params.multi_delta_factor_all,
+            high_sun: params.multi_delta_factor_high_sun,
+            east_west: params.multi_delta_factor_east_west,
+        }
+    }
+
+    /// f everywhere several observations carry a pixel, whatever their Suns.
+    pub fn uniform(factor: f64) -> Self {
+        Self {
+            factor,
+            all: factor,
+            high_sun: factor,
+            east_west: factor,
+        }
+    }
+}
+
 /// Precomputed operators for one problem.
 pub struct Objective<'a, 'p> {
     pub problem: &'a Problem<'p>,
@@ -604,21 +640,31 @@ impl<'a, 'p> Objective<'a, 'p> {
 
     /// Lower the DEM term's weight to δ·f(x) where several observations carry a pixel,
     /// blended by their multi-coverage c(x): δ(x) = δ·(1 − (1 − f(x))·c(x)), f(x) = the
-    /// smaller of `factor` − (`factor` − `factor_all`)·φ(x) and `factor` − (`factor` −
-    /// `factor_high_sun`)·η(x): φ the share of the images' albedo-free slope information in its
-    /// least-measured direction ([`observations::every_direction`]; 0 for two observations), η
-    /// how high their Suns stand ([`observations::high_sun`]). With two or more Suns the images
+    /// smallest of `factor` − (`factor` − `factor_all`)·φ(x), `factor` − (`factor` −
+    /// `factor_high_sun`)·η(x) and `factor` − (`factor` − `factor_east_west`)·ψ(x): φ the share
+    /// of the images' albedo-free slope information in its least-measured direction
+    /// ([`observations::every_direction`]; 0 for two observations), η how high their Suns stand
+    /// ([`observations::high_sun`]), ψ whether they measure east–west slopes free of albedo
+    /// ([`observations::east_west_open`]). With two or more Suns the images
     /// fix most slopes, with three spread in azimuth every one, and the DEM's own errors inside
     /// the σ_DEM passband (track offsets, noise) are then the largest left; under high Suns,
     /// which cast few shadows, more so (docs/science.md, "Several observations"). No effect
     /// where one observation carries a pixel.
-    pub fn with_multi_delta(mut self, factor: f64, factor_all: f64, factor_high_sun: f64) -> Self {
+    pub fn with_multi_delta(mut self, factors: MultiDelta) -> Self {
+        let MultiDelta {
+            factor,
+            all: factor_all,
+            high_sun: factor_high_sun,
+            east_west: factor_east_west,
+        } = factors;
         let c = self.regulariser_coverage();
         if factor < 1.0 && c.iter().any(|&c| c > 0.0) {
             let phi = (factor_all < factor && self.weights.weight.len() > 2)
                 .then(|| observations::every_direction(self.problem, &self.weights, &c));
             let eta = (factor_high_sun < factor)
                 .then(|| observations::high_sun(self.problem, &self.weights, &c));
+            let psi = (factor_east_west < factor)
+                .then(|| observations::east_west_open(self.problem, &self.weights, &c));
             self.dem_relief = Some(Zip::indexed(&c).map_collect(|ij, &c| {
                 let mut f = factor;
                 if let Some(phi) = &phi {
@@ -626,6 +672,9 @@ impl<'a, 'p> Objective<'a, 'p> {
                 }
                 if let Some(eta) = &eta {
                     f = f.min(factor - (factor - factor_high_sun) * eta[ij]);
+                }
+                if let Some(psi) = &psi {
+                    f = f.min(factor - (factor - factor_east_west) * psi[ij]);
                 }
                 (1.0 - f) * c
             }));
@@ -1409,7 +1458,8 @@ mod tests {
         let pr = two_observations(&a, &b, &dem, &model);
         let w = two_strip_weights(&pr);
         assert!(w.weight[1][(3, 9)] > 0.0 && w.weight[1][(3, 9)] < 0.7);
-        let obj = Objective::new(&pr, 3.0, 0.2, 1.2, 1.5, 0.03, w).with_multi_delta(0.3, 0.3, 0.3);
+        let obj = Objective::new(&pr, 3.0, 0.2, 1.2, 1.5, 0.03, w)
+            .with_multi_delta(MultiDelta::uniform(0.3));
         assert!(obj.dem_relief.as_ref().unwrap()[(5, 15)] > 0.5);
         assert_gradient_matches(&obj, &z, &[(3, 4), (6, 9), (5, 15), (11, 25), (0, 29)]);
     }
@@ -1473,10 +1523,10 @@ mod tests {
         let model = Hapke::moon();
         let pr = two_observations(&a, &b, &dem, &model);
         let w = || two_strip_weights(&pr);
-        let plain =
-            Objective::new(&pr, 3.0, 0.2, 1.2, 1.5, 0.03, w()).with_multi_delta(0.3, 0.3, 0.3);
+        let plain = Objective::new(&pr, 3.0, 0.2, 1.2, 1.5, 0.03, w())
+            .with_multi_delta(MultiDelta::uniform(0.3));
         let obj = Objective::new(&pr, 3.0, 0.2, 1.2, 1.5, 0.03, w())
-            .with_multi_delta(0.3, 0.3, 0.3)
+            .with_multi_delta(MultiDelta::uniform(0.3))
             .with_dem_height_length(300.0);
         assert_eq!(obj.dem_height, 1.0 / (300.0 * 300.0));
         let zh = obj.dct.forward(&z);
@@ -1526,7 +1576,7 @@ mod tests {
         let (a, b) = two_strips(1.1);
         let pr = two_observations(&a, &b, &dem, &model);
         let obj = Objective::new(&pr, 3.0, 0.2, 1.2, 1.5, 0.03, two_strip_weights(&pr))
-            .with_multi_delta(0.3, 0.3, 0.3)
+            .with_multi_delta(MultiDelta::uniform(0.3))
             .with_dem_height_length(300.0)
             .with_dem_tracks(0.1, 2.0);
         assert_gradient_matches(

@@ -233,6 +233,52 @@ pub fn every_direction_at(observations: &mut dyn Iterator<Item = (f64, Vec3)>) -
     spread * lo / (lo + EVERY_DIRECTION_M0)
 }
 
+/// [s₀, s₁] of [`east_west_open`]: ψ rises from 0 to 1 as the east–west share of the images'
+/// albedo-free slope information goes from s₀ to s₁ (the direction they measure 8° and 18°
+/// from north–south). Two Suns mirrored about the east–west line, or within 8° of it, measure
+/// east–west slopes only together with the albedo (share ≤ 0.02: 45/30 + 135/30 0,
+/// 60/30 + 135/30 0.017); 45/30 + 150/35 gives 0.04, 50/35 + 165/35 0.09, 0/45 + 120/40 0.30.
+pub const EAST_WEST_OPEN_SHARE: [f64; 2] = [0.02, 0.1];
+
+/// ψ(x) ∈ [0, 1]: whether the images at a pixel measure east–west slopes free of albedo:
+/// smoothstep((s − s₀)/(s₁ − s₀)), s = M_xx/(M_xx + M_yy) of the u_k-weighted M of
+/// [`every_direction`] (the share [`east_west_share`] gives for equal weights), [s₀, s₁] =
+/// [`EAST_WEST_OPEN_SHARE`]. Where they do, δ may be lowered further: the DEM's largest errors
+/// inside its passband are the offsets between its tracks, east–west slopes the images then
+/// correct; where they do not, the DEM and the membrane alone hold those slopes (docs/science.md,
+/// "The DEM term where the images see east–west slopes"). 0 where c(x) = 0.
+pub fn east_west_open(pr: &Problem, w: &Weights, c: &Array2<f64>) -> Array2<f64> {
+    where_overlapping(pr, w, c, east_west_open_at)
+}
+
+/// ψ of [`east_west_open`] at one pixel, from each observation's (u_k, Sun vector); those with
+/// u_k ≤ 0 or the Sun at or below the horizon do not count (ψ = 0 with fewer than two, or with
+/// Suns all in one direction).
+pub fn east_west_open_at(observations: &mut dyn Iterator<Item = (f64, Vec3)>) -> f64 {
+    let (mut n, mut su, mut sx, mut sy, mut mxx, mut myy) = (0, 0.0, 0.0, 0.0, 0.0, 0.0);
+    for (u, s) in observations {
+        if u <= 0.0 || s[2] <= 1e-6 {
+            continue;
+        }
+        let (gx, gy) = (-s[0] / s[2], -s[1] / s[2]);
+        n += 1;
+        su += u;
+        sx += u * gx;
+        sy += u * gy;
+        mxx += u * gx * gx;
+        myy += u * gy * gy;
+    }
+    if n < 2 {
+        return 0.0;
+    }
+    let (a, d) = (mxx - sx * sx / su, myy - sy * sy / su);
+    if a + d <= 1e-12 {
+        return 0.0;
+    }
+    let [s0, s1] = EAST_WEST_OPEN_SHARE;
+    smoothstep((a / (a + d) - s0) / (s1 - s0))
+}
+
 /// [m₀, m₁] of [`high_sun`]: η rises from 0 to 1 as the mean cot² of the Suns' elevations
 /// falls from m₁ to m₀ (cot² e = 1.2 at 42.4°, 0.6 at 52.2°): two Suns 55–60° high get η = 1,
 /// 45° (cot² = 1) η = 1/3, 30–40° none.
@@ -799,6 +845,37 @@ mod tests {
         assert!(share(&[(105.0, 30.0), (225.0, 35.0)]) > 0.9);
         assert!(east_west_share(&[sun(90.0, 30.0)]).is_none());
         assert!(east_west_share(&[sun(90.0, 30.0), sun(90.0, 30.0)]).is_none());
+    }
+
+    /// ψ: 0 for Suns mirrored about the east–west line and for one Sun, 1 for a pair whose
+    /// difference runs east–west, and at a share halfway between s₀ and s₁ the smoothstep's
+    /// middle, 1/2 (Sun vectors built from chosen g_k = −(s_x, s_y)/s_z), whatever the two
+    /// weights; an observation of u_k = 0 does not count; three Suns spread in azimuth: 1.
+    #[test]
+    fn the_east_west_opening_follows_the_share_of_albedo_free_slope() {
+        let psi = |s: &[(f64, f64, f64)]| {
+            east_west_open_at(&mut s.iter().map(|&(u, a, e)| (u, sun(a, e))))
+        };
+        assert_eq!(psi(&[(1.0, 45.0, 30.0), (1.0, 135.0, 30.0)]), 0.0);
+        assert_eq!(psi(&[(1.0, 45.0, 20.0), (0.3, 135.0, 20.0)]), 0.0);
+        assert_eq!(psi(&[(1.0, 105.0, 30.0)]), 0.0);
+        assert_eq!(psi(&[(1.0, 105.0, 30.0), (0.0, 225.0, 35.0)]), 0.0);
+        assert_eq!(psi(&[(1.0, 105.0, 30.0), (1.0, 225.0, 35.0)]), 1.0);
+        assert_eq!(psi(&[(1.0, 90.0, 30.0), (1.0, 270.0, 50.0)]), 1.0);
+        let from_g = |gx: f64, gy: f64| {
+            let n = (gx * gx + gy * gy + 1.0).sqrt();
+            [-gx / n, -gy / n, 1.0 / n]
+        };
+        let [s0, s1] = EAST_WEST_OPEN_SHARE;
+        let share: f64 = 0.5 * (s0 + s1);
+        let (dx, dy) = (share.sqrt(), (1.0 - share).sqrt());
+        let pair = [(0.7, from_g(0.0, 0.5)), (0.7, from_g(-dx, 0.5 - dy))];
+        assert!((east_west_open_at(&mut pair.into_iter()) - 0.5).abs() < 1e-12);
+        // Two observations: M = u₁u₂/(u₁ + u₂)·d dᵀ whatever the weights, so the share, and ψ,
+        // stay.
+        let unequal = [(0.2, from_g(0.0, 0.5)), (0.9, from_g(-dx, 0.5 - dy))];
+        assert!((east_west_open_at(&mut unequal.into_iter()) - 0.5).abs() < 1e-12);
+        assert!(psi(&[(1.0, 0.0, 30.0), (1.0, 120.0, 40.0), (1.0, 240.0, 40.0)]) == 1.0);
     }
 
     /// φ against hand-computed eigenvalues of M: three Suns 120° apart at 30° (λ = 1.5·cot² 30°

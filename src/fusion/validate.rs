@@ -282,7 +282,7 @@ fn dem_and_membrane(params: &FusionParams) -> [Check; 9] {
 }
 
 /// What acts only where several observations overlap.
-fn several_observations(params: &FusionParams) -> [Check; 13] {
+fn several_observations(params: &FusionParams) -> [Check; 14] {
     [
         (
             "multi_delta_factor",
@@ -302,6 +302,13 @@ fn several_observations(params: &FusionParams) -> [Check; 13] {
             params.multi_delta_factor_high_sun,
             params.multi_delta_factor_high_sun > 0.0
                 && params.multi_delta_factor_high_sun <= params.multi_delta_factor,
+            "must be in (0, multi_delta_factor]",
+        ),
+        (
+            "multi_delta_factor_east_west",
+            params.multi_delta_factor_east_west,
+            params.multi_delta_factor_east_west > 0.0
+                && params.multi_delta_factor_east_west <= params.multi_delta_factor,
             "must be in (0, multi_delta_factor]",
         ),
         (
