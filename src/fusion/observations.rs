@@ -201,9 +201,11 @@ where
     })
 }
 
-/// φ of [`every_direction`] at one pixel, from each observation's (u_k, Sun vector); those with
-/// u_k ≤ 0 or the Sun at or below the horizon do not count.
-pub fn every_direction_at(observations: &mut dyn Iterator<Item = (f64, Vec3)>) -> f64 {
+/// M = Σ_k u_k g_k g_kᵀ − (Σ_k u_k g_k)(Σ_k u_k g_k)ᵀ/Σ_k u_k as (M_xx, M_xy, M_yy), g_k =
+/// −(s_x, s_y)/s_z, over the observations' (u_k, Sun vector) with u_k > 0 and the Sun above the
+/// horizon, and how many of them counted (M = 0 without any): the spread of ln R's slope
+/// gradients that measures slope free of albedo ([`every_direction`]).
+fn slope_spread(observations: &mut dyn Iterator<Item = (f64, Vec3)>) -> (usize, [f64; 3]) {
     let (mut n, mut su, mut sx, mut sy) = (0, 0.0, 0.0, 0.0);
     let (mut mxx, mut mxy, mut myy) = (0.0, 0.0, 0.0);
     for (u, s) in observations {
@@ -219,10 +221,22 @@ pub fn every_direction_at(observations: &mut dyn Iterator<Item = (f64, Vec3)>) -
         mxy += u * gx * gy;
         myy += u * gy * gy;
     }
+    if n == 0 {
+        return (0, [0.0; 3]);
+    }
+    (
+        n,
+        [mxx - sx * sx / su, mxy - sx * sy / su, myy - sy * sy / su],
+    )
+}
+
+/// φ of [`every_direction`] at one pixel, from each observation's (u_k, Sun vector); those with
+/// u_k ≤ 0 or the Sun at or below the horizon do not count.
+pub fn every_direction_at(observations: &mut dyn Iterator<Item = (f64, Vec3)>) -> f64 {
+    let (n, [a, b, d]) = slope_spread(observations);
     if n < 3 {
         return 0.0;
     }
-    let (a, b, d) = (mxx - sx * sx / su, mxy - sx * sy / su, myy - sy * sy / su);
     let root = (0.25 * (a - d) * (a - d) + b * b).sqrt();
     let (lo, hi) = ((0.5 * (a + d) - root).max(0.0), 0.5 * (a + d) + root);
     if hi <= 0.0 {
@@ -255,23 +269,10 @@ pub fn east_west_open(pr: &Problem, w: &Weights, c: &Array2<f64>) -> Array2<f64>
 /// u_k ≤ 0 or the Sun at or below the horizon do not count (ψ = 0 with fewer than two, or with
 /// Suns all in one direction).
 pub fn east_west_open_at(observations: &mut dyn Iterator<Item = (f64, Vec3)>) -> f64 {
-    let (mut n, mut su, mut sx, mut sy, mut mxx, mut myy) = (0, 0.0, 0.0, 0.0, 0.0, 0.0);
-    for (u, s) in observations {
-        if u <= 0.0 || s[2] <= 1e-6 {
-            continue;
-        }
-        let (gx, gy) = (-s[0] / s[2], -s[1] / s[2]);
-        n += 1;
-        su += u;
-        sx += u * gx;
-        sy += u * gy;
-        mxx += u * gx * gx;
-        myy += u * gy * gy;
-    }
+    let (n, [a, _, d]) = slope_spread(observations);
     if n < 2 {
         return 0.0;
     }
-    let (a, d) = (mxx - sx * sx / su, myy - sy * sy / su);
     if a + d <= 1e-12 {
         return 0.0;
     }
