@@ -307,8 +307,8 @@ pub struct FusionParams {
     pub multi_delta_factor_all: f64,
     /// Where the Suns of the observations at a pixel stand high (mean cot² of their
     /// elevations under 1.2, fully under 0.6: ≈ 42° and 52°), δ is lowered further, towards
-    /// δ × this ([`observations::high_sun`]); the smaller of this rule's factor and
-    /// `multi_delta_factor_all`'s is used.
+    /// δ × this ([`observations::high_sun`]); the smallest of this rule's factor,
+    /// `multi_delta_factor_all`'s and `multi_delta_factor_east_west`'s is used.
     pub multi_delta_factor_high_sun: f64,
     /// Where the observations at a pixel measure east–west slopes free of albedo (their Suns
     /// not mirrored about the east–west line), δ is lowered further, towards δ × this
