@@ -269,16 +269,24 @@ pub fn east_west_open(pr: &Problem, w: &Weights, c: &Array2<f64>) -> Array2<f64>
 /// u_k ≤ 0 or the Sun at or below the horizon do not count (ψ = 0 with fewer than two, or with
 /// Suns all in one direction).
 pub fn east_west_open_at(observations: &mut dyn Iterator<Item = (f64, Vec3)>) -> f64 {
-    let (n, [a, _, d]) = slope_spread(observations);
-    if n < 2 {
-        return 0.0;
-    }
-    if a + d <= 1e-12 {
+    let seen: Vec<(f64, Vec3)> = observations.collect();
+    let (n, [a, _, d]) = slope_spread(&mut seen.iter().copied());
+    if n < 2 || a + d <= 1e-12 {
         return 0.0;
     }
     let [s0, s1] = EAST_WEST_OPEN_SHARE;
-    smoothstep((a / (a + d) - s0) / (s1 - s0))
+    let [m0, m1] = EAST_WEST_LOW_SUN_COT2;
+    let low = smoothstep((m1 - mean_cot2(&mut seen.into_iter())) / (m1 - m0));
+    smoothstep((a / (a + d) - s0) / (s1 - s0)) * low
 }
+
+/// [m₀, m₁] of [`east_west_open`]: ψ fades from its full value to 0 as the u_k-weighted mean
+/// cot² of the Suns' elevations goes from m₀ to m₁ (cot² e = 3 at 30°, 6 at 22.2°). Under such
+/// low Suns the shadows hide much of each crater, whose floors the DEM alone holds, and the
+/// images measure the slopes they see firmly already: two 20° Suns (cot² = 7.5) lost 1 % with δ
+/// lowered and their tiles drifted apart (docs/science.md, "The DEM term where the images see
+/// east–west slopes").
+pub const EAST_WEST_LOW_SUN_COT2: [f64; 2] = [3.0, 6.0];
 
 /// [m₀, m₁] of [`high_sun`]: η rises from 0 to 1 as the mean cot² of the Suns' elevations
 /// falls from m₁ to m₀ (cot² e = 1.2 at 42.4°, 0.6 at 52.2°): two Suns 55–60° high get η = 1,
@@ -298,6 +306,17 @@ pub fn high_sun(pr: &Problem, w: &Weights, c: &Array2<f64>) -> Array2<f64> {
 /// η of [`high_sun`] at one pixel, from each observation's (u_k, Sun vector); those with
 /// u_k ≤ 0 or the Sun at or below the horizon do not count (η = 0 without any).
 pub fn high_sun_at(observations: &mut dyn Iterator<Item = (f64, Vec3)>) -> f64 {
+    let m = mean_cot2(observations);
+    if m.is_nan() {
+        return 0.0;
+    }
+    let [m0, m1] = HIGH_SUN_COT2;
+    ((m1 - m) / (m1 - m0)).clamp(0.0, 1.0)
+}
+
+/// The u_k-weighted mean of cot² e_k = (s_x² + s_y²)/s_z² over the observations' (u_k, Sun
+/// vector) with u_k > 0 and the Sun above the horizon; NaN without any.
+fn mean_cot2(observations: &mut dyn Iterator<Item = (f64, Vec3)>) -> f64 {
     let (mut su, mut s2) = (0.0, 0.0);
     for (u, s) in observations {
         if u <= 0.0 || s[2] <= 1e-6 {
@@ -307,10 +326,9 @@ pub fn high_sun_at(observations: &mut dyn Iterator<Item = (f64, Vec3)>) -> f64 {
         s2 += u * (s[0] * s[0] + s[1] * s[1]) / (s[2] * s[2]);
     }
     if su <= 0.0 {
-        return 0.0;
+        return f64::NAN;
     }
-    let [m0, m1] = HIGH_SUN_COT2;
-    ((m1 - s2 / su) / (m1 - m0)).clamp(0.0, 1.0)
+    s2 / su
 }
 
 /// Incidence angle, degrees, of a Sun vector in the grid frame (z up).
@@ -851,7 +869,8 @@ mod tests {
     /// ψ: 0 for Suns mirrored about the east–west line and for one Sun, 1 for a pair whose
     /// difference runs east–west, and at a share halfway between s₀ and s₁ the smoothstep's
     /// middle, 1/2 (Sun vectors built from chosen g_k = −(s_x, s_y)/s_z), whatever the two
-    /// weights; an observation of u_k = 0 does not count; three Suns spread in azimuth: 1.
+    /// weights; an observation of u_k = 0 does not count; three Suns spread in azimuth: 1; under
+    /// low Suns it fades with the mean cot² of their elevations.
     #[test]
     fn the_east_west_opening_follows_the_share_of_albedo_free_slope() {
         let psi = |s: &[(f64, f64, f64)]| {
@@ -877,6 +896,13 @@ mod tests {
         let unequal = [(0.2, from_g(0.0, 0.5)), (0.9, from_g(-dx, 0.5 - dy))];
         assert!((east_west_open_at(&mut unequal.into_iter()) - 0.5).abs() < 1e-12);
         assert!(psi(&[(1.0, 0.0, 30.0), (1.0, 120.0, 40.0), (1.0, 240.0, 40.0)]) == 1.0);
+        // Low Suns: 315/20 + 45/20 (cot² 20° = 7.55) measure east–west slopes but get 0; Suns
+        // east and west whose mean cot² lies halfway between m₀ and m₁ get 1/2.
+        assert_eq!(psi(&[(1.0, 315.0, 20.0), (1.0, 45.0, 20.0)]), 0.0);
+        let [m0, m1] = EAST_WEST_LOW_SUN_COT2;
+        let g = (0.5 * (m0 + m1)).sqrt();
+        let halfway = [(1.0, from_g(g, 0.0)), (1.0, from_g(-g, 0.0))];
+        assert!((east_west_open_at(&mut halfway.into_iter()) - 0.5).abs() < 1e-12);
     }
 
     /// φ against hand-computed eigenvalues of M: three Suns 120° apart at 30° (λ = 1.5·cot² 30°
