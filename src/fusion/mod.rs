@@ -311,8 +311,9 @@ pub struct FusionParams {
     /// `multi_delta_factor_all`'s and `multi_delta_factor_east_west`'s is used.
     pub multi_delta_factor_high_sun: f64,
     /// Where the observations at a pixel measure east–west slopes free of albedo (their Suns
-    /// not mirrored about the east–west line), δ is lowered further, towards δ × this
-    /// ([`observations::east_west_open`]); the smallest of the three rules' factors is used.
+    /// not mirrored about the east–west line) and their Suns stand above about 25°, δ is
+    /// lowered further, towards δ × this ([`observations::east_west_open`]); the smallest of
+    /// the three rules' factors is used.
     /// Where they do not, the DEM holds those slopes, in which its track offsets lie, with
     /// δ × `multi_delta_factor`.
     pub multi_delta_factor_east_west: f64,
