@@ -313,7 +313,9 @@ pub struct FusionParams {
     /// Where the observations at a pixel measure east–west slopes free of albedo (their Suns
     /// not mirrored about the east–west line) and their Suns stand above about 25°, δ is
     /// lowered further, towards δ × this ([`observations::east_west_open`]); the smallest of
-    /// the three rules' factors is used.
+    /// the three rules' factors is used. At or above `multi_delta_factor` the rule is off, so a
+    /// workflow that lowers `multi_delta_factor` below it (as [`FusionParams::edge_aware`]
+    /// does) keeps one factor everywhere.
     /// Where they do not, the DEM holds those slopes, in which its track offsets lie, with
     /// δ × `multi_delta_factor`.
     pub multi_delta_factor_east_west: f64,

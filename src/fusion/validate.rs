@@ -307,9 +307,8 @@ fn several_observations(params: &FusionParams) -> [Check; 14] {
         (
             "multi_delta_factor_east_west",
             params.multi_delta_factor_east_west,
-            params.multi_delta_factor_east_west > 0.0
-                && params.multi_delta_factor_east_west <= params.multi_delta_factor,
-            "must be in (0, multi_delta_factor]",
+            params.multi_delta_factor_east_west > 0.0 && params.multi_delta_factor_east_west <= 1.0,
+            "must be in (0, 1] (at or above multi_delta_factor the rule is off)",
         ),
         (
             "multi_albedo_sigma",
