@@ -883,6 +883,19 @@ directory = "out"
                 "{value}: {e}"
             );
         }
+        // The east–west rule's factor: 0 or beyond 1 refused; a workflow that lowers
+        // `multi_delta_factor` under it is accepted (the rule is then off).
+        for value in ["0.0", "1.5", "nan"] {
+            let e = solver(&format!("multi_delta_factor_east_west = {value}"));
+            assert!(
+                e.contains("w.toml")
+                    && e.contains("multi_delta_factor_east_west")
+                    && e.contains("(0, 1]"),
+                "{value}: {e}"
+            );
+        }
+        let lowered = lab.replace("[output]", "[solver]\nmulti_delta_factor = 0.1\n[output]");
+        assert!(Workflow::parse(&lowered, Path::new("w.toml"), Path::new(".")).is_ok());
         assert_eq!(FusionParams::default().dem_track_weight, 0.1);
     }
 
