@@ -203,9 +203,10 @@ where
 
 /// M = Σ_k u_k g_k g_kᵀ − (Σ_k u_k g_k)(Σ_k u_k g_k)ᵀ/Σ_k u_k as (M_xx, M_xy, M_yy), g_k =
 /// −(s_x, s_y)/s_z, over the observations' (u_k, Sun vector) with u_k > 0 and the Sun above the
-/// horizon, and how many of them counted (M = 0 without any): the spread of ln R's slope
-/// gradients that measures slope free of albedo ([`every_direction`]).
-fn slope_spread(observations: &mut dyn Iterator<Item = (f64, Vec3)>) -> (usize, [f64; 3]) {
+/// horizon, how many of them counted, and the u_k-weighted mean of |g_k|² = cot² e_k (M = 0
+/// and NaN without any): the spread of ln R's slope gradients that measures slope free of
+/// albedo ([`every_direction`]), and how steeply the Suns fall.
+fn slope_spread(observations: &mut dyn Iterator<Item = (f64, Vec3)>) -> (usize, [f64; 3], f64) {
     let (mut n, mut su, mut sx, mut sy) = (0, 0.0, 0.0, 0.0);
     let (mut mxx, mut mxy, mut myy) = (0.0, 0.0, 0.0);
     for (u, s) in observations {
@@ -222,18 +223,19 @@ fn slope_spread(observations: &mut dyn Iterator<Item = (f64, Vec3)>) -> (usize, 
         myy += u * gy * gy;
     }
     if n == 0 {
-        return (0, [0.0; 3]);
+        return (0, [0.0; 3], f64::NAN);
     }
     (
         n,
         [mxx - sx * sx / su, mxy - sx * sy / su, myy - sy * sy / su],
+        (mxx + myy) / su,
     )
 }
 
 /// φ of [`every_direction`] at one pixel, from each observation's (u_k, Sun vector); those with
 /// u_k ≤ 0 or the Sun at or below the horizon do not count.
 pub fn every_direction_at(observations: &mut dyn Iterator<Item = (f64, Vec3)>) -> f64 {
-    let (n, [a, b, d]) = slope_spread(observations);
+    let (n, [a, b, d], _) = slope_spread(observations);
     if n < 3 {
         return 0.0;
     }
@@ -269,14 +271,13 @@ pub fn east_west_open(pr: &Problem, w: &Weights, c: &Array2<f64>) -> Array2<f64>
 /// u_k ≤ 0 or the Sun at or below the horizon do not count (ψ = 0 with fewer than two, or with
 /// Suns all in one direction).
 pub fn east_west_open_at(observations: &mut dyn Iterator<Item = (f64, Vec3)>) -> f64 {
-    let seen: Vec<(f64, Vec3)> = observations.collect();
-    let (n, [a, _, d]) = slope_spread(&mut seen.iter().copied());
+    let (n, [a, _, d], cot2) = slope_spread(observations);
     if n < 2 || a + d <= 1e-12 {
         return 0.0;
     }
     let [s0, s1] = EAST_WEST_OPEN_SHARE;
     let [m0, m1] = EAST_WEST_LOW_SUN_COT2;
-    let low = smoothstep((m1 - mean_cot2(&mut seen.into_iter())) / (m1 - m0));
+    let low = smoothstep((m1 - cot2) / (m1 - m0));
     smoothstep((a / (a + d) - s0) / (s1 - s0)) * low
 }
 
