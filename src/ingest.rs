@@ -1099,6 +1099,99 @@ pub fn check_lunar_heights(
     )))
 }
 
+/// A gridded altimetry product's offsets between its tracks, one per product column (sample)
+/// over the columns a region reads ([`lola_track_offsets`]).
+#[derive(Debug, Clone, PartialEq, serde::Serialize, serde::Deserialize)]
+pub struct TrackOffsets {
+    /// 0-based sample of `offsets[0]`.
+    pub first_sample: usize,
+    /// Metres, one per sample from `first_sample` (0 where none is estimated).
+    pub offsets: Vec<f64>,
+    /// What the estimate saw, in metres ([`crate::striping::Striping`]).
+    pub summary: crate::striping::Striping,
+}
+
+impl TrackOffsets {
+    /// Subtract each sample's offset from every line of `heights` (whole lines of the product).
+    pub fn subtract_from(&self, heights: &mut Array2<f64>) {
+        for mut line in heights.rows_mut() {
+            for (k, &o) in self.offsets.iter().enumerate() {
+                if let Some(h) = line.get_mut(self.first_sample + k) {
+                    *h -= o;
+                }
+            }
+        }
+    }
+}
+
+/// Lines per block of the track offsets' estimate: half an image's
+/// ([`crate::striping::BLOCK_LINES`]), as a region spans few lines of a DEM.
+pub const TRACK_BLOCK_LINES: usize = 16;
+
+/// Lines read beyond the region on either side for the track offsets' estimate: more blocks
+/// along the same tracks.
+pub const TRACK_MARGIN_LINES: usize = 64;
+
+/// The offsets between the tracks of `dem`, a simple cylindrical product gridded from
+/// altimeter tracks (LOLA's run north–south along its columns), over the samples the grid of
+/// geography `geo` reads: the estimate of [`crate::striping`] on the heights themselves (an
+/// offset adds, as ln g does to ln r), in blocks of [`TRACK_BLOCK_LINES`] lines over the
+/// region's lines and [`TRACK_MARGIN_LINES`] either side. What changes from one column to
+/// the next within ±[`crate::striping::HALF_WINDOW`] columns and persists from block to block
+/// is taken for an offset; terrain, which changes from block to block, shrinks the estimate
+/// towards 0, and a product without offsets gets none. `None` where the grid does not reach
+/// the product, for a polar stereographic product (its tracks run along no column) and where
+/// the region's columns wrap round the product's edge.
+pub fn lola_track_offsets(dem: &LolaDem, geo: &Geographic) -> Result<Option<TrackOffsets>> {
+    let Projection::SimpleCylindrical { resolution, .. } = dem.projection else {
+        return Ok(None);
+    };
+    // A product all round the Moon: a region across its first and last columns reaches both
+    // ends (as `lola_on_grid`'s `wrap`).
+    let global = (dem.samples() as f64 - 360.0 * resolution).abs() < 1e-6;
+    let (mut l_lo, mut l_hi, mut s_lo, mut s_hi) = (f64::MAX, f64::MIN, f64::MAX, f64::MIN);
+    for (&lon, &lat) in geo.lon.iter().zip(&geo.lat) {
+        if lon.is_finite() && lat.is_finite() {
+            let (l, s) = dem.pixel(lon, lat);
+            if l.is_finite() && s.is_finite() {
+                (l_lo, l_hi, s_lo, s_hi) = (l_lo.min(l), l_hi.max(l), s_lo.min(s), s_hi.max(s));
+            }
+        }
+    }
+    let (lines, samples) = (dem.lines(), dem.samples());
+    if l_lo > l_hi || l_hi < -0.5 || l_lo > lines as f64 - 0.5 || s_hi < -0.5 {
+        return Ok(None);
+    }
+    // Every column of the region with its whole window of neighbours.
+    let reach = (crate::striping::HALF_WINDOW + 2) as f64;
+    let s0 = (s_lo.floor() - reach).max(0.0) as usize;
+    let s1 = ((s_hi.ceil() + reach + 1.0).max(0.0) as usize).min(samples);
+    if s0 >= s1 || (global && 2 * (s1 - s0) > samples) {
+        return Ok(None);
+    }
+    let margin = TRACK_MARGIN_LINES as f64;
+    let l0 = (l_lo.floor() - margin).max(0.0) as usize;
+    let l1 = ((l_hi.ceil() + margin + 1.0).max(0.0) as usize).min(lines);
+    let [lo, hi] = LUNAR_HEIGHT_RANGE_M;
+    let mut profiles = crate::striping::ColumnProfiles::default();
+    for start in (l0..l1).step_by(TRACK_BLOCK_LINES) {
+        let count = TRACK_BLOCK_LINES.min(l1 - start);
+        let block = Array2::from_shape_vec((count, samples), lola_heights(dem, start, count)?)
+            .map_err(|e| Error::Usage(e.to_string()))?;
+        // A height off the Moon is no measurement here (the grid's read refuses it).
+        let block =
+            block
+                .slice(s![.., s0..s1])
+                .mapv(|h| if (lo..=hi).contains(&h) { h } else { f64::NAN });
+        profiles.add_block(block.view());
+    }
+    Ok(profiles.offsets().map(|(offsets, summary)| TrackOffsets {
+        first_sample: s0,
+        offsets,
+        summary,
+    }))
+}
+
 /// Heights of `dem` at every centre of the grid whose geography is `geo`, metres above the
 /// 1737.4 km sphere ([`lola_heights`]); NaN outside the product or where its support touches
 /// no data; `None` when no grid pixel falls on the product. A height the grid needs outside
@@ -1107,6 +1200,17 @@ pub fn lola_on_grid(
     dem: &LolaDem,
     geo: &Geographic,
     method: Interpolation,
+) -> Result<Option<Array2<f64>>> {
+    lola_on_grid_tracked(dem, geo, method, None)
+}
+
+/// [`lola_on_grid`] with the product's offsets between its tracks taken out of the heights
+/// before they are interpolated (`tracks`, [`lola_track_offsets`]; `None`: as read).
+pub fn lola_on_grid_tracked(
+    dem: &LolaDem,
+    geo: &Geographic,
+    method: Interpolation,
+    tracks: Option<&TrackOffsets>,
 ) -> Result<Option<Array2<f64>>> {
     let dim = geo.lon.dim();
     let mut pos_l = Array2::from_elem(dim, f64::NAN);
@@ -1132,9 +1236,12 @@ pub fn lola_on_grid(
     let first = (lmin.floor() - 2.0).clamp(0.0, lines - 1.0) as usize;
     let end = ((lmax.ceil() + 3.0).clamp(1.0, lines)) as usize;
     let window = lola_heights(dem, first, end - first)?;
-    let window = Array2::from_shape_vec((end - first, dem.samples()), window)
+    let mut window = Array2::from_shape_vec((end - first, dem.samples()), window)
         .map_err(|e| Error::Usage(e.to_string()))?;
     check_lunar_heights(&dem.raster.path, window.view(), (first, 0))?;
+    if let Some(t) = tracks {
+        t.subtract_from(&mut window);
+    }
     let wrap = match dem.projection {
         Projection::SimpleCylindrical { resolution, .. } => {
             (dem.samples() as f64 - 360.0 * resolution).abs() < 1e-6

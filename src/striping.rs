@@ -72,13 +72,14 @@ pub struct ColumnGains {
 pub struct Striping {
     /// Blocks measured (the most any column had).
     pub blocks: usize,
-    /// Columns with a gain other than 1.
+    /// Columns with a gain other than 1 (an offset other than 0).
     pub columns: usize,
-    /// √s²: the stripes' RMS in ln r (0 when none stand out of the terrain).
+    /// √s²: the stripes' RMS in ln r, or in metres for a DEM's tracks (0 when none stand out
+    /// of the terrain).
     pub stripe_rms: f64,
-    /// √(mean n²): the RMS of the terrain left in each column's estimate, in ln r.
+    /// √(mean n²): the RMS of the terrain left in each column's estimate, in ln r (metres).
     pub noise_rms: f64,
-    /// RMS of ln g(c) over the swath's columns: the correction applied.
+    /// RMS of ln g(c) (of the offsets) over the columns: the correction applied.
     pub correction_rms: f64,
 }
 
@@ -128,22 +129,32 @@ impl ColumnProfiles {
 
     /// The column gains (module documentation); `None` before any block.
     pub fn gains(&self) -> Option<ColumnGains> {
+        let (offset, summary) = self.offsets()?;
+        Some(ColumnGains {
+            gain: offset.iter().map(|l| l.exp()).collect(),
+            summary,
+        })
+    }
+
+    /// The estimate of the module documentation in the units the blocks were given in: each
+    /// column's additive stripe (0 where none is estimated), and what the estimate saw. Of
+    /// ln r, these are ln g(c) ([`ColumnProfiles::gains`]); of heights, an altimeter's offset
+    /// between its tracks where they run along the columns (`ingest::lola_track_offsets`).
+    /// `None` before any block.
+    pub fn offsets(&self) -> Option<(Vec<f64>, Striping)> {
         let cols = self.blocks.first()?.len();
         let scale = self.scale(HALF_WINDOW, &vec![0.0; cols]);
-        let gain: Vec<f64> = scale.ln_gain.iter().map(|l| l.exp()).collect();
-        let columns = gain.iter().filter(|&&g| g != 1.0).count();
+        let columns = scale.ln_gain.iter().filter(|&&l| l != 0.0).count();
         let correction_rms =
             (scale.ln_gain.iter().map(|l| l * l).sum::<f64>() / cols.max(1) as f64).sqrt();
-        Some(ColumnGains {
-            gain,
-            summary: Striping {
-                blocks: scale.blocks,
-                columns,
-                stripe_rms: scale.s2.sqrt(),
-                noise_rms: scale.n2.sqrt(),
-                correction_rms,
-            },
-        })
+        let summary = Striping {
+            blocks: scale.blocks,
+            columns,
+            stripe_rms: scale.s2.sqrt(),
+            noise_rms: scale.n2.sqrt(),
+            correction_rms,
+        };
+        Some((scale.ln_gain, summary))
     }
 
     /// The module documentation's steps at half-window `r`, on the medians less `prior` (ln
@@ -285,6 +296,46 @@ mod tests {
             sum.stripe_rms
         );
         assert!(sum.noise_rms < 0.003, "{}", sum.noise_rms);
+    }
+
+    /// Heights: a DEM gridded from altimeter tracks along its columns, 4 m offsets between
+    /// them under 10 m of terrain per pixel over a tilted plane, in 16-line blocks (as
+    /// `ingest::lola_track_offsets` reads a DEM) over 256 lines. The offsets come back in
+    /// metres, the same numbers `gains` gives as logarithms.
+    #[test]
+    fn heights_give_back_their_track_offsets_in_metres() {
+        let cols = 160;
+        let truth = stripes(cols, 4.0, 11);
+        let mut rng = Rng::new(12);
+        let heights = Array2::from_shape_fn((256, cols), |(l, c)| {
+            -1500.0 + 3.0 * c as f64 - 0.5 * l as f64 + truth[c] + 10.0 * rng.normal()
+        });
+        let mut p = ColumnProfiles::default();
+        for start in (0..256).step_by(16) {
+            p.add_block(heights.slice(ndarray::s![start..start + 16, ..]));
+        }
+        let (off, sum) = p.offsets().unwrap();
+        assert_eq!(sum.blocks, 16);
+        let mean = truth.iter().sum::<f64>() / cols as f64;
+        let est_mean = off.iter().sum::<f64>() / cols as f64;
+        let err = rms(
+            off.iter()
+                .zip(&truth)
+                .map(|(o, t)| o - est_mean - (t - mean)),
+            cols,
+        );
+        let raw = rms(truth.iter().map(|t| t - mean), cols);
+        assert!(err < 0.6 * raw, "left {err:.2} m of {raw:.2} m");
+        assert!(
+            (sum.stripe_rms - raw).abs() < 0.25 * raw,
+            "{} vs {raw}",
+            sum.stripe_rms
+        );
+        let g = p.gains().unwrap();
+        assert_eq!(g.summary, sum);
+        for (g, o) in g.gain.iter().zip(&off) {
+            assert_eq!(*g, o.exp());
+        }
     }
 
     #[test]

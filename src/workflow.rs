@@ -156,6 +156,14 @@ pub struct OrbitalInputs {
     /// calibrated; run.json records the estimate either way.
     #[serde(default = "default_true")]
     pub destripe: bool,
+    /// Take a gridded LOLA product's offsets between its tracks out of its heights, estimated
+    /// along its columns over the region (`ingest::lola_track_offsets`; default true; only
+    /// for a simple cylindrical LDEM whose pixels resolve the tracks). The estimate shrinks
+    /// towards no correction where terrain, not an offset, explains a column's difference, so
+    /// a DEM without track offsets is left as it is. False to use the heights as gridded;
+    /// run.json records the estimate either way.
+    #[serde(default = "default_true")]
+    pub dem_destripe: bool,
 }
 
 fn default_true() -> bool {

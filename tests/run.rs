@@ -2347,3 +2347,62 @@ fn an_observation_from_the_higher_orbit_adds_what_it_resolves() {
     let [alone, sharp, coarse] = [errors[0], errors[1], errors[2]];
     assert!(coarse < 0.68 * alone && coarse < 1.18 * sharp, "{errors:?}");
 }
+
+/// The LOLA-like product's offsets between its tracks (`synth` draws 4 m RMS per product
+/// column) are estimated along its columns and taken out of its heights before anything reads
+/// them (docs/science.md, "The DEM's tracks"). The record gives their RMS near the drawn 4 m,
+/// and the fused DEM beats the run with `[inputs] dem_destripe = false`, which records the
+/// same estimate unapplied. A product without track offsets gets no correction and the same
+/// products bit for bit either way.
+#[test]
+fn a_lola_products_track_offsets_are_estimated_and_taken_out() {
+    let dir = scratch("dem-tracks");
+    let fuse = |p: &sfsfuse::synth::products::Products, name: &str, destripe: bool| {
+        let out = dir.join(name);
+        let text = workflow(p, &out, 512, "")
+            .replace("[region]", &format!("dem_destripe = {destripe}\n[region]"));
+        let wf = dir.join(format!("{name}.toml"));
+        std::fs::write(&wf, text).unwrap();
+        run_ok(&["run", "--progress", "quiet"], &wf);
+        let rec: serde_json::Value =
+            serde_json::from_slice(&std::fs::read(out.join("run.json")).unwrap()).unwrap();
+        let truth = read_tiff(&p.truth_dem).unwrap().data;
+        let dem = read_tiff(&out.join("dem.tif")).unwrap().data;
+        (rmse(&dem, &truth), rec["dem_tracks"][0].clone(), out)
+    };
+    let p = scene_products(256, 10);
+    let (on, est, _) = fuse(p, "on", true);
+    let (off, est_off, _) = fuse(p, "off", false);
+    eprintln!("track offsets {est}: fused {off:.3} m without taking them out, {on:.3} m with");
+    let rms = est["stripe_rms"].as_f64().unwrap();
+    assert!(
+        (2.5..=5.5).contains(&rms),
+        "estimated offsets {rms:.2} m RMS"
+    );
+    assert_eq!(est["applied"], true);
+    assert_eq!(est_off["applied"], false);
+    assert_eq!(est["stripe_rms"], est_off["stripe_rms"]);
+    assert!(on < 0.99 * off, "{on:.3} m against {off:.3} m");
+
+    // The same scene with a DEM free of track offsets.
+    let spec = sfsfuse::synth::SceneSpec {
+        size: 256,
+        seed: 10,
+        dem_stripe_m: 0.0,
+        ..sfsfuse::synth::SceneSpec::default()
+    };
+    let scene = sfsfuse::synth::generate(&spec);
+    let grid = sfsfuse::demo::demo_grid(&spec).unwrap();
+    let clean = sfsfuse::synth::products::write(&scene, &grid, &dir.join("clean")).unwrap();
+    let (on, est, out_on) = fuse(&clean, "clean-on", true);
+    let (off, _, out_off) = fuse(&clean, "clean-off", false);
+    assert_eq!(est["stripe_rms"], 0.0, "{est}");
+    assert_eq!(est["columns"], 0, "{est}");
+    assert_eq!(on, off);
+    // The values, not the files: the run key in their metadata follows the workflow.
+    assert_eq!(
+        read_tiff(&out_on.join("dem.tif")).unwrap().data,
+        read_tiff(&out_off.join("dem.tif")).unwrap().data
+    );
+    std::fs::remove_dir_all(&dir).unwrap();
+}

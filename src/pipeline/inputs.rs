@@ -7,6 +7,9 @@ use super::*;
 pub(super) struct Inputs {
     pub(super) obs: Vec<Observation>,
     pub(super) lola: Vec<Dem>,
+    /// Each DEM's offsets between its tracks, taken out of its heights wherever the run reads
+    /// it, once the plan has estimated them or read them back ([`Inputs::set_dem_tracks`]).
+    pub(super) dem_tracks: Vec<std::sync::OnceLock<ingest::TrackOffsets>>,
     /// The solar tables of `[inputs] solar_spectrum`.
     pub(super) solar: Vec<SolarSpectrum>,
     /// Each observation's table in `solar` ([`solar_per_observation`]).
@@ -36,18 +39,30 @@ impl Inputs {
             .map(|p| SolarSpectrum::read(p))
             .collect::<std::result::Result<_, _>>()?;
         let solar_of = solar_per_observation(&solar, &obs)?;
+        let lola: Vec<Dem> = o
+            .inputs
+            .lola
+            .iter()
+            .map(|p| Dem::open(p))
+            .collect::<Result<_>>()?;
         Ok(Inputs {
             obs,
-            lola: o
-                .inputs
-                .lola
-                .iter()
-                .map(|p| Dem::open(p))
-                .collect::<Result<_>>()?,
+            dem_tracks: lola.iter().map(|_| std::sync::OnceLock::new()).collect(),
+            lola,
             solar,
             solar_of,
             model: o.photometry.build(),
         })
+    }
+
+    /// Take each DEM's track offsets (the plan's, in `lola` order; `None`: none) out of every
+    /// later read of it. Set once: a second call leaves the first offsets.
+    pub(super) fn set_dem_tracks(&self, tracks: &[Option<ingest::TrackOffsets>]) {
+        for (cell, t) in self.dem_tracks.iter().zip(tracks) {
+            if let Some(t) = t {
+                let _ = cell.set(t.clone());
+            }
+        }
     }
 
     /// Observation `k`'s solar table.
@@ -193,13 +208,16 @@ impl Dem {
         })
     }
 
+    /// The DEM at the grid's points ([`ingest::lola_on_grid_tracked`] with `tracks`, the
+    /// product's track offsets; [`ingest::geotiff_on_grid`]).
     pub(super) fn on_grid(
         &self,
         geo: &crate::grid::Geographic,
         method: crate::grid::Interpolation,
+        tracks: Option<&ingest::TrackOffsets>,
     ) -> Result<Option<Array2<f64>>> {
         match self {
-            Dem::Pds(d) => ingest::lola_on_grid(d, geo, method),
+            Dem::Pds(d) => ingest::lola_on_grid_tracked(d, geo, method, tracks),
             Dem::GeoTiff(d) => ingest::geotiff_on_grid(d, geo, method),
         }
     }
@@ -420,8 +438,8 @@ pub(super) fn dem_on(
     geo: &crate::grid::Geographic,
 ) -> Result<Array2<f64>> {
     let mut dem = Array2::from_elem(geo.lon.dim(), f64::NAN);
-    for d in &inputs.lola {
-        let Some(h) = d.on_grid(geo, o.grid.dem_interpolation)? else {
+    for (d, tracks) in inputs.lola.iter().zip(&inputs.dem_tracks) {
+        let Some(h) = d.on_grid(geo, o.grid.dem_interpolation, tracks.get())? else {
             continue;
         };
         Zip::from(&mut dem).and(&h).for_each(|a, &b| {

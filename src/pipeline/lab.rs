@@ -108,6 +108,7 @@ pub(super) fn run_lab(l: &Lab, wf: &Workflow, progress: &Progress) -> Result<Run
         sigma_dem: None,
         dem_track_weight: None,
         dem_track_source: None,
+        dem_tracks: Vec::new(),
         membrane: None,
         reference: None,
         threads: rayon::current_num_threads(),

@@ -217,6 +217,10 @@ pub(super) struct RunRecord<'a> {
     /// E_DEM's track weighting the tiles used and why (orbital runs).
     pub(super) dem_track_weight: Option<f64>,
     pub(super) dem_track_source: Option<String>,
+    /// Each DEM product's offsets between its tracks (orbital runs; `Plan::dem_tracks`), in
+    /// `[inputs] lola` order.
+    #[serde(skip_serializing_if = "Vec::is_empty")]
+    pub(super) dem_tracks: Vec<Option<DemTracks>>,
     /// The membrane where one observation carries a pixel (orbital runs; `Plan::membrane`).
     pub(super) membrane: Option<String>,
     /// The plan's coarse reference (orbital runs with one).
@@ -268,6 +272,16 @@ pub(super) struct ObservationRecord {
     /// divided out (`[inputs] destripe`, and some column off 1).
     #[serde(skip_serializing_if = "Option::is_none")]
     pub(super) column_striping: Option<ColumnStriping>,
+}
+
+/// What the run record says of a DEM product's offsets between its tracks.
+#[derive(Debug, Clone, Copy, Serialize)]
+pub(super) struct DemTracks {
+    /// What the estimate saw, in metres ([`crate::striping::Striping`]).
+    #[serde(flatten)]
+    pub(super) estimate: crate::striping::Striping,
+    /// Whether the run took them out of the heights (`[inputs] dem_destripe`).
+    pub(super) applied: bool,
 }
 
 /// What the run record says of an observation's detector column gains.
@@ -853,6 +867,16 @@ pub(super) fn mosaic(
         sigma_dem: Some(plan.sigma_dem),
         dem_track_weight: Some(plan.dem_track_weight),
         dem_track_source: Some(plan.dem_track_source.clone()),
+        dem_tracks: plan
+            .dem_tracks
+            .iter()
+            .map(|t| {
+                t.as_ref().map(|t| DemTracks {
+                    estimate: t.summary,
+                    applied: o.inputs.dem_destripe,
+                })
+            })
+            .collect(),
         membrane: Some(plan.membrane.clone()),
         reference: plan.reference.clone(),
         threads: rayon::current_num_threads(),

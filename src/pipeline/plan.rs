@@ -85,6 +85,11 @@ pub struct Plan {
     /// `swaths` when `[inputs] destripe` applies them.
     #[serde(default)]
     pub striping: Vec<Option<crate::striping::Striping>>,
+    /// Each DEM product's offsets between its tracks over the region, in `[inputs] lola` order
+    /// ([`ingest::lola_track_offsets`]; `None`: not estimated). Taken out of the heights
+    /// wherever the run reads the DEM when `[inputs] dem_destripe` is on.
+    #[serde(default)]
+    pub dem_tracks: Vec<Option<ingest::TrackOffsets>>,
 }
 
 /// σ_k, grid pixels, of each observation's blur on a grid of `spacing` metres, from its pixel
@@ -552,6 +557,9 @@ pub(super) fn plan(
     let key = plan_key(wf, &inputs.files()?)?;
     let path = out.join("plan.json");
     if let Some((p, reference)) = existing(out, &key, progress) {
+        if o.inputs.dem_destripe {
+            inputs.set_dem_tracks(&p.dem_tracks);
+        }
         return Ok((p, reference, None));
     }
     progress.stage("planning: grid, swath index, intensity scale");
@@ -560,6 +568,11 @@ pub(super) fn plan(
     at_least_three_pixels(&grid)?;
     within_half_moon(&grid)?;
     let pr = projector(&grid.crs)?;
+    // Before anything reads the DEM: every read takes the offsets out.
+    let dem_tracks = dem_track_offsets(inputs, &grid, &pr)?;
+    if o.inputs.dem_destripe {
+        inputs.set_dem_tracks(&dem_tracks);
+    }
     let Surveyed {
         swaths,
         sum,
@@ -668,6 +681,7 @@ pub(super) fn plan(
         sun_ephemeris,
         dem_vs_loc,
         striping,
+        dem_tracks,
     };
     write_atomic(
         &path,
@@ -798,13 +812,40 @@ struct DemTerms {
 /// product's own), the point spread σ_B and σ_DEM it gives on the grid unless the workflow
 /// sets them ([`fusion::dem_psf_sigma`], [`fusion::dem_sigma`]), and E_DEM's track weight
 /// ([`track_weight`], [`dem_blur_track_weight`]).
+/// The latitude of the grid's centre, degrees (0 where the projection has none there).
+fn centre_lat(grid: &Grid, pr: &crate::grid::Projector) -> f64 {
+    pr.inverse(
+        grid.x0 + 0.5 * grid.cols as f64 * grid.spacing,
+        grid.y0 - 0.5 * grid.rows as f64 * grid.spacing,
+    )
+    .map_or(0.0, |(_, lat)| lat)
+}
+
+/// Each DEM product's offsets between its tracks over the region
+/// ([`ingest::lola_track_offsets`], on the grid decimated as for the gains): estimated for a
+/// gridded LOLA product whose pixels resolve its tracks at the region's latitude
+/// ([`Dem::resolves_tracks`]), `None` for any other DEM. Estimated whether or not
+/// `[inputs] dem_destripe` applies them, so that the record says what they would be.
+fn dem_track_offsets(
+    inputs: &Inputs,
+    grid: &Grid,
+    pr: &crate::grid::Projector,
+) -> Result<Vec<Option<ingest::TrackOffsets>>> {
+    let lat = centre_lat(grid, pr);
+    let coarse = gain_grid(grid);
+    let geo = coarse.geographic(&projector(&coarse.crs)?);
+    inputs
+        .lola
+        .iter()
+        .map(|d| match d {
+            Dem::Pds(p) if d.resolves_tracks(lat) => ingest::lola_track_offsets(p, &geo),
+            _ => Ok(None),
+        })
+        .collect()
+}
+
 fn dem_terms(o: &Orbital, inputs: &Inputs, grid: &Grid, pr: &crate::grid::Projector) -> DemTerms {
-    let centre_lat = pr
-        .inverse(
-            grid.x0 + 0.5 * grid.cols as f64 * grid.spacing,
-            grid.y0 - 0.5 * grid.rows as f64 * grid.spacing,
-        )
-        .map_or(0.0, |(_, lat)| lat);
+    let centre_lat = centre_lat(grid, pr);
     let (dem_resolution_m, dem_resolution_source) = match o.inputs.dem_resolution_m {
         Some(r) => (r, "[inputs] dem_resolution_m".to_string()),
         None => inputs.lola[0].effective_resolution(centre_lat),
