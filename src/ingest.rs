@@ -1132,12 +1132,20 @@ pub const TRACK_BLOCK_LINES: usize = 16;
 /// along the same tracks.
 pub const TRACK_MARGIN_LINES: usize = 64;
 
+/// R of the track offsets' estimate: each product column is compared with its neighbours up
+/// to 3 columns either side, one fewer than an image's columns
+/// ([`crate::striping::HALF_WINDOW`]). A gridded DEM is smooth across a few of its columns, so
+/// the narrower window leaves less terrain in each estimate while an offset, different from
+/// one track to the next, stands out as much (docs/science.md, "Taking the offsets out of the
+/// DEM").
+pub const TRACK_HALF_WINDOW: usize = 3;
+
 /// The offsets between the tracks of `dem`, a simple cylindrical product gridded from
 /// altimeter tracks (LOLA's run north–south along its columns), over the samples the grid of
 /// geography `geo` reads: the estimate of [`crate::striping`] on the heights themselves (an
 /// offset adds, as ln g does to ln r), in blocks of [`TRACK_BLOCK_LINES`] lines over the
 /// region's lines and [`TRACK_MARGIN_LINES`] either side. What changes from one column to
-/// the next within ±[`crate::striping::HALF_WINDOW`] columns and persists from block to block
+/// the next within ±[`TRACK_HALF_WINDOW`] columns and persists from block to block
 /// is taken for an offset; terrain, which changes from block to block, shrinks the estimate
 /// towards 0, and a product without offsets gets none. `None` where the grid does not reach
 /// the product, for a polar stereographic product (its tracks run along no column) and where
@@ -1163,7 +1171,7 @@ pub fn lola_track_offsets(dem: &LolaDem, geo: &Geographic) -> Result<Option<Trac
         return Ok(None);
     }
     // Every column of the region with its whole window of neighbours.
-    let reach = (crate::striping::HALF_WINDOW + 2) as f64;
+    let reach = (TRACK_HALF_WINDOW + 2) as f64;
     let s0 = (s_lo.floor() - reach).max(0.0) as usize;
     let s1 = ((s_hi.ceil() + reach + 1.0).max(0.0) as usize).min(samples);
     if s0 >= s1 || (global && 2 * (s1 - s0) > samples) {
@@ -1185,11 +1193,13 @@ pub fn lola_track_offsets(dem: &LolaDem, geo: &Geographic) -> Result<Option<Trac
                 .mapv(|h| if (lo..=hi).contains(&h) { h } else { f64::NAN });
         profiles.add_block(block.view());
     }
-    Ok(profiles.offsets().map(|(offsets, summary)| TrackOffsets {
-        first_sample: s0,
-        offsets,
-        summary,
-    }))
+    Ok(profiles
+        .offsets_within(TRACK_HALF_WINDOW)
+        .map(|(offsets, summary)| TrackOffsets {
+            first_sample: s0,
+            offsets,
+            summary,
+        }))
 }
 
 /// Heights of `dem` at every centre of the grid whose geography is `geo`, metres above the

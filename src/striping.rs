@@ -142,8 +142,14 @@ impl ColumnProfiles {
     /// between its tracks where they run along the columns (`ingest::lola_track_offsets`).
     /// `None` before any block.
     pub fn offsets(&self) -> Option<(Vec<f64>, Striping)> {
+        self.offsets_within(HALF_WINDOW)
+    }
+
+    /// [`ColumnProfiles::offsets`] with each column compared with its neighbours up to `r`
+    /// columns either side (R of the module documentation).
+    pub fn offsets_within(&self, r: usize) -> Option<(Vec<f64>, Striping)> {
         let cols = self.blocks.first()?.len();
-        let scale = self.scale(HALF_WINDOW, &vec![0.0; cols]);
+        let scale = self.scale(r, &vec![0.0; cols]);
         let columns = scale.ln_gain.iter().filter(|&&l| l != 0.0).count();
         let correction_rms =
             (scale.ln_gain.iter().map(|l| l * l).sum::<f64>() / cols.max(1) as f64).sqrt();
