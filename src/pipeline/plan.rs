@@ -808,10 +808,6 @@ struct DemTerms {
     params: FusionParams,
 }
 
-/// The DEM's effective resolution at the region's centre (`[inputs] dem_resolution_m`, or the
-/// product's own), the point spread σ_B and σ_DEM it gives on the grid unless the workflow
-/// sets them ([`fusion::dem_psf_sigma`], [`fusion::dem_sigma`]), and E_DEM's track weight
-/// ([`track_weight`], [`dem_blur_track_weight`]).
 /// The latitude of the grid's centre, degrees (0 where the projection has none there).
 fn centre_lat(grid: &Grid, pr: &crate::grid::Projector) -> f64 {
     pr.inverse(
@@ -844,6 +840,10 @@ fn dem_track_offsets(
         .collect()
 }
 
+/// The DEM's effective resolution at the region's centre (`[inputs] dem_resolution_m`, or the
+/// product's own), the point spread σ_B and σ_DEM it gives on the grid unless the workflow
+/// sets them ([`fusion::dem_psf_sigma`], [`fusion::dem_sigma`]), and E_DEM's track weight
+/// ([`track_weight`], [`dem_blur_track_weight`]).
 fn dem_terms(o: &Orbital, inputs: &Inputs, grid: &Grid, pr: &crate::grid::Projector) -> DemTerms {
     let centre_lat = centre_lat(grid, pr);
     let (dem_resolution_m, dem_resolution_source) = match o.inputs.dem_resolution_m {
