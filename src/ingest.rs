@@ -1099,6 +1099,17 @@ pub fn check_lunar_heights(
     )))
 }
 
+/// Whether `dem` goes all round the Moon: a simple cylindrical product of 360° × MAP_RESOLUTION
+/// samples, whose last column is the first one's western neighbour.
+fn wraps_round(dem: &LolaDem) -> bool {
+    match dem.projection {
+        Projection::SimpleCylindrical { resolution, .. } => {
+            (dem.samples() as f64 - 360.0 * resolution).abs() < 1e-6
+        }
+        Projection::PolarStereographic { .. } => false,
+    }
+}
+
 /// A gridded altimetry product's offsets between its tracks, one per product column (sample)
 /// over the columns a region reads ([`lola_track_offsets`]).
 #[derive(Debug, Clone, PartialEq, serde::Serialize, serde::Deserialize)]
@@ -1151,12 +1162,12 @@ pub const TRACK_HALF_WINDOW: usize = 3;
 /// the product, for a polar stereographic product (its tracks run along no column) and where
 /// the region's columns wrap round the product's edge.
 pub fn lola_track_offsets(dem: &LolaDem, geo: &Geographic) -> Result<Option<TrackOffsets>> {
-    let Projection::SimpleCylindrical { resolution, .. } = dem.projection else {
+    if !matches!(dem.projection, Projection::SimpleCylindrical { .. }) {
         return Ok(None);
-    };
+    }
     // A product all round the Moon: a region across its first and last columns reaches both
-    // ends (as `lola_on_grid`'s `wrap`).
-    let global = (dem.samples() as f64 - 360.0 * resolution).abs() < 1e-6;
+    // ends.
+    let global = wraps_round(dem);
     let (mut l_lo, mut l_hi, mut s_lo, mut s_hi) = (f64::MAX, f64::MIN, f64::MAX, f64::MIN);
     for (&lon, &lat) in geo.lon.iter().zip(&geo.lat) {
         if lon.is_finite() && lat.is_finite() {
@@ -1252,12 +1263,7 @@ pub fn lola_on_grid_tracked(
     if let Some(t) = tracks {
         t.subtract_from(&mut window);
     }
-    let wrap = match dem.projection {
-        Projection::SimpleCylindrical { resolution, .. } => {
-            (dem.samples() as f64 - 360.0 * resolution).abs() < 1e-6
-        }
-        Projection::PolarStereographic { .. } => false,
-    };
+    let wrap = wraps_round(dem);
     Ok(Some(Zip::from(&pos_l).and(&pos_s).par_map_collect(
         |&l, &s| grid::interpolate(window.view(), l - first as f64, s, method, wrap),
     )))
