@@ -55,6 +55,11 @@ pub struct Orbital {
     /// (`pipeline::plan::track_weight`); the plan and run keys include this flag.
     #[serde(skip)]
     pub dem_track_weight_given: bool,
+    /// Whether `[solver] multi_delta_factor_high_sun_east_west` was given. Absent, the plan
+    /// keeps the default only where no observation shows detector column striping
+    /// (`pipeline::plan::high_sun_east_west`); the plan and run keys include this flag.
+    #[serde(skip)]
+    pub high_sun_east_west_given: bool,
 }
 
 /// `[fetch]`: what `sfsfuse run` downloads first (docs/fetch.md).
@@ -656,6 +661,7 @@ impl Check<'_> {
         }
         o.sigma_dem_given = self.given("sigma_dem");
         o.dem_track_weight_given = self.given("dem_track_weight");
+        o.high_sun_east_west_given = self.given("multi_delta_factor_high_sun_east_west");
         // A membrane the workflow sets is the one it gets: the rule for a coarse DEM
         // (fusion::coarse_dem_membrane) stays off unless asked for by name.
         if !self.given("coarse_dem_membrane")

@@ -2084,6 +2084,18 @@ fn detector_column_striping_is_estimated_and_divided_out() {
         assert!(c["columns"] == 0 && c["applied"] == false, "{c}");
     }
     assert_eq!(e_clean, e_clean_off, "no stripes found, nothing changed");
+    // Where the images show striping, δ under high Suns stays at multi_delta_factor_high_sun
+    // (`pipeline::plan::high_sun_east_west`), with or without the correction.
+    let d = sfsfuse::fusion::FusionParams::default();
+    assert_eq!(
+        rec_clean["high_sun_east_west"],
+        d.multi_delta_factor_high_sun_east_west
+    );
+    for r in [&rec, &rec_off] {
+        assert_eq!(r["high_sun_east_west"], d.multi_delta_factor_high_sun);
+        let why = r["high_sun_east_west_source"].as_str().unwrap();
+        assert!(why.contains("striping"), "{why}");
+    }
     for (o, off) in rec["observations"]
         .as_array()
         .unwrap()

@@ -310,6 +310,17 @@ pub struct FusionParams {
     /// δ × this ([`observations::high_sun`]); the smallest of this rule's factor,
     /// `multi_delta_factor_all`'s and `multi_delta_factor_east_west`'s is used.
     pub multi_delta_factor_high_sun: f64,
+    /// Where those high Suns also measure east–west slopes free of albedo (χ of
+    /// [`observations::east_west_unmeasured`] under 0.02, fully; over 0.1 not at all:
+    /// [`observations::EAST_WEST_UNMEASURED`]), `multi_delta_factor_high_sun` goes on down
+    /// towards this. The DEM's track offsets are east–west slopes, which such images take
+    /// out; where a pair's blind direction (the bisector of its azimuths) has an east–west
+    /// part, a lower δ lets the offsets through (docs/science.md, "Several observations").
+    /// At or above `multi_delta_factor_high_sun` the rule is off. It lets more of each image's
+    /// detector column striping through as well (east–west slopes too), so `sfsfuse run` keeps
+    /// it only where the survey finds no striping in any observation
+    /// (`pipeline::plan::high_sun_east_west`).
+    pub multi_delta_factor_high_sun_east_west: f64,
     /// Where the observations at a pixel measure east–west slopes free of albedo (their Suns
     /// not mirrored about the east–west line) and their Suns stand above about 25°, δ is
     /// lowered further, towards δ × this ([`observations::east_west_open`]); the smallest of
@@ -430,6 +441,7 @@ impl Default for FusionParams {
             multi_delta_factor: 0.2,
             multi_delta_factor_all: 0.1,
             multi_delta_factor_high_sun: 0.05,
+            multi_delta_factor_high_sun_east_west: 0.02,
             multi_delta_factor_east_west: 0.12,
             edge_membrane_slope: 0.0,
             multi_eta_factor: 8.0,

@@ -153,6 +153,9 @@ pub struct MultiDelta {
     pub all: f64,
     /// f_high: towards δ × f_high where their Suns stand high.
     pub high_sun: f64,
+    /// f_high,ew ≤ f_high: what f_high becomes where those high Suns also measure east–west
+    /// slopes free of albedo ([`observations::east_west_unmeasured`] small).
+    pub high_sun_east_west: f64,
     /// f_ew: towards δ × f_ew where they measure east–west slopes free of albedo.
     pub east_west: f64,
 }
@@ -164,6 +167,7 @@ impl MultiDelta {
             factor: params.multi_delta_factor,
             all: params.multi_delta_factor_all,
             high_sun: params.multi_delta_factor_high_sun,
+            high_sun_east_west: params.multi_delta_factor_high_sun_east_west,
             east_west: params.multi_delta_factor_east_west,
         }
     }
@@ -174,6 +178,7 @@ impl MultiDelta {
             factor,
             all: factor,
             high_sun: factor,
+            high_sun_east_west: factor,
             east_west: factor,
         }
     }
@@ -641,11 +646,15 @@ impl<'a, 'p> Objective<'a, 'p> {
     /// Lower the DEM term's weight to δ·f(x) where several observations carry a pixel,
     /// blended by their multi-coverage c(x): δ(x) = δ·(1 − (1 − f(x))·c(x)), f(x) = the
     /// smallest of `factor` − (`factor` − `factor_all`)·φ(x), `factor` − (`factor` −
-    /// `factor_high_sun`)·η(x) and `factor` − (`factor` − `factor_east_west`)·ψ(x): φ the share
+    /// f_h(x))·η(x) and `factor` − (`factor` − `factor_east_west`)·ψ(x): φ the share
     /// of the images' albedo-free slope information in its least-measured direction
     /// ([`observations::every_direction`]; 0 for two observations), η how high their Suns stand
     /// ([`observations::high_sun`]), ψ whether they measure east–west slopes free of albedo
-    /// ([`observations::east_west_open`]). With two or more Suns the images
+    /// ([`observations::east_west_open`]), and f_h = f_high,ew + (f_high − f_high,ew)·
+    /// smoothstep((χ − χ₀)/(χ₁ − χ₀)) with χ how much of the east–west direction they leave
+    /// unmeasured ([`observations::east_west_unmeasured`], [χ₀, χ₁] =
+    /// [`observations::EAST_WEST_UNMEASURED`]): under high Suns that measure the east–west
+    /// slopes, in which the DEM's track offsets lie, the DEM may yield more. With two or more Suns the images
     /// fix most slopes, with three spread in azimuth every one, and the DEM's own errors inside
     /// the σ_DEM passband (track offsets, noise) are then the largest left; under high Suns,
     /// which cast few shadows, more so (docs/science.md, "Several observations"). No effect
@@ -655,6 +664,7 @@ impl<'a, 'p> Objective<'a, 'p> {
             factor,
             all: factor_all,
             high_sun: factor_high_sun,
+            high_sun_east_west: factor_high_sun_ew,
             east_west: factor_east_west,
         } = factors;
         let c = self.regulariser_coverage();
@@ -663,6 +673,19 @@ impl<'a, 'p> Objective<'a, 'p> {
                 .then(|| observations::every_direction(self.problem, &self.weights, &c));
             let eta = (factor_high_sun < factor)
                 .then(|| observations::high_sun(self.problem, &self.weights, &c));
+            // Under high Suns f_high goes on down to f_high,ew where the images leave little
+            // of the east–west direction, in which the DEM's track offsets lie, to the DEM.
+            let high_sun_factor = eta.as_ref().map(|_| {
+                if factor_high_sun_ew >= factor_high_sun {
+                    return Array2::from_elem(c.dim(), factor_high_sun);
+                }
+                let [x0, x1] = observations::EAST_WEST_UNMEASURED;
+                observations::east_west_unmeasured(self.problem, &self.weights, &c).mapv(|x| {
+                    factor_high_sun_ew
+                        + (factor_high_sun - factor_high_sun_ew)
+                            * support::smoothstep((x - x0) / (x1 - x0))
+                })
+            });
             let psi = (factor_east_west < factor)
                 .then(|| observations::east_west_open(self.problem, &self.weights, &c));
             self.dem_relief = Some(Zip::indexed(&c).map_collect(|ij, &c| {
@@ -670,8 +693,8 @@ impl<'a, 'p> Objective<'a, 'p> {
                 if let Some(phi) = &phi {
                     f = f.min(factor - (factor - factor_all) * phi[ij]);
                 }
-                if let Some(eta) = &eta {
-                    f = f.min(factor - (factor - factor_high_sun) * eta[ij]);
+                if let (Some(eta), Some(fh)) = (&eta, &high_sun_factor) {
+                    f = f.min(factor - (factor - fh[ij]) * eta[ij]);
                 }
                 if let Some(psi) = &psi {
                     f = f.min(factor - (factor - factor_east_west) * psi[ij]);

@@ -281,6 +281,54 @@ pub fn east_west_open_at(observations: &mut dyn Iterator<Item = (f64, Vec3)>) ->
     smoothstep((a / (a + d) - s0) / (s1 - s0)) * low
 }
 
+/// [χ₀, χ₁] of [`east_west_unmeasured`]'s use in [`super::objective::Objective::with_multi_delta`]:
+/// under high Suns the DEM term goes from δ·f_high (χ ≥ χ₁) down to δ·f_high,ew (χ ≤ χ₀).
+/// Two Suns mirrored about the north–south line (110/55 + 250/60) give χ ≈ 0, 115/40 + 240/60
+/// 0.018, 35/60 + 275/50 0.105 (its blind direction 25° from north already lets enough of the
+/// DEM's offsets through to lose 1–2 % at f_high,ew); Suns 90° apart with the bisector
+/// south-east (90/55 + 180/55) 0.5, mirrored about the east–west line (45/55 + 135/55) 1;
+/// three Suns spread in azimuth (λ_min/λ_max ≥ 0.6) 0.
+pub const EAST_WEST_UNMEASURED: [f64; 2] = [0.02, 0.1];
+
+/// χ(x) ∈ [0, 1]: how much of the east–west direction the images at a pixel leave unmeasured
+/// free of albedo, from M of [`every_direction`]: χ = v_x²·(1 − s), v the unit eigenvector of
+/// M's smaller eigenvalue λ_min (the direction the images measure least; for two Suns the
+/// bisector of their azimuths, along which a slope changes both images as an albedo change
+/// does), s = clamp((λ_min/λ_max − r₀)/(r₁ − r₀), 0, 1) with [r₀, r₁] =
+/// [`EVERY_DIRECTION_RATIO`] (three Suns spread in azimuth measure every direction: χ = 0).
+/// The DEM's track offsets are east–west slopes: where χ is large the images cannot take them
+/// out, and the DEM term must hold them. 0 where c(x) = 0.
+pub fn east_west_unmeasured(pr: &Problem, w: &Weights, c: &Array2<f64>) -> Array2<f64> {
+    where_overlapping(pr, w, c, east_west_unmeasured_at)
+}
+
+/// χ of [`east_west_unmeasured`] at one pixel, from each observation's (u_k, Sun vector); those
+/// with u_k ≤ 0 or the Sun at or below the horizon do not count. 1 with fewer than two, or
+/// with Suns all in one direction (nothing measured free of albedo).
+pub fn east_west_unmeasured_at(observations: &mut dyn Iterator<Item = (f64, Vec3)>) -> f64 {
+    let (n, [a, b, d], _) = slope_spread(observations);
+    if n < 2 {
+        return 1.0;
+    }
+    let root = (0.25 * (a - d) * (a - d) + b * b).sqrt();
+    let (lo, hi) = ((0.5 * (a + d) - root).max(0.0), 0.5 * (a + d) + root);
+    if hi <= 1e-12 {
+        return 1.0;
+    }
+    // (M − λ_min)v = 0: v ∥ (b, λ_min − a) or (λ_min − d, b), whichever is the longer.
+    let (v1, v2) = ((b, lo - a), (lo - d, b));
+    let (vx, vy) = if v1.0 * v1.0 + v1.1 * v1.1 >= v2.0 * v2.0 + v2.1 * v2.1 {
+        v1
+    } else {
+        v2
+    };
+    let norm = vx * vx + vy * vy;
+    let vx2 = if norm > 0.0 { vx * vx / norm } else { 0.0 };
+    let [r0, r1] = EVERY_DIRECTION_RATIO;
+    let spread = ((lo / hi - r0) / (r1 - r0)).clamp(0.0, 1.0);
+    vx2 * (1.0 - spread)
+}
+
 /// [m₀, m₁] of [`east_west_open`]: ψ fades from its full value to 0 as the u_k-weighted mean
 /// cot² of the Suns' elevations goes from m₀ to m₁ (cot² e = 3 at 30°, 6 at 22.2°). Under such
 /// low Suns the shadows hide much of each crater, whose floors the DEM alone holds, and the
@@ -904,6 +952,30 @@ mod tests {
         let g = (0.5 * (m0 + m1)).sqrt();
         let halfway = [(1.0, from_g(g, 0.0)), (1.0, from_g(-g, 0.0))];
         assert!((east_west_open_at(&mut halfway.into_iter()) - 0.5).abs() < 1e-12);
+    }
+
+    /// χ, analytic cases: two Suns mirrored about the north–south line leave no east–west
+    /// slope unmeasured (their bisector, the blind direction, runs north–south: 0), mirrored
+    /// about the east–west line all of it (1); Suns 90° apart with the bisector to the
+    /// south-east half (the blind direction 45° from east: cos² 45°); one Sun, or two alike,
+    /// measure nothing free of albedo (1); three Suns 120° apart at one elevation measure every
+    /// direction (0). Two Suns 0/40 + 90/40 at unequal weights: M = u₁u₂/(u₁ + u₂)·d dᵀ keeps
+    /// its eigenvectors, so χ = 1/2 whatever the weights.
+    #[test]
+    fn the_unmeasured_east_west_part_is_the_blind_directions() {
+        let chi = |s: &[(f64, f64, f64)]| {
+            east_west_unmeasured_at(&mut s.iter().map(|&(u, a, e)| (u, sun(a, e))))
+        };
+        assert!(chi(&[(1.0, 110.0, 55.0), (1.0, 250.0, 55.0)]) < 1e-12);
+        assert!((chi(&[(1.0, 45.0, 55.0), (1.0, 135.0, 55.0)]) - 1.0).abs() < 1e-12);
+        assert!((chi(&[(1.0, 90.0, 55.0), (1.0, 180.0, 55.0)]) - 0.5).abs() < 1e-9);
+        assert!((chi(&[(0.2, 0.0, 40.0), (0.9, 90.0, 40.0)]) - 0.5).abs() < 1e-9);
+        assert_eq!(chi(&[(1.0, 105.0, 30.0)]), 1.0);
+        assert_eq!(chi(&[(1.0, 105.0, 30.0), (0.0, 225.0, 35.0)]), 1.0);
+        assert_eq!(chi(&[(1.0, 105.0, 30.0), (1.0, 105.0, 30.0)]), 1.0);
+        assert!(chi(&[(1.0, 0.0, 50.0), (1.0, 120.0, 50.0), (1.0, 240.0, 50.0)]) < 1e-12);
+        // The example's high Suns at their own elevations: the blind direction nearly north–south.
+        assert!(chi(&[(1.0, 110.0, 55.0), (1.0, 250.0, 60.0)]) < EAST_WEST_UNMEASURED[0]);
     }
 
     /// φ against hand-computed eigenvalues of M: three Suns 120° apart at 30° (λ = 1.5·cot² 30°

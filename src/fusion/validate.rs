@@ -282,7 +282,7 @@ fn dem_and_membrane(params: &FusionParams) -> [Check; 9] {
 }
 
 /// What acts only where several observations overlap.
-fn several_observations(params: &FusionParams) -> [Check; 14] {
+fn several_observations(params: &FusionParams) -> [Check; 15] {
     [
         (
             "multi_delta_factor",
@@ -303,6 +303,13 @@ fn several_observations(params: &FusionParams) -> [Check; 14] {
             params.multi_delta_factor_high_sun > 0.0
                 && params.multi_delta_factor_high_sun <= params.multi_delta_factor,
             "must be in (0, multi_delta_factor]",
+        ),
+        (
+            "multi_delta_factor_high_sun_east_west",
+            params.multi_delta_factor_high_sun_east_west,
+            params.multi_delta_factor_high_sun_east_west > 0.0
+                && params.multi_delta_factor_high_sun_east_west <= 1.0,
+            "must be in (0, 1] (at or above multi_delta_factor_high_sun the rule is off)",
         ),
         (
             "multi_delta_factor_east_west",

@@ -108,6 +108,8 @@ pub(super) fn run_lab(l: &Lab, wf: &Workflow, progress: &Progress) -> Result<Run
         sigma_dem: None,
         dem_track_weight: None,
         dem_track_source: None,
+        high_sun_east_west: None,
+        high_sun_east_west_source: None,
         dem_tracks: Vec::new(),
         membrane: None,
         reference: None,

@@ -139,7 +139,8 @@ pub fn file_sha256(path: &Path) -> Result<String> {
 /// What both keys hash first: the build ([`crate::BUILD`]: the version and a hash of the
 /// sources it was built from, so that another build's plan and tiles are not reused) and the
 /// resolved workflow (with whether
-/// `[solver] sigma_dem` and `dem_track_weight` were given, which serialisation does not show).
+/// `[solver] sigma_dem`, `dem_track_weight` and `multi_delta_factor_high_sun_east_west` were
+/// given, which serialisation does not show).
 fn key_text(wf: &Workflow) -> String {
     let mut text = format!("sfsfuse {}\n", crate::BUILD);
     text.push_str(&serde_json::to_string(wf).expect("workflows serialise"));
@@ -148,6 +149,10 @@ fn key_text(wf: &Workflow) -> String {
         text.push_str(&format!(
             "\ndem_track_weight_given={}",
             o.dem_track_weight_given
+        ));
+        text.push_str(&format!(
+            "\nhigh_sun_east_west_given={}",
+            o.high_sun_east_west_given
         ));
     }
     text

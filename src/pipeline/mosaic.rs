@@ -217,6 +217,9 @@ pub(super) struct RunRecord<'a> {
     /// E_DEM's track weighting the tiles used and why (orbital runs).
     pub(super) dem_track_weight: Option<f64>,
     pub(super) dem_track_source: Option<String>,
+    /// `multi_delta_factor_high_sun_east_west` the tiles used and why (orbital runs).
+    pub(super) high_sun_east_west: Option<f64>,
+    pub(super) high_sun_east_west_source: Option<String>,
     /// Each DEM product's offsets between its tracks (orbital runs; `Plan::dem_tracks`), in
     /// `[inputs] lola` order.
     #[serde(skip_serializing_if = "Vec::is_empty")]
@@ -867,6 +870,8 @@ pub(super) fn mosaic(
         sigma_dem: Some(plan.sigma_dem),
         dem_track_weight: Some(plan.dem_track_weight),
         dem_track_source: Some(plan.dem_track_source.clone()),
+        high_sun_east_west: Some(plan.high_sun_east_west),
+        high_sun_east_west_source: Some(plan.high_sun_east_west_source.clone()),
         dem_tracks: plan
             .dem_tracks
             .iter()

@@ -34,6 +34,12 @@ pub struct Plan {
     pub dem_track_weight: f64,
     #[serde(default)]
     pub dem_track_source: String,
+    /// `multi_delta_factor_high_sun_east_west` the tiles solve with, and why
+    /// (`pipeline::plan::high_sun_east_west`).
+    #[serde(default = "rule_off")]
+    pub high_sun_east_west: f64,
+    #[serde(default)]
+    pub high_sun_east_west_source: String,
     /// The membrane where one observation carries a pixel, as the tiles apply it
     /// ([`fusion::coarse_dem_membrane`] from σ_B, or the workflow's own).
     #[serde(default)]
@@ -111,12 +117,14 @@ impl Plan {
 }
 
 impl Plan {
-    /// The workflow's solver parameters with what the plan decided from the DEM: σ_DEM and
-    /// the track weighting (the tiles solve with these, and the products' metadata lists them).
+    /// The workflow's solver parameters with what the plan decided from the DEM and the
+    /// images: σ_DEM, the track weighting and the high-Sun factor where the images measure
+    /// east–west slopes (the tiles solve with these, and the products' metadata lists them).
     pub(super) fn solver(&self, workflow: &FusionParams) -> FusionParams {
         FusionParams {
             sigma_dem: self.sigma_dem,
             dem_track_weight: self.dem_track_weight,
+            multi_delta_factor_high_sun_east_west: self.high_sun_east_west,
             ..workflow.clone()
         }
     }
@@ -124,6 +132,50 @@ impl Plan {
 
 fn plain_tracks() -> f64 {
     1.0
+}
+
+fn rule_off() -> f64 {
+    1.0
+}
+
+/// [`FusionParams::multi_delta_factor_high_sun_east_west`] for a run, and why: the workflow's
+/// when given; otherwise `default` only where every observation's detector columns were
+/// estimated over at least [`crate::striping::MIN_BLOCKS`] blocks and none shows striping
+/// (`stripe_rms` = 0: the estimate's test finds nothing that stands out of the terrain);
+/// else `off` (`multi_delta_factor_high_sun`: the rule off). The lower δ takes the DEM's track
+/// offsets out where the images measure east–west slopes, and lets through whatever of an
+/// image's column striping its correction leaves, east–west slopes too (1 % striping, 512²,
+/// 110/55 + 250/60: 5.66 → 5.99 m at 0.02; docs/science.md, "Several observations").
+pub fn high_sun_east_west(
+    given: Option<f64>,
+    default: f64,
+    off: f64,
+    striping: &[Option<crate::striping::Striping>],
+) -> (f64, String) {
+    if let Some(f) = given {
+        return (f, "[solver] multi_delta_factor_high_sun_east_west".into());
+    }
+    let unclear = striping.iter().enumerate().find_map(|(k, s)| match s {
+        None => Some(format!("observation {} has no column estimate", k + 1)),
+        Some(s) if s.blocks < crate::striping::MIN_BLOCKS => Some(format!(
+            "observation {} was estimated over {} blocks only",
+            k + 1,
+            s.blocks
+        )),
+        Some(s) if s.stripe_rms > 0.0 => Some(format!(
+            "observation {} shows detector column striping ({:.2} % RMS)",
+            k + 1,
+            100.0 * s.stripe_rms
+        )),
+        Some(_) => None,
+    });
+    match unclear {
+        Some(why) => (off, format!("{why}: the rule is off")),
+        None => (
+            default,
+            "no observation shows detector column striping".into(),
+        ),
+    }
 }
 
 /// How far grid north may turn from the columns over the region for E_DEM's track weighting to
@@ -584,7 +636,15 @@ pub(super) fn plan(
         dem_vs_loc,
         striping,
     } = survey_all(o, inputs, &grid, &pr)?;
-    let dem = dem_terms(o, inputs, &grid, &pr);
+    let mut dem = dem_terms(o, inputs, &grid, &pr);
+    let (high_sun_ew, high_sun_ew_source) = high_sun_east_west(
+        o.high_sun_east_west_given
+            .then_some(o.solver.multi_delta_factor_high_sun_east_west),
+        o.solver.multi_delta_factor_high_sun_east_west,
+        o.solver.multi_delta_factor_high_sun,
+        &striping,
+    );
+    dem.params.multi_delta_factor_high_sun_east_west = high_sun_ew;
     let (params, dem_psf_sigma) = (&dem.params, dem.dem_psf_sigma);
     let membrane = membrane_note(params, dem_psf_sigma, inputs.obs.len());
     let reference_factor = super::reference::factor(&grid, params);
@@ -672,6 +732,8 @@ pub(super) fn plan(
         sigma_dem: dem.sigma_dem,
         dem_track_weight: dem.dem_track_weight,
         dem_track_source: dem.dem_track_source,
+        high_sun_east_west: high_sun_ew,
+        high_sun_east_west_source: high_sun_ew_source,
         membrane,
         swaths,
         reference: built.as_ref().map(|b| b.info.clone()),
@@ -1081,6 +1143,10 @@ fn report(p: &Plan, o: &Orbital, inputs: &Inputs, progress: &Progress) {
         "plan: E_DEM track weight {} ({})",
         p.dem_track_weight, p.dem_track_source
     ));
+    progress.note(&format!(
+        "plan: δ under high Suns that measure east–west slopes: multi_delta_factor_high_sun_east_west {} ({})",
+        p.high_sun_east_west, p.high_sun_east_west_source
+    ));
     progress.note(&format!("plan: membrane {}", p.membrane));
     for (obs, sun) in inputs.obs.iter().zip(&p.sun_deg) {
         if let Some([az, el]) = sun {
@@ -1166,6 +1232,37 @@ mod tests {
         assert_eq!(at(&[-1.0, 1.0]), (-1.0, 1.0));
         assert_eq!(at(&[179.0, -179.0]), (179.0, 181.0));
         assert_eq!(at(&[179.0, 181.0]), (179.0, 181.0));
+    }
+
+    /// The high-Sun east–west factor stays on only where every observation's columns were
+    /// estimated over enough blocks and none shows striping; a workflow's own value wins.
+    #[test]
+    fn the_high_sun_east_west_factor_needs_images_without_striping() {
+        let s = |blocks: usize, rms: f64| {
+            Some(crate::striping::Striping {
+                blocks,
+                columns: 0,
+                stripe_rms: rms,
+                noise_rms: 0.003,
+                correction_rms: 0.0,
+            })
+        };
+        let decide =
+            |obs: &[Option<crate::striping::Striping>]| high_sun_east_west(None, 0.02, 0.05, obs);
+        assert_eq!(decide(&[s(16, 0.0), s(8, 0.0)]).0, 0.02);
+        let (f, why) = decide(&[s(16, 0.0), s(16, 0.0108)]);
+        assert_eq!(f, 0.05);
+        assert!(
+            why.contains("observation 2") && why.contains("1.08 %"),
+            "{why}"
+        );
+        assert_eq!(decide(&[s(3, 0.0)]).0, 0.05);
+        assert_eq!(decide(&[s(16, 0.0), None]).0, 0.05);
+        let (f, why) = high_sun_east_west(Some(0.03), 0.02, 0.05, &[s(16, 0.01)]);
+        assert_eq!(
+            (f, why.as_str()),
+            (0.03, "[solver] multi_delta_factor_high_sun_east_west")
+        );
     }
 
     #[test]
