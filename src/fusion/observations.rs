@@ -235,18 +235,29 @@ fn slope_spread(observations: &mut dyn Iterator<Item = (f64, Vec3)>) -> (usize, 
 /// φ of [`every_direction`] at one pixel, from each observation's (u_k, Sun vector); those with
 /// u_k ≤ 0 or the Sun at or below the horizon do not count.
 pub fn every_direction_at(observations: &mut dyn Iterator<Item = (f64, Vec3)>) -> f64 {
-    let (n, [a, b, d], _) = slope_spread(observations);
+    let (n, m, _) = slope_spread(observations);
     if n < 3 {
         return 0.0;
     }
-    let root = (0.25 * (a - d) * (a - d) + b * b).sqrt();
-    let (lo, hi) = ((0.5 * (a + d) - root).max(0.0), 0.5 * (a + d) + root);
+    let (lo, hi) = eigenvalues(m);
     if hi <= 0.0 {
         return 0.0;
     }
+    direction_spread(lo, hi) * lo / (lo + EVERY_DIRECTION_M0)
+}
+
+/// The eigenvalues λ_min ≤ λ_max of the symmetric M = [[a, b], [b, d]] of [`slope_spread`],
+/// λ_min no lower than 0.
+fn eigenvalues([a, b, d]: [f64; 3]) -> (f64, f64) {
+    let root = (0.25 * (a - d) * (a - d) + b * b).sqrt();
+    ((0.5 * (a + d) - root).max(0.0), 0.5 * (a + d) + root)
+}
+
+/// s = clamp((λ_min/λ_max − r₀)/(r₁ − r₀), 0, 1), [r₀, r₁] = [`EVERY_DIRECTION_RATIO`]: how
+/// evenly M's two directions are measured ([`every_direction`], [`east_west_unmeasured`]).
+fn direction_spread(lo: f64, hi: f64) -> f64 {
     let [r0, r1] = EVERY_DIRECTION_RATIO;
-    let spread = ((lo / hi - r0) / (r1 - r0)).clamp(0.0, 1.0);
-    spread * lo / (lo + EVERY_DIRECTION_M0)
+    ((lo / hi - r0) / (r1 - r0)).clamp(0.0, 1.0)
 }
 
 /// [s₀, s₁] of [`east_west_open`]: ψ rises from 0 to 1 as the east–west share of the images'
@@ -306,15 +317,15 @@ pub fn east_west_unmeasured(pr: &Problem, w: &Weights, c: &Array2<f64>) -> Array
 /// with u_k ≤ 0 or the Sun at or below the horizon do not count. 1 with fewer than two, or
 /// with Suns all in one direction (nothing measured free of albedo).
 pub fn east_west_unmeasured_at(observations: &mut dyn Iterator<Item = (f64, Vec3)>) -> f64 {
-    let (n, [a, b, d], _) = slope_spread(observations);
+    let (n, m, _) = slope_spread(observations);
     if n < 2 {
         return 1.0;
     }
-    let root = (0.25 * (a - d) * (a - d) + b * b).sqrt();
-    let (lo, hi) = ((0.5 * (a + d) - root).max(0.0), 0.5 * (a + d) + root);
+    let (lo, hi) = eigenvalues(m);
     if hi <= 1e-12 {
         return 1.0;
     }
+    let [a, b, d] = m;
     // (M − λ_min)v = 0: v ∥ (b, λ_min − a) or (λ_min − d, b), whichever is the longer.
     let (v1, v2) = ((b, lo - a), (lo - d, b));
     let (vx, vy) = if v1.0 * v1.0 + v1.1 * v1.1 >= v2.0 * v2.0 + v2.1 * v2.1 {
@@ -324,9 +335,7 @@ pub fn east_west_unmeasured_at(observations: &mut dyn Iterator<Item = (f64, Vec3
     };
     let norm = vx * vx + vy * vy;
     let vx2 = if norm > 0.0 { vx * vx / norm } else { 0.0 };
-    let [r0, r1] = EVERY_DIRECTION_RATIO;
-    let spread = ((lo / hi - r0) / (r1 - r0)).clamp(0.0, 1.0);
-    vx2 * (1.0 - spread)
+    vx2 * (1.0 - direction_spread(lo, hi))
 }
 
 /// [m₀, m₁] of [`east_west_open`]: ψ fades from its full value to 0 as the u_k-weighted mean
