@@ -313,7 +313,9 @@ pub struct FusionParams {
     /// Where those high Suns also measure east–west slopes free of albedo (χ of
     /// [`observations::east_west_unmeasured`] under 0.02, fully; over 0.1 not at all:
     /// [`observations::EAST_WEST_UNMEASURED`]), `multi_delta_factor_high_sun` goes on down
-    /// towards this. The DEM's track offsets are east–west slopes, which such images take
+    /// towards this, and η of [`observations::high_sun`] follows the wider ramp of
+    /// [`observations::high_sun_east_west`] (from cot² e = 1.6, 38°, rather than 1.2).
+    /// The DEM's track offsets are east–west slopes, which such images take
     /// out; where a pair's blind direction (the bisector of its azimuths) has an east–west
     /// part, a lower δ lets the offsets through (docs/science.md, "Several observations").
     /// At or above `multi_delta_factor_high_sun` the rule is off. It lets more of each image's

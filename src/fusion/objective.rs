@@ -654,7 +654,9 @@ impl<'a, 'p> Objective<'a, 'p> {
     /// smoothstep((χ − χ₀)/(χ₁ − χ₀)) with χ how much of the east–west direction they leave
     /// unmeasured ([`observations::east_west_unmeasured`], [χ₀, χ₁] =
     /// [`observations::EAST_WEST_UNMEASURED`]): under high Suns that measure the east–west
-    /// slopes, in which the DEM's track offsets lie, the DEM may yield more. With two or more Suns the images
+    /// slopes, in which the DEM's track offsets lie, the DEM may yield more, and there η is
+    /// blended towards [`observations::high_sun_east_west`] (from lower Suns on) by
+    /// 1 − smoothstep(…) too. With two or more Suns the images
     /// fix most slopes, with three spread in azimuth every one, and the DEM's own errors inside
     /// the σ_DEM passband (track offsets, noise) are then the largest left; under high Suns,
     /// which cast few shadows, more so (docs/science.md, "Several observations"). No effect
@@ -671,21 +673,30 @@ impl<'a, 'p> Objective<'a, 'p> {
         if factor < 1.0 && c.iter().any(|&c| c > 0.0) {
             let phi = (factor_all < factor && self.weights.weight.len() > 2)
                 .then(|| observations::every_direction(self.problem, &self.weights, &c));
-            let eta = (factor_high_sun < factor)
+            let mut eta = (factor_high_sun < factor)
                 .then(|| observations::high_sun(self.problem, &self.weights, &c));
-            // Under high Suns f_high goes on down to f_high,ew where the images leave little
-            // of the east–west direction, in which the DEM's track offsets lie, to the DEM.
-            let high_sun_factor = eta.as_ref().map(|_| {
-                if factor_high_sun_ew >= factor_high_sun {
-                    return Array2::from_elem(c.dim(), factor_high_sun);
+            // Where the images leave little of the east–west direction, in which the DEM's
+            // track offsets lie, to the DEM, f_high goes on down to f_high,ew and η follows
+            // the wider ramp: t = 0 there, 1 where they leave it all.
+            let mut high_sun_factor = None;
+            if let Some(eta) = eta.as_mut() {
+                if factor_high_sun_ew < factor_high_sun {
+                    let [x0, x1] = observations::EAST_WEST_UNMEASURED;
+                    let t = observations::east_west_unmeasured(self.problem, &self.weights, &c)
+                        .mapv(|x| support::smoothstep((x - x0) / (x1 - x0)));
+                    let wide = observations::high_sun_east_west(self.problem, &self.weights, &c);
+                    Zip::from(&mut *eta)
+                        .and(&wide)
+                        .and(&t)
+                        .for_each(|e, &w, &t| *e += (w - *e) * (1.0 - t));
+                    high_sun_factor =
+                        Some(t.mapv(|t| {
+                            factor_high_sun_ew + (factor_high_sun - factor_high_sun_ew) * t
+                        }));
+                } else {
+                    high_sun_factor = Some(Array2::from_elem(c.dim(), factor_high_sun));
                 }
-                let [x0, x1] = observations::EAST_WEST_UNMEASURED;
-                observations::east_west_unmeasured(self.problem, &self.weights, &c).mapv(|x| {
-                    factor_high_sun_ew
-                        + (factor_high_sun - factor_high_sun_ew)
-                            * support::smoothstep((x - x0) / (x1 - x0))
-                })
-            });
+            }
             let psi = (factor_east_west < factor)
                 .then(|| observations::east_west_open(self.problem, &self.weights, &c));
             self.dem_relief = Some(Zip::indexed(&c).map_collect(|ij, &c| {

@@ -361,14 +361,33 @@ pub fn high_sun(pr: &Problem, w: &Weights, c: &Array2<f64>) -> Array2<f64> {
     where_overlapping(pr, w, c, high_sun_at)
 }
 
+/// m₁ of [`high_sun_east_west`]: where the images measure the east–west direction free of
+/// albedo the high-Sun rule starts at lower Suns, cot² e = 1.6 (38.3°; 45° Suns, cot² = 1,
+/// get η = 0.6 instead of 1/3).
+pub const HIGH_SUN_EAST_WEST_COT2: f64 = 1.6;
+
+/// η of [`high_sun`] on the wider ramp [m₀, [`HIGH_SUN_EAST_WEST_COT2`]], for pixels whose
+/// images measure the east–west direction ([`east_west_unmeasured`] small;
+/// [`super::objective::Objective::with_multi_delta`] blends the two by it).
+pub fn high_sun_east_west(pr: &Problem, w: &Weights, c: &Array2<f64>) -> Array2<f64> {
+    where_overlapping(pr, w, c, |o| {
+        high_sun_ramp(mean_cot2(o), HIGH_SUN_EAST_WEST_COT2)
+    })
+}
+
 /// η of [`high_sun`] at one pixel, from each observation's (u_k, Sun vector); those with
 /// u_k ≤ 0 or the Sun at or below the horizon do not count (η = 0 without any).
 pub fn high_sun_at(observations: &mut dyn Iterator<Item = (f64, Vec3)>) -> f64 {
-    let m = mean_cot2(observations);
+    high_sun_ramp(mean_cot2(observations), HIGH_SUN_COT2[1])
+}
+
+/// clamp((m₁ − m)/(m₁ − m₀), 0, 1), m₀ = [`HIGH_SUN_COT2`]'s; 0 where the mean cot² m is NaN
+/// (no observation).
+fn high_sun_ramp(m: f64, m1: f64) -> f64 {
     if m.is_nan() {
         return 0.0;
     }
-    let [m0, m1] = HIGH_SUN_COT2;
+    let m0 = HIGH_SUN_COT2[0];
     ((m1 - m) / (m1 - m0)).clamp(0.0, 1.0)
 }
 
@@ -1034,6 +1053,16 @@ mod tests {
         assert_eq!(eta(&[(1.0, 0.0, 60.0), (0.0, 120.0, 10.0)]), 1.0);
         assert_eq!(eta(&[(1.0, 0.0, 60.0), (1.0, 120.0, -5.0)]), 1.0);
         assert_eq!(eta(&[(0.0, 0.0, 60.0)]), 0.0);
+        // The wider ramp where the images see east–west slopes: 45° Suns (cot² = 1) at
+        // (1.6 − 1)/(1.6 − 0.6) = 0.6; 40° (cot² 40° = 1.42) at 0.18; 38° and lower none.
+        let wide = |e: f64| {
+            let c = e.to_radians().tan().powi(-2);
+            high_sun_ramp(c, HIGH_SUN_EAST_WEST_COT2)
+        };
+        assert!((wide(45.0) - 0.6).abs() < 1e-12);
+        assert!((wide(40.0) - 0.18).abs() < 0.005);
+        assert_eq!(wide(38.0), 0.0);
+        assert_eq!(high_sun_ramp(f64::NAN, HIGH_SUN_EAST_WEST_COT2), 0.0);
     }
 
     /// Suns alike: within 5° of one another, every pair (analytic angles: 4° and 6° apart in
