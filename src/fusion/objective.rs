@@ -677,25 +677,21 @@ impl<'a, 'p> Objective<'a, 'p> {
                 .then(|| observations::high_sun(self.problem, &self.weights, &c));
             // Where the images leave little of the east–west direction, in which the DEM's
             // track offsets lie, to the DEM, f_high goes on down to f_high,ew and η follows
-            // the wider ramp: t = 0 there, 1 where they leave it all.
-            let mut high_sun_factor = None;
-            if let Some(eta) = eta.as_mut() {
-                if factor_high_sun_ew < factor_high_sun {
-                    let [x0, x1] = observations::EAST_WEST_UNMEASURED;
-                    let t = observations::east_west_unmeasured(self.problem, &self.weights, &c)
-                        .mapv(|x| support::smoothstep((x - x0) / (x1 - x0)));
-                    let wide = observations::high_sun_east_west(self.problem, &self.weights, &c);
-                    Zip::from(&mut *eta)
-                        .and(&wide)
-                        .and(&t)
-                        .for_each(|e, &w, &t| *e += (w - *e) * (1.0 - t));
-                    high_sun_factor =
-                        Some(t.mapv(|t| {
-                            factor_high_sun_ew + (factor_high_sun - factor_high_sun_ew) * t
-                        }));
-                } else {
-                    high_sun_factor = Some(Array2::from_elem(c.dim(), factor_high_sun));
-                }
+            // the wider ramp: t = 0 there, 1 where they leave it all (None: the rule is off).
+            let mut t = None;
+            if let Some(eta) = eta
+                .as_mut()
+                .filter(|_| factor_high_sun_ew < factor_high_sun)
+            {
+                let [x0, x1] = observations::EAST_WEST_UNMEASURED;
+                let tt = observations::east_west_unmeasured(self.problem, &self.weights, &c)
+                    .mapv(|x| support::smoothstep((x - x0) / (x1 - x0)));
+                let wide = observations::high_sun_east_west(self.problem, &self.weights, &c);
+                Zip::from(&mut *eta)
+                    .and(&wide)
+                    .and(&tt)
+                    .for_each(|e, &w, &t| *e += (w - *e) * (1.0 - t));
+                t = Some(tt);
             }
             let psi = (factor_east_west < factor)
                 .then(|| observations::east_west_open(self.problem, &self.weights, &c));
@@ -704,8 +700,11 @@ impl<'a, 'p> Objective<'a, 'p> {
                 if let Some(phi) = &phi {
                     f = f.min(factor - (factor - factor_all) * phi[ij]);
                 }
-                if let (Some(eta), Some(fh)) = (&eta, &high_sun_factor) {
-                    f = f.min(factor - (factor - fh[ij]) * eta[ij]);
+                if let Some(eta) = &eta {
+                    let fh = t.as_ref().map_or(factor_high_sun, |t| {
+                        factor_high_sun_ew + (factor_high_sun - factor_high_sun_ew) * t[ij]
+                    });
+                    f = f.min(factor - (factor - fh) * eta[ij]);
                 }
                 if let Some(psi) = &psi {
                     f = f.min(factor - (factor - factor_east_west) * psi[ij]);

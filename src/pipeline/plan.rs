@@ -30,13 +30,13 @@ pub struct Plan {
     /// resolution).
     pub sigma_dem: f64,
     /// E_DEM's track weighting a the tiles solve with, and why (`pipeline::plan::track_weight`).
-    #[serde(default = "plain_tracks")]
+    #[serde(default = "one")]
     pub dem_track_weight: f64,
     #[serde(default)]
     pub dem_track_source: String,
     /// `multi_delta_factor_high_sun_east_west` the tiles solve with, and why
     /// (`pipeline::plan::high_sun_east_west`).
-    #[serde(default = "rule_off")]
+    #[serde(default = "one")]
     pub high_sun_east_west: f64,
     #[serde(default)]
     pub high_sun_east_west_source: String,
@@ -130,11 +130,9 @@ impl Plan {
     }
 }
 
-fn plain_tracks() -> f64 {
-    1.0
-}
-
-fn rule_off() -> f64 {
+/// The serde default of [`Plan::dem_track_weight`] (the plain term) and of
+/// [`Plan::high_sun_east_west`] (the rule off) in a plan written before them.
+fn one() -> f64 {
     1.0
 }
 
