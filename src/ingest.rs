@@ -1168,17 +1168,19 @@ pub fn lola_track_offsets(dem: &LolaDem, geo: &Geographic) -> Result<Option<Trac
     // A product all round the Moon: a region across its first and last columns reaches both
     // ends.
     let global = wraps_round(dem);
-    let (mut l_lo, mut l_hi, mut s_lo, mut s_hi) = (f64::MAX, f64::MIN, f64::MAX, f64::MIN);
-    for (&lon, &lat) in geo.lon.iter().zip(&geo.lat) {
+    let pixels = geo.lon.iter().zip(&geo.lat).map(|(&lon, &lat)| {
         if lon.is_finite() && lat.is_finite() {
-            let (l, s) = dem.pixel(lon, lat);
-            if l.is_finite() && s.is_finite() {
-                (l_lo, l_hi, s_lo, s_hi) = (l_lo.min(l), l_hi.max(l), s_lo.min(s), s_hi.max(s));
-            }
+            dem.pixel(lon, lat)
+        } else {
+            (f64::NAN, f64::NAN)
         }
-    }
+    });
     let (lines, samples) = (dem.lines(), dem.samples());
-    if l_lo > l_hi || l_hi < -0.5 || l_lo > lines as f64 - 0.5 || s_hi < -0.5 {
+    let Some(span) = PixelSpan::of(pixels).filter(|span| span.meets_lines(lines)) else {
+        return Ok(None);
+    };
+    let ([l_lo, l_hi], [s_lo, s_hi]) = (span.lines, span.samples);
+    if s_hi < -0.5 {
         return Ok(None);
     }
     // Every column of the region with its whole window of neighbours.
@@ -1213,6 +1215,46 @@ pub fn lola_track_offsets(dem: &LolaDem, geo: &Geographic) -> Result<Option<Trac
         }))
 }
 
+/// The fractional product lines and samples a set of positions ([`LolaDem::pixel`]) spans,
+/// over the positions whose line and sample are both finite.
+#[derive(Debug, Clone, Copy, PartialEq)]
+struct PixelSpan {
+    /// Smallest and largest line.
+    lines: [f64; 2],
+    /// Smallest and largest sample.
+    samples: [f64; 2],
+}
+
+impl PixelSpan {
+    /// The span of `pixels` ((line, sample) pairs); `None` where none is finite.
+    fn of(pixels: impl Iterator<Item = (f64, f64)>) -> Option<Self> {
+        pixels.filter(|(l, s)| l.is_finite() && s.is_finite()).fold(
+            None,
+            |span: Option<Self>, (l, s)| {
+                Some(match span {
+                    None => PixelSpan {
+                        lines: [l, l],
+                        samples: [s, s],
+                    },
+                    Some(PixelSpan {
+                        lines: [l0, l1],
+                        samples: [s0, s1],
+                    }) => PixelSpan {
+                        lines: [l0.min(l), l1.max(l)],
+                        samples: [s0.min(s), s1.max(s)],
+                    },
+                })
+            },
+        )
+    }
+
+    /// Whether the span reaches a product of `lines` lines: line k covers k − 0.5 … k + 0.5.
+    fn meets_lines(&self, lines: usize) -> bool {
+        let [lo, hi] = self.lines;
+        hi >= -0.5 && lo <= lines as f64 - 0.5
+    }
+}
+
 /// Heights of `dem` at every centre of the grid whose geography is `geo`, metres above the
 /// 1737.4 km sphere ([`lola_heights`]); NaN outside the product or where its support touches
 /// no data; `None` when no grid pixel falls on the product. A height the grid needs outside
@@ -1245,15 +1287,12 @@ pub fn lola_on_grid_tracked(
                 (*l, *s) = dem.pixel(lo, la);
             }
         });
-    let (mut lmin, mut lmax) = (f64::MAX, f64::MIN);
-    for &l in pos_l.iter().filter(|l| l.is_finite()) {
-        lmin = lmin.min(l);
-        lmax = lmax.max(l);
-    }
-    let lines = dem.lines() as f64;
-    if lmin > lmax || lmax < -0.5 || lmin > lines - 0.5 {
+    let pixels = pos_l.iter().zip(&pos_s).map(|(&l, &s)| (l, s));
+    let Some(span) = PixelSpan::of(pixels).filter(|span| span.meets_lines(dem.lines())) else {
         return Ok(None);
-    }
+    };
+    let [lmin, lmax] = span.lines;
+    let lines = dem.lines() as f64;
     let first = (lmin.floor() - 2.0).clamp(0.0, lines - 1.0) as usize;
     let end = ((lmax.ceil() + 3.0).clamp(1.0, lines)) as usize;
     let window = lola_heights(dem, first, end - first)?;
@@ -1485,6 +1524,38 @@ mod tests {
         let c = dem_vs_loc(&loc, &[-600.0, -600.0, f64::NAN, 90.0, 10.0]).unwrap();
         assert_eq!((c.pixels, c.median_m, c.mad_m), (4, 550.0, 55.0));
         assert_eq!(dem_vs_loc(&loc, &[f64::NAN; 5]), None);
+    }
+
+    /// A span covers the positions whose line and sample are both finite; a product's lines
+    /// run from −0.5 to lines − 0.5, so a span reaches it only within those edges.
+    #[test]
+    fn a_pixel_span_keeps_finite_positions_and_meets_the_lines_at_their_edges() {
+        let nan = f64::NAN;
+        let span = PixelSpan::of(
+            [
+                (3.0, 7.0),
+                (nan, 100.0),
+                (-2.0, nan),
+                (1.5, -4.0),
+                (9.0, 2.0),
+            ]
+            .into_iter(),
+        )
+        .unwrap();
+        assert_eq!(span.lines, [1.5, 9.0]);
+        assert_eq!(span.samples, [-4.0, 7.0]);
+        assert_eq!(PixelSpan::of([(nan, 1.0), (1.0, nan)].into_iter()), None);
+        assert_eq!(PixelSpan::of(std::iter::empty()), None);
+        let lines = |lo: f64, hi: f64| PixelSpan {
+            lines: [lo, hi],
+            samples: [0.0, 0.0],
+        };
+        // 10 lines: −0.5 … 9.5.
+        assert!(lines(-3.0, -0.5).meets_lines(10));
+        assert!(!lines(-3.0, -0.51).meets_lines(10));
+        assert!(lines(9.5, 12.0).meets_lines(10));
+        assert!(!lines(9.51, 12.0).meets_lines(10));
+        assert!(lines(-5.0, 20.0).meets_lines(10));
     }
 
     /// The mean Sun: the azimuth's circular mean (350° and 20° average to 5°, not 185°), the
