@@ -883,6 +883,12 @@ directory = "out"
             e.contains("w.toml") && e.contains("multi_albedo_passes") && e.contains("at least 1"),
             "{e}"
         );
+        // A coupling above 1 would take more than the albedo's direction out of the Hessian.
+        let e = solver("multi_albedo_coupling = 1.2");
+        assert!(
+            e.contains("w.toml") && e.contains("multi_albedo_coupling") && e.contains("[0, 1]"),
+            "{e}"
+        );
         // No albedo stage: no surface solve at all, the DEM would come out unchanged.
         let e = solver("albedo_sigmas = []");
         assert!(

@@ -293,9 +293,18 @@ pub struct FusionParams {
     /// inversion (at `multi_albedo_sigma`) and its surface solve (≥ 1). At that σ_ρ the
     /// albedo is nearly per pixel and follows the surface it is inverted from, so a second
     /// inversion from the solved surface moves the joint minimum on (docs/science.md,
-    /// "Several observations"). Every pass but the last takes [`PASS_STEPS`] steps, the same
-    /// in every window.
+    /// "Several observations"). Where two Suns leave a direction of slope to the albedo each
+    /// pass takes only about a third off the way left to the alternation's limit, hence 8
+    /// ("The alternation run to its limit"). Every pass but the last takes [`PASS_STEPS`]
+    /// steps, the same in every window.
     pub multi_albedo_passes: usize,
+    /// κ: in every pass of that last stage but the last, the Gauss–Newton step takes into
+    /// account that the albedo, inverted again at the next pass, follows the slopes: the
+    /// albedo's direction is projected out of E_I's Hessian in share κ·c(x)
+    /// ([`objective::Objective::set_albedo_coupling`], variable projection). The passes reach
+    /// the same limit in fewer steps (docs/science.md, "The alternation run to its limit").
+    /// In [0, 1]; 0: the plain alternation.
+    pub multi_albedo_coupling: f64,
     /// Where several observations carry a pixel, δ is lowered to δ × this (blended by the
     /// multi-coverage c(x); [`objective::Objective::with_multi_delta`]); 1 keeps δ everywhere.
     pub multi_delta_factor: f64,
@@ -439,7 +448,8 @@ impl Default for FusionParams {
             shadow_edge_weight_all: 0.1,
             multi_albedo_sigma: 0.5,
             multi_final_albedo_sigma: 0.7,
-            multi_albedo_passes: 3,
+            multi_albedo_passes: 5,
+            multi_albedo_coupling: 0.5,
             multi_delta_factor: 0.2,
             multi_delta_factor_all: 0.1,
             multi_delta_factor_high_sun: 0.05,
@@ -1146,12 +1156,18 @@ fn overlap_passes(
         let rho = blend(&maps[0], &maps[1], multi);
         drop(maps);
         obj.begin_stage(z.view(), rho.view(), MembraneRule::of(params));
-        let pass_params = if pass + 1 < passes && params.solver == SolverKind::Fast {
+        let handing = pass + 1 < passes;
+        let pass_params = if handing && params.solver == SolverKind::Fast {
             &handing_on
         } else {
             params
         };
+        // A pass that hands its surface on steps with the albedo following the slopes; the
+        // last solves with the albedo it inverted.
+        let kappa = params.multi_albedo_coupling;
+        obj.set_albedo_coupling((handing && kappa > 0.0).then(|| multi.mapv(|c| kappa * c)));
         let iterations = minimise(obj, z, rho.view(), pass_params, &mut |_| {});
+        obj.set_albedo_coupling(None);
         if keep_rho {
             last_rho = Some(rho);
         }

@@ -232,6 +232,9 @@ pub struct Objective<'a, 'p> {
     pub kernels: Vec<Option<blur::Kernel>>,
     /// E_S, the cast shadows' rays ([`Objective::with_shadows`]).
     pub shadows: Option<ShadowTerm>,
+    /// ν(x), how much of each pixel's albedo follows its slopes in the Gauss–Newton steps
+    /// ([`Objective::set_albedo_coupling`]); `None`: the albedo is held (ν = 0).
+    pub albedo_coupling: Option<Array2<f64>>,
 }
 
 /// What the Newton operator needs of an observation coarser than the grid: its part of E_I's
@@ -315,6 +318,7 @@ impl<'a, 'p> Objective<'a, 'p> {
             coverage: None,
             dem_height: 0.0,
             shadows: None,
+            albedo_coupling: None,
         }
     }
 
@@ -1002,12 +1006,30 @@ impl<'a, 'p> Objective<'a, 'p> {
             });
     }
 
+    /// Where the albedo follows the slopes in the Gauss–Newton steps: ν(x) ∈ [0, 1] of each
+    /// pixel's albedo is taken as re-inverted from the slopes a step makes
+    /// ([`Objective::add_gauss_newton_hessian`]); `None`: held as given (the plain
+    /// alternation of albedo and surface).
+    pub fn set_albedo_coupling(&mut self, nu: Option<Array2<f64>>) {
+        self.albedo_coupling = nu;
+    }
+
     /// H = Σ_k 2 w_k (a_k², a_k b_k, b_k²), the Gauss–Newton Hessian of E_I in (p, q) per
     /// pixel, summed in f64 and added to `m` (the residual curvature, [`Objective::curvature`]):
     /// `m` ← H + M in f32, the Newton systems' storage.
+    ///
+    /// Where the albedo follows the slopes (ν of [`Objective::set_albedo_coupling`]), the
+    /// pixel's albedo is eliminated from E_I in share ν (variable projection): with d_k the
+    /// albedo's direction ∂R_k/∂ρ·ρ/Ī (taken as R_k/Ī, exact for a model linear in ρ) and
+    /// u = Σ_k w_k d_k (a_k, b_k), H − 2ν·u uᵀ/Σ_k w_k d_k². At ν = 1 that
+    /// is the Hessian of min_ρ E_I, in which a slope that changes every image alike costs
+    /// nothing (the albedo takes it); it stays positive semi-definite for ν ≤ 1
+    /// (Cauchy–Schwarz: u uᵀ/Σ w d² ≤ H/2). Observations coarser than the grid stay out of
+    /// it, as they stay out of H.
     pub fn add_gauss_newton_hessian(&self, photo: &Photo, m: &mut Array2<[f32; 3]>) {
         let obs = &photo.obs;
         let weights = &self.weights.weight;
+        let coupling = self.albedo_coupling.as_ref();
         Zip::indexed(m).par_for_each(|ix, m| {
             let mut h = [0.0f64; 3];
             for ((ph, w), kernel) in obs.iter().zip(weights).zip(&self.kernels) {
@@ -1019,12 +1041,44 @@ impl<'a, 'p> Objective<'a, 'p> {
                 h[1] += 2.0 * w * a * b;
                 h[2] += 2.0 * w * b * b;
             }
+            if let Some(nu) = coupling.map(|c| c[ix]).filter(|&nu| nu > 0.0) {
+                let [ua, ub, dd] = self.albedo_direction(photo, ix);
+                if dd > 0.0 {
+                    let f = 2.0 * nu / dd;
+                    h[0] -= f * ua * ua;
+                    h[1] -= f * ua * ub;
+                    h[2] -= f * ub * ub;
+                }
+            }
             *m = [
                 (h[0] + f64::from(m[0])) as f32,
                 (h[1] + f64::from(m[1])) as f32,
                 (h[2] + f64::from(m[2])) as f32,
             ];
         });
+    }
+
+    /// (Σ_k w_k d_k a_k, Σ_k w_k d_k b_k, Σ_k w_k d_k²) at pixel `ix` over the sharp
+    /// observations used there, d_k = R_k/Ī = I_k/(g_k Ī) − r_k: ∂R_k/∂ρ·ρ/Ī for a model linear
+    /// in the albedo. Only the direction of (d_k) over the observations matters (the
+    /// projection u uᵀ/Σ w d² does not change when every d_k is scaled alike), so ρ drops
+    /// out; for Hapke, whose ∂ ln R/∂ ln w varies with the geometry through the
+    /// multiple-scattering term, it is the albedo's direction to a few per cent.
+    fn albedo_direction(&self, photo: &Photo, ix: (usize, usize)) -> [f64; 3] {
+        let pr = self.problem;
+        let mut out = [0.0; 3];
+        for (k, o) in pr.observations.iter().enumerate() {
+            let ph = &photo.obs[k];
+            if self.kernels[k].is_some() || !ph.used[ix] {
+                continue;
+            }
+            let d = o.image[ix] / (self.weights.gains[k] * self.scale) - f64::from(ph.res[ix]);
+            let w = f64::from(self.weights.weight[k][ix]);
+            out[0] += w * d * f64::from(ph.a[ix]);
+            out[1] += w * d * f64::from(ph.b[ix]);
+            out[2] += w * d * d;
+        }
+        out
     }
 
     /// The residual part of E_I's Hessian in (p, q) per pixel, Σ_k w_k·(−2r_k·∇²R_k/Ī) with
@@ -1691,6 +1745,81 @@ mod tests {
                 r[(3, 30)]
             );
             assert_eq!(r[(3, 5)], 0.0, "one observation keeps η");
+        }
+    }
+
+    /// The albedo coupling of the Gauss–Newton Hessian against its closed form, two Lambert
+    /// observations over a level surface (Suns 60° and 45° from the zenith, 120° apart in
+    /// azimuth), the second only over the right half. R_k = ρ·cos i_k, so ∂R_k/∂(p, q)/Ī =
+    /// d_k g_k with d_k = R_k/Ī = ρ cos i_k/Ī and g_k = ∇ln μ0, |g_k| = tan i_k, and
+    /// H = 2 Σ_k W_k g_k g_kᵀ with W_k = w_k d_k². With the albedo eliminated (ν = 1) H
+    /// becomes 2 times the W-weighted covariance of the g_k: for two observations
+    /// 2 W₁W₂/(W₁ + W₂)·(g₁ − g₂)(g₁ − g₂)ᵀ, singular (the slope both images see alike is
+    /// the albedo's) with trace 2 W₁W₂/(W₁ + W₂)·(tan² i₁ + tan² i₂ − 2 tan i₁ tan i₂ cos Δφ).
+    /// Where one observation carries the pixel, H becomes (1 − ν)H: one image and a free albedo
+    /// fix no slope. Without a coupling H is unchanged.
+    #[test]
+    fn the_albedo_coupling_takes_the_albedos_direction_out_of_the_hessian() {
+        let (ny, nx) = (6, 40);
+        let dem = Array2::zeros((ny, nx));
+        let (a, b) = (
+            Array2::from_elem((ny, nx), 0.2),
+            Array2::from_shape_fn((ny, nx), |(_, j)| if j < 20 { f64::NAN } else { 0.2 }),
+        );
+        let model = crate::photometry::Lambert;
+        let pr = two_lambert((&a, &b), &dem, (45.0, 220.0), 1.5, &model);
+        let scale = 0.2;
+        let mut obj = Objective::new(&pr, 3.0, 0.2, 1.2, 1.5, scale, weights_of(&pr, scale));
+        let rho = Array2::from_elem((ny, nx), 0.5);
+        let photo = obj.photo(dem.view(), rho.view());
+        let hessian = |obj: &Objective| {
+            let mut m = Array2::from_elem((ny, nx), [0.0f32; 3]);
+            obj.add_gauss_newton_hessian(&photo, &mut m);
+            m.mapv(|h| h.map(f64::from))
+        };
+        let plain = hessian(&obj);
+        obj.set_albedo_coupling(Some(Array2::from_elem((ny, nx), 1.0)));
+        let full = hessian(&obj);
+        obj.set_albedo_coupling(Some(Array2::from_elem((ny, nx), 0.5)));
+        let half = hessian(&obj);
+        obj.set_albedo_coupling(None);
+        assert_eq!(hessian(&obj), plain);
+
+        let (two, one) = ((3, 30), (3, 5));
+        let (i1, i2, dphi) = (60f64.to_radians(), 45f64.to_radians(), 120f64.to_radians());
+        let w = |k: usize| obj.weights.weight[k][two] as f64;
+        let (d1, d2) = (0.5 * i1.cos() / scale, 0.5 * i2.cos() / scale);
+        let (w1, w2) = (w(0) * d1 * d1, w(1) * d2 * d2);
+        let spread = i1.tan().powi(2) + i2.tan().powi(2) - 2.0 * i1.tan() * i2.tan() * dphi.cos();
+        let want = 2.0 * w1 * w2 / (w1 + w2) * spread;
+        let [xx, xy, yy] = full[two];
+        assert!(
+            ((xx + yy) - want).abs() < 1e-5 * want,
+            "trace {} against {want}",
+            xx + yy
+        );
+        assert!(
+            (xx * yy - xy * xy).abs() < 1e-5 * want * want,
+            "{:?}",
+            full[two]
+        );
+        let [pxx, _, pyy] = plain[two];
+        assert!(
+            xx + yy < 0.9 * (pxx + pyy),
+            "{:?} against {:?}",
+            full[two],
+            plain[two]
+        );
+        for ((f, h), p) in full[one].iter().zip(&half[one]).zip(&plain[one]) {
+            assert!(f.abs() < 1e-6 * p.abs().max(1.0), "{:?}", full[one]);
+            assert!(
+                (h - 0.5 * p).abs() < 1e-6 * p.abs().max(1.0),
+                "{:?}",
+                half[one]
+            );
+        }
+        for ((f, h), p) in full[two].iter().zip(&half[two]).zip(&plain[two]) {
+            assert!((h - 0.5 * (f + p)).abs() < 1e-5 * p.abs().max(1.0));
         }
     }
 

@@ -282,7 +282,7 @@ fn dem_and_membrane(params: &FusionParams) -> [Check; 9] {
 }
 
 /// What acts only where several observations overlap.
-fn several_observations(params: &FusionParams) -> [Check; 15] {
+fn several_observations(params: &FusionParams) -> [Check; 16] {
     [
         (
             "multi_delta_factor",
@@ -322,6 +322,12 @@ fn several_observations(params: &FusionParams) -> [Check; 15] {
             params.multi_albedo_sigma,
             params.multi_albedo_sigma >= 0.0,
             "must be ≥ 0 pixels",
+        ),
+        (
+            "multi_albedo_coupling",
+            params.multi_albedo_coupling,
+            (0.0..=1.0).contains(&params.multi_albedo_coupling),
+            "must be in [0, 1] (0: the plain alternation; above 1 the Newton systems would lose their positive definiteness)",
         ),
         (
             "multi_final_albedo_sigma",
