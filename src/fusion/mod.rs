@@ -294,9 +294,10 @@ pub struct FusionParams {
     /// albedo is nearly per pixel and follows the surface it is inverted from, so a second
     /// inversion from the solved surface moves the joint minimum on (docs/science.md,
     /// "Several observations"). Where two Suns leave a direction of slope to the albedo each
-    /// pass takes only about a third off the way left to the alternation's limit, hence 8
-    /// ("The alternation run to its limit"). Every pass but the last takes [`PASS_STEPS`]
-    /// steps, the same in every window.
+    /// plain pass takes only about a third off the way left to the alternation's limit;
+    /// five passes with [`FusionParams::multi_albedo_coupling`] come near it ("The
+    /// alternation run to its limit"). Every pass but the last takes [`PASS_STEPS`] steps,
+    /// the same in every window.
     pub multi_albedo_passes: usize,
     /// κ: in every pass of that last stage but the last, the Gauss–Newton step takes into
     /// account that the albedo, inverted again at the next pass, follows the slopes: the
