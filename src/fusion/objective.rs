@@ -1031,8 +1031,11 @@ impl<'a, 'p> Objective<'a, 'p> {
         let weights = &self.weights.weight;
         let coupling = self.albedo_coupling.as_ref();
         Zip::indexed(m).par_for_each(|ix, m| {
+            let nu = coupling.map_or(0.0, |c| c[ix]);
             let mut h = [0.0f64; 3];
-            for ((ph, w), kernel) in obs.iter().zip(weights).zip(&self.kernels) {
+            // u = Σ_k w_k d_k (a_k, b_k) and Σ_k w_k d_k², where the albedo is coupled.
+            let (mut u, mut dd) = ([0.0f64; 2], 0.0f64);
+            for (k, ((ph, w), kernel)) in obs.iter().zip(weights).zip(&self.kernels).enumerate() {
                 if kernel.is_some() {
                     continue; // in the Newton operator ([`Objective::blurred_terms`])
                 }
@@ -1040,15 +1043,18 @@ impl<'a, 'p> Objective<'a, 'p> {
                 h[0] += 2.0 * w * a * a;
                 h[1] += 2.0 * w * a * b;
                 h[2] += 2.0 * w * b * b;
-            }
-            if let Some(nu) = coupling.map(|c| c[ix]).filter(|&nu| nu > 0.0) {
-                let [ua, ub, dd] = self.albedo_direction(photo, ix);
-                if dd > 0.0 {
-                    let f = 2.0 * nu / dd;
-                    h[0] -= f * ua * ua;
-                    h[1] -= f * ua * ub;
-                    h[2] -= f * ub * ub;
+                if nu > 0.0 && ph.used[ix] {
+                    let d = self.albedo_direction(k, ph, ix);
+                    u[0] += w * d * a;
+                    u[1] += w * d * b;
+                    dd += w * d * d;
                 }
+            }
+            if dd > 0.0 {
+                let f = 2.0 * nu / dd;
+                h[0] -= f * u[0] * u[0];
+                h[1] -= f * u[0] * u[1];
+                h[2] -= f * u[1] * u[1];
             }
             *m = [
                 (h[0] + f64::from(m[0])) as f32,
@@ -1058,27 +1064,15 @@ impl<'a, 'p> Objective<'a, 'p> {
         });
     }
 
-    /// (Σ_k w_k d_k a_k, Σ_k w_k d_k b_k, Σ_k w_k d_k²) at pixel `ix` over the sharp
-    /// observations used there, d_k = R_k/Ī = I_k/(g_k Ī) − r_k: ∂R_k/∂ρ·ρ/Ī for a model linear
-    /// in the albedo. Only the direction of (d_k) over the observations matters (the
-    /// projection u uᵀ/Σ w d² does not change when every d_k is scaled alike), so ρ drops
-    /// out; for Hapke, whose ∂ ln R/∂ ln w varies with the geometry through the
-    /// multiple-scattering term, it is the albedo's direction to a few per cent.
-    fn albedo_direction(&self, photo: &Photo, ix: (usize, usize)) -> [f64; 3] {
-        let pr = self.problem;
-        let mut out = [0.0; 3];
-        for (k, o) in pr.observations.iter().enumerate() {
-            let ph = &photo.obs[k];
-            if self.kernels[k].is_some() || !ph.used[ix] {
-                continue;
-            }
-            let d = o.image[ix] / (self.weights.gains[k] * self.scale) - f64::from(ph.res[ix]);
-            let w = f64::from(self.weights.weight[k][ix]);
-            out[0] += w * d * f64::from(ph.a[ix]);
-            out[1] += w * d * f64::from(ph.b[ix]);
-            out[2] += w * d * d;
-        }
-        out
+    /// d_k at pixel `ix` of observation `k` (its photometric state `ph`, used there):
+    /// R_k/Ī = I_k/(g_k Ī) − r_k, which is ∂R_k/∂ρ·ρ/Ī for a model linear in the albedo. Only
+    /// the direction of (d_k) over the observations matters (the projection u uᵀ/Σ w d² does
+    /// not change when every d_k is scaled alike), so ρ drops out; for Hapke, whose
+    /// ∂ ln R/∂ ln w varies with the geometry through the multiple-scattering term, it is the
+    /// albedo's direction to a few per cent.
+    fn albedo_direction(&self, k: usize, ph: &ObsPhoto, ix: (usize, usize)) -> f64 {
+        let image = self.problem.observations[k].image[ix];
+        image / (self.weights.gains[k] * self.scale) - f64::from(ph.res[ix])
     }
 
     /// The residual part of E_I's Hessian in (p, q) per pixel, Σ_k w_k·(−2r_k·∇²R_k/Ī) with
