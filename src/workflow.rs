@@ -124,17 +124,22 @@ pub struct OrbitalInputs {
     /// weights fade over the 10° before it.
     #[serde(default)]
     pub max_incidence_deg: Option<f64>,
-    /// Register each observation to the DEM ([`crate::registration`]): estimate its
-    /// displacement in the plan and move it back where that reaches `register_min_px`
-    /// (default true; false: neither estimated nor applied).
+    /// Register each observation ([`crate::registration`]): estimate its displacement in the
+    /// plan, against the DEM's shading or an earlier observation it overlaps, and move it back
+    /// where that is long enough (`register_min_px`; default true; false: neither estimated
+    /// nor applied).
     #[serde(default = "default_true")]
     pub register: bool,
-    /// The displacement, grid pixels, from which the plan applies it, when the correlation
-    /// at its peak reaches [`crate::registration::APPLY_CORRELATION`] (default 2.5: the
-    /// estimate's own bias against a DEM 4× coarser than the grid reaches 1.3 px on the
-    /// synthetic scenes, docs/science.md "Registration").
-    #[serde(default = "default_register_min_px")]
-    pub register_min_px: f64,
+    /// The displacement against the DEM's shading, grid pixels, from which the plan applies
+    /// it, when the correlation at its peak reaches
+    /// [`crate::registration::APPLY_CORRELATION`]. Default: twice the longest bias such an
+    /// estimate showed on undisplaced synthetic scenes under a Sun as high as the
+    /// observation's mean Sun, at least 1.25 px ([`crate::registration::dem_apply_px`]: 1.25 px
+    /// under Suns 30–45° high, 2.3 px at 20°, 2.6 px at 60°; docs/science.md "Registration").
+    /// Estimates relative to another observation follow their own rule
+    /// ([`crate::registration::relative_apply_px`]).
+    #[serde(default)]
+    pub register_min_px: Option<f64>,
     /// How far the displacement is searched, grid pixels in each axis (default 16).
     #[serde(default = "default_register_search_px")]
     pub register_search_px: usize,
@@ -173,10 +178,6 @@ pub struct OrbitalInputs {
 
 fn default_true() -> bool {
     true
-}
-
-fn default_register_min_px() -> f64 {
-    2.5
 }
 
 fn default_register_search_px() -> usize {
@@ -637,11 +638,12 @@ impl Check<'_> {
             }
         }
         let r = &o.inputs;
-        if !(r.register_min_px.is_finite() && r.register_min_px >= 0.0) {
-            return Err(self.fail(format!(
-                "[inputs] register_min_px = {} must be a number of pixels ≥ 0",
-                r.register_min_px
-            )));
+        if let Some(m) = r.register_min_px {
+            if !(m.is_finite() && m >= 0.0) {
+                return Err(self.fail(format!(
+                    "[inputs] register_min_px = {m} must be a number of pixels ≥ 0"
+                )));
+            }
         }
         if !(1..=256).contains(&r.register_search_px) {
             return Err(self.fail(format!(

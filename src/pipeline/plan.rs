@@ -665,7 +665,7 @@ pub(super) fn plan(
         &swaths,
         dem_psf_sigma,
         params,
-        intensity_scale,
+        (intensity_scale, &sun_deg),
     )?;
     let shifts = shifts(&registration);
     let Radiometry {

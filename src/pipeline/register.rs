@@ -41,6 +41,10 @@ pub struct Registration {
     /// The observation (input index) it was placed relative to; `None`: against the DEM.
     #[serde(default)]
     pub relative_to: Option<usize>,
+    /// The length, grid pixels, from which its estimate is applied (along the track, that of
+    /// the segments placed as `relative_to` says); `None` where nothing was estimated.
+    #[serde(default)]
+    pub min_px: Option<f64>,
     /// Whether the run moves the observation back.
     pub applied: bool,
     /// Where its footprint spans two or more [`REGISTER_SEGMENT`]s along the track: each
@@ -72,6 +76,10 @@ pub struct Segment {
     /// Placed relative to the registration's `relative_to` (`false`: against the DEM, where
     /// the earlier observation had nothing usable on the segment).
     pub relative: bool,
+    /// The length, grid pixels, from which its estimate counts towards moving the
+    /// observation back.
+    #[serde(default)]
+    pub min_px: Option<f64>,
 }
 
 /// The largest window, pixels on a side, an observation is registered on.
@@ -93,11 +101,6 @@ pub const REGISTER_MAX_SEGMENTS: usize = 8;
 /// The widest DEM point spread σ_B, grid pixels, against which an observation is registered:
 /// beyond it the DEM's shading holds too little to place an image to a pixel.
 pub const REGISTER_MAX_PSF: f64 = 8.0;
-
-/// The displacement, grid pixels, from which an observation placed relative to another one is
-/// moved back (docs/science.md, "Registration": that estimate's bias reached 0.68 px where its
-/// correlation reaches 0.5, an earlier image under a Sun 60° high and a later one at 15°).
-pub const REGISTER_RELATIVE_MIN_PX: f64 = 1.25;
 
 /// The smallest side, grid pixels, of two observations' common window for one to be placed
 /// relative to the other.
@@ -125,6 +128,10 @@ struct Context<'a> {
     psf: f64,
     params: &'a FusionParams,
     scale: f64,
+    /// Each observation's mean Sun over its pixels on the grid, degrees (azimuth, elevation;
+    /// [`super::plan::Plan::sun_deg`]): the elevation sets from what length an estimate is
+    /// applied.
+    sun_deg: &'a [Option<[f64; 2]>],
 }
 
 /// Register every observation ([`Registration`]), in input order, on windows of at most
@@ -135,9 +142,12 @@ struct Context<'a> {
 ///   relative to that one: against the single-image fusion of the earlier observation (moved
 ///   by its own displacement) on their common window, rendered under the later one's Sun and
 ///   view. The fused relief is as sharp as the image, so the estimate's bias is a few tenths
-///   of a pixel; applied from [`REGISTER_RELATIVE_MIN_PX`];
+///   of a pixel; applied from twice the longest such bias measured under Suns as high as the
+///   higher of the two ([`crate::registration::relative_apply_px`], at least 0.75 px);
 /// - any other (the first listed, or one overlapping none before it) is placed against the DEM
-///   rendered under its own Sun and view, applied from `[inputs] register_min_px`.
+///   rendered under its own Sun and view, applied from `[inputs] register_min_px` or, by
+///   default, from twice the longest bias measured under a Sun as high as its own
+///   ([`crate::registration::dem_apply_px`], at least 1.25 px).
 ///
 /// An estimate counts where the peak's correlation reaches
 /// [`crate::registration::APPLY_CORRELATION`]; the observation is moved back when one that
@@ -150,7 +160,7 @@ pub(super) fn register(
     swaths: &[SwathIndex],
     psf: f64,
     params: &FusionParams,
-    scale: f64,
+    (scale, sun_deg): (f64, &[Option<[f64; 2]>]),
 ) -> Result<Vec<Registration>> {
     let cx = Context {
         o,
@@ -160,6 +170,7 @@ pub(super) fn register(
         psf,
         params,
         scale,
+        sun_deg,
     };
     let mut out: Vec<Registration> = Vec::with_capacity(inputs.obs.len());
     let boxes: Vec<Option<[f64; 4]>> = swaths.iter().map(|ix| footprint_box(grid, ix)).collect();
@@ -211,6 +222,7 @@ pub(super) fn register(
             let f = found.pop().expect("one");
             one_window(
                 &cx,
+                k,
                 f.window,
                 f.shift,
                 f.relative.then_some(partner).flatten(),
@@ -242,6 +254,7 @@ fn not(note: String) -> Registration {
         shift: None,
         shift_m: None,
         relative_to: None,
+        min_px: None,
         applied: false,
         along_track: Vec::new(),
         displacement: Displacement::default(),
@@ -350,21 +363,38 @@ impl Context<'_> {
         })
     }
 
-    /// What an estimate is made against, in words, and the length from which it is applied.
-    fn against(&self, relative_to: Option<usize>) -> (String, f64) {
+    /// What observation `k`'s estimate is made against, in words; the length from which it
+    /// is applied; and where that length comes from, in words.
+    fn against(&self, k: usize, relative_to: Option<usize>) -> (String, f64, String) {
+        let elevation = |k: usize| self.sun_deg[k].map_or(f64::NAN, |s| s[1]);
         match relative_to {
-            Some(j) => (
-                format!(
-                    "relative to observation {} ({}), fused alone",
-                    j + 1,
-                    self.inputs.obs[j].label_path.display()
-                ),
-                REGISTER_RELATIVE_MIN_PX,
-            ),
-            None => (
-                "against the DEM's shading".to_string(),
-                self.o.inputs.register_min_px,
-            ),
+            Some(j) => {
+                let higher = elevation(k).max(elevation(j));
+                (
+                    format!(
+                        "relative to observation {} ({}), fused alone",
+                        j + 1,
+                        self.inputs.obs[j].label_path.display()
+                    ),
+                    crate::registration::relative_apply_px(higher),
+                    format!(
+                        "twice the longest bias of such an estimate where the higher Sun stands {higher:.0}° high"
+                    ),
+                )
+            }
+            None => {
+                let (min_px, why) = match self.o.inputs.register_min_px {
+                    Some(m) => (m, "[inputs] register_min_px".to_string()),
+                    None => (
+                        crate::registration::dem_apply_px(elevation(k)),
+                        format!(
+                            "twice the longest bias of such an estimate under a Sun {:.0}° high",
+                            elevation(k)
+                        ),
+                    ),
+                };
+                ("against the DEM's shading".to_string(), min_px, why)
+            }
         }
     }
 
@@ -377,12 +407,13 @@ impl Context<'_> {
 /// The registration of an observation estimated on one window.
 fn one_window(
     cx: &Context,
+    k: usize,
     win: [usize; 4],
     est: Option<Shift>,
     relative_to: Option<usize>,
 ) -> Registration {
     let search = cx.o.inputs.register_search_px;
-    let (what, min_px) = cx.against(relative_to);
+    let (what, min_px, why) = cx.against(k, relative_to);
     match est {
         None => Registration {
             relative_to,
@@ -402,6 +433,7 @@ fn one_window(
                 shift: Some(s),
                 shift_m: Some(m),
                 relative_to,
+                min_px: Some(min_px),
                 applied,
                 along_track: Vec::new(),
                 displacement: if applied {
@@ -424,7 +456,7 @@ fn one_window(
                         )
                     } else {
                         format!(
-                            "left in place (under {min_px} px: within what the estimate's own bias reaches)"
+                            "left in place (under {min_px:.2} px, {why})"
                         )
                     }
                 ),
@@ -435,10 +467,11 @@ fn one_window(
 
 /// The segments of observation `k` from what was found on each, ordered by swath line: each
 /// at the line it was estimated at (without an estimate, the middle of its window's lines),
-/// its estimate with `prior` (what the image was already moved back by) added.
+/// its estimate with `prior` (what the image was already moved back by) added, and the length
+/// it is applied from (relative to `partner` or against the DEM, as it was placed).
 fn placed_segments(
     cx: &Context,
-    k: usize,
+    (k, partner): (usize, Option<usize>),
     found: Vec<Found>,
     prior: &Displacement,
 ) -> Vec<Segment> {
@@ -464,6 +497,7 @@ fn placed_segments(
                 shift_m: shift.as_ref().map(|s| cx.metres(s)),
                 shift,
                 relative,
+                min_px: Some(cx.against(k, partner.filter(|_| relative)).1),
             }
         })
         .collect();
@@ -506,9 +540,9 @@ fn along_track(
         .iter()
         .filter_map(|f| f.extent)
         .reduce(|(a, b), (c, d)| (a.min(c), b.max(d)));
-    let segs = placed_segments(cx, k, found, prior);
+    let segs = placed_segments(cx, (k, partner), found, prior);
     let relative_to = partner.filter(|_| segs.iter().any(|s| s.relative));
-    let threshold = |s: &Segment| cx.against(s.relative.then_some(partner).flatten()).1;
+    let threshold = |s: &Segment| s.min_px.unwrap_or(f64::INFINITY);
     let counts = |s: &&Segment| {
         s.shift
             .is_some_and(|e| e.correlation >= crate::registration::APPLY_CORRELATION)
@@ -529,7 +563,7 @@ fn along_track(
     } else {
         Displacement::default()
     };
-    let (what, _) = cx.against(relative_to);
+    let (what, _, _) = cx.against(k, relative_to);
     let listed: Vec<String> = segs
         .iter()
         .map(|s| match s.shift {
@@ -558,12 +592,21 @@ fn along_track(
             crate::registration::APPLY_CORRELATION
         )
     } else {
-        "left in place (every estimate within what its own bias reaches)".to_string()
+        let under: Vec<String> = strong
+            .iter()
+            .filter_map(|s| s.min_px)
+            .map(|m| format!("{m:.2}"))
+            .collect();
+        format!(
+            "left in place (every estimate under the length it is applied from, {} px: twice the longest bias of such an estimate under its Suns)",
+            under.join(" / ")
+        )
     };
     Registration {
         shift_m: shift.as_ref().map(|s| cx.metres(s)),
         shift,
         relative_to,
+        min_px: cx.against(k, relative_to).1.into(),
         applied,
         note: format!(
             "registered {what} on {} segments along the track ({}): {verdict}",
@@ -750,6 +793,7 @@ mod tests {
             shift: None,
             shift_m: Some(m),
             relative: false,
+            min_px: None,
         }
     }
 
