@@ -59,6 +59,18 @@ pub const DEM_BIAS: [(f64, f64); 7] = [
     (75.0, 2.63),
 ];
 
+/// The DEM's point spread σ_B, grid pixels, of the scenes [`DEM_BIAS`] was measured on: a DEM
+/// 4× coarser than the grid ([`crate::fusion::dem_psf_sigma`]; LDEM_64 under a 140 m grid is
+/// at 2.95 px).
+pub const DEM_BIAS_PSF: f64 = 4.0 / std::f64::consts::SQRT_2;
+
+/// How the bias against the DEM grows with its point spread: × (σ_B/[`DEM_BIAS_PSF`]) to this
+/// power above it. The same 256² scenes and Suns with the DEM 6× and 8× coarser (σ_B 4.2 and
+/// 5.7 px) gave 0.71 / 0.88 px at most under a 30° Sun and 0.99 / 1.42 px at 45°, against
+/// 0.54 / 0.64 px at 4× (× 1.31–1.55 and × 1.63–2.2 for σ_B × 1.5 and × 2; the power 1.3 gives
+/// × 1.69 and × 2.46).
+pub const DEM_BIAS_PSF_POWER: f64 = 1.3;
+
 /// The same for an estimate relative to an earlier observation fused alone, by the higher of
 /// the two Suns: 0.34 px at most while both stand 55° high or lower (14 pairs of Suns on three
 /// 256² scenes, and the 512² pairs through `run`), 0.68 px where the earlier image has a Sun
@@ -91,14 +103,17 @@ fn piecewise_linear(table: &[(f64, f64)], x: f64) -> f64 {
 }
 
 /// The displacement, grid pixels, from which an estimate against the DEM's shading under a
-/// Sun `elevation_deg` above the horizon is applied: [`BIAS_MARGIN`] times the longest bias
-/// of [`DEM_BIAS`] there, at least [`DEM_MIN_APPLY_PX`] (1.25 px under Suns 30–45° high, 2.3 px
-/// at 20°, 2.6 px at 60°); without an elevation, never (infinity).
-pub fn dem_apply_px(elevation_deg: f64) -> f64 {
+/// Sun `elevation_deg` above the horizon, the DEM's point spread σ_B = `psf_px`, is applied:
+/// [`BIAS_MARGIN`] times the longest bias of [`DEM_BIAS`] there, grown for a DEM coarser than
+/// the table's by (σ_B/[`DEM_BIAS_PSF`])^[`DEM_BIAS_PSF_POWER`], at least [`DEM_MIN_APPLY_PX`]
+/// (with LDEM_64 under a 140 m grid, σ_B = 2.95 px: 1.25 px under Suns 30–40° high, 1.35 px
+/// at 45°, 2.5 px at 20°, 2.8 px at 60°); without an elevation, never (infinity).
+pub fn dem_apply_px(elevation_deg: f64, psf_px: f64) -> f64 {
     if !elevation_deg.is_finite() {
         return f64::INFINITY;
     }
-    (BIAS_MARGIN * piecewise_linear(&DEM_BIAS, elevation_deg)).max(DEM_MIN_APPLY_PX)
+    let coarser = (psf_px / DEM_BIAS_PSF).max(1.0).powf(DEM_BIAS_PSF_POWER);
+    (BIAS_MARGIN * piecewise_linear(&DEM_BIAS, elevation_deg) * coarser).max(DEM_MIN_APPLY_PX)
 }
 
 /// The displacement, grid pixels, from which an estimate relative to an earlier observation is
@@ -448,15 +463,25 @@ mod tests {
     #[test]
     fn estimates_are_applied_from_twice_their_bias_at_the_suns_elevation() {
         let close = |a: f64, b: f64| (a - b).abs() < 1e-12;
-        // Against the DEM: 2 × 1.17 at 20°; 2 × 0.54 = 1.08 at 30°, under the 1.25 floor;
-        // 2 × (0.64 + 0.68 × 1/3) at 50°; 2 × 1.32 at 60°; held at 2 × 1.24 below 10°;
-        // 2 × (2.63 + 1.31) at 90°.
-        assert!(close(dem_apply_px(20.0), 2.34));
-        assert!(close(dem_apply_px(30.0), 1.25));
-        assert!(close(dem_apply_px(50.0), 2.0 * (0.64 + 0.68 * 5.0 / 15.0)));
-        assert!(close(dem_apply_px(60.0), 2.64));
-        assert!(close(dem_apply_px(5.0), 2.48));
-        assert!(close(dem_apply_px(90.0), 2.0 * (2.63 + 1.31)));
+        // Against the DEM at the table's point spread (or finer): 2 × 1.17 at 20°;
+        // 2 × 0.54 = 1.08 at 30°, under the 1.25 floor; 2 × (0.64 + 0.68 × 1/3) at 50°;
+        // 2 × 1.32 at 60°; held at 2 × 1.24 below 10°; 2 × (2.63 + 1.31) at 90°.
+        let table = DEM_BIAS_PSF;
+        assert!(close(dem_apply_px(20.0, table), 2.34));
+        assert!(close(dem_apply_px(30.0, table), 1.25));
+        assert!(close(
+            dem_apply_px(50.0, 1.0),
+            2.0 * (0.64 + 0.68 * 5.0 / 15.0)
+        ));
+        assert!(close(dem_apply_px(60.0, table), 2.64));
+        assert!(close(dem_apply_px(5.0, table), 2.48));
+        assert!(close(dem_apply_px(90.0, table), 2.0 * (2.63 + 1.31)));
+        // A DEM twice as coarse: × 2^1.3 (30°: 2 × 0.54 × 2.4623 = 2.659).
+        let twice = dem_apply_px(30.0, 2.0 * table);
+        assert!(
+            (twice - 2.0 * 0.54 * 2f64.powf(1.3)).abs() < 1e-12 && twice > 2.65,
+            "{twice}"
+        );
         // Relative: the floor while both Suns stand 55° high or lower, then 2 × 0.70 at 60°,
         // 2 × 1.15 at 65°, 2 × 2.50 at 80°.
         assert!(close(relative_apply_px(20.0), 0.75));
@@ -464,7 +489,7 @@ mod tests {
         assert!(close(relative_apply_px(60.0), 1.4));
         assert!(close(relative_apply_px(65.0), 2.3));
         assert!(close(relative_apply_px(80.0), 5.0));
-        assert_eq!(dem_apply_px(f64::NAN), f64::INFINITY);
+        assert_eq!(dem_apply_px(f64::NAN, table), f64::INFINITY);
         assert_eq!(relative_apply_px(f64::NAN), f64::INFINITY);
     }
 
@@ -546,7 +571,10 @@ mod tests {
         // docs/science.md "Registration") — under the 1.25 px from which a run applies it
         // under this scene's Sun, 30° high (`dem_apply_px`).
         let s = estimate(sc.image.view(), rendered.view(), pr.dem_psf_sigma, 8).unwrap();
-        assert!(s.length() < 0.8 && s.length() < dem_apply_px(30.0), "{s:?}");
+        assert!(
+            s.length() < 0.8 && s.length() < dem_apply_px(30.0, pr.dem_psf_sigma),
+            "{s:?}"
+        );
         assert!(s.correlation > 0.5, "{s:?}");
         // Displaced by whole and fractional pixels, in either direction.
         for (r, c) in [(3.0, -2.0), (-1.4, 2.6), (0.0, 5.5)] {

@@ -386,10 +386,11 @@ impl Context<'_> {
                 let (min_px, why) = match self.o.inputs.register_min_px {
                     Some(m) => (m, "[inputs] register_min_px".to_string()),
                     None => (
-                        crate::registration::dem_apply_px(elevation(k)),
+                        crate::registration::dem_apply_px(elevation(k), self.psf),
                         format!(
-                            "twice the longest bias of such an estimate under a Sun {:.0}° high",
-                            elevation(k)
+                            "twice the longest bias of such an estimate under a Sun {:.0}° high, the DEM's point spread {:.1} px",
+                            elevation(k),
+                            self.psf
                         ),
                     ),
                 };
