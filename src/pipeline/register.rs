@@ -599,7 +599,7 @@ fn along_track(
             .map(|m| format!("{m:.2}"))
             .collect();
         format!(
-            "left in place (every estimate under the length it is applied from, {} px: twice the longest bias of such an estimate under its Suns)",
+            "left in place (every estimate under the length it is applied from, {} px)",
             under.join(" / ")
         )
     };
