@@ -252,6 +252,49 @@ fn products_do_not_depend_on_the_thread_count_or_the_inputs_place() {
     std::fs::remove_dir_all(&dir).unwrap();
 }
 
+/// Several observations through the whole run give bit-identical products and records with 1
+/// and 2 threads: the plan's registration (the second observation 290 m off, moved back
+/// relative to the first, fused alone on its window), gains and noise weights, and the fusion
+/// with the last stage's coupled passes and E_S (one tile: the tiles' own determinism is
+/// `products_do_not_depend_on_the_thread_count_or_the_inputs_place`'s).
+#[test]
+fn several_observations_through_run_do_not_depend_on_the_thread_count() {
+    use sfsfuse::synth::products::ProductErrors;
+    let off = ProductErrors {
+        offset_m: [250.0, -150.0],
+        ..ProductErrors::default()
+    };
+    let (dir, _, q) = support::observation_products_moved(
+        256,
+        7,
+        &sfsfuse::synth::DEMO_SUNS[..2],
+        &[ProductErrors::default(), off],
+        "threads-several",
+    );
+    let mut files = Vec::new();
+    let mut records = Vec::new();
+    for n in ["1", "2"] {
+        let out = dir.join(format!("out{n}"));
+        std::fs::create_dir_all(dir.join(n)).unwrap();
+        let wf = write_workflow(&dir.join(n), &workflow(&q, &out, 256, ""));
+        run_ok(&["--threads", n, "run", "--progress", "quiet"], &wf);
+        files.push(output_bytes(&out));
+        let rec: serde_json::Value =
+            serde_json::from_slice(&std::fs::read(out.join("run.json")).unwrap()).unwrap();
+        records.push(rec["observations"].clone());
+    }
+    assert_eq!(
+        records[1][1]["registration"]["applied"], true,
+        "{}",
+        records[1]
+    );
+    assert_eq!(records[0], records[1]);
+    for ((name, a), (_, b)) in files[0].iter().zip(&files[1]) {
+        assert!(a == b, "{name}.tif differs between 1 and 2 threads");
+    }
+    std::fs::remove_dir_all(&dir).unwrap();
+}
+
 /// A run killed with SIGKILL mid-way and started again finishes with the same files as an
 /// uninterrupted run, redoing only the tiles that were not finished.
 #[test]
