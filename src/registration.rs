@@ -62,7 +62,7 @@ pub const DEM_BIAS: [(f64, f64); 7] = [
 /// The DEM's point spread σ_B, grid pixels, of the scenes [`DEM_BIAS`] was measured on: a DEM
 /// 4× coarser than the grid ([`crate::fusion::dem_psf_sigma`]; LDEM_64 under a 140 m grid is
 /// at 2.95 px).
-pub const DEM_BIAS_PSF: f64 = 4.0 / std::f64::consts::SQRT_2;
+pub const DEM_BIAS_PSF: f64 = crate::fusion::dem_psf_sigma(4.0);
 
 /// How the bias against the DEM grows with its point spread: × (σ_B/[`DEM_BIAS_PSF`]) to this
 /// power above it. The same 256² scenes and Suns with the DEM 6× and 8× coarser (σ_B 4.2 and

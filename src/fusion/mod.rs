@@ -173,7 +173,7 @@ impl<'a> Problem<'a> {
 /// the grid and resampled to it bilinearly: an anti-alias low-pass of σ = factor/2 plus the box
 /// of one coarse pixel (variance factor²/12) plus the bilinear tent (variance factor²/6) give
 /// σ² = factor²/4 + factor²/4, σ = factor/√2 (≈ 2.8 px at 4× coarser).
-pub fn dem_psf_sigma(factor: f64) -> f64 {
+pub const fn dem_psf_sigma(factor: f64) -> f64 {
     if factor <= 1.0 {
         0.0
     } else {

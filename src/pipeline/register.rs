@@ -363,39 +363,41 @@ impl Context<'_> {
         })
     }
 
-    /// What observation `k`'s estimate is made against, in words; the length from which it
-    /// is applied; and where that length comes from, in words.
-    fn against(&self, k: usize, relative_to: Option<usize>) -> (String, f64, String) {
-        let elevation = |k: usize| self.sun_deg[k].map_or(f64::NAN, |s| s[1]);
+    /// What an estimate is made against, in words.
+    fn against(&self, relative_to: Option<usize>) -> String {
         match relative_to {
-            Some(j) => {
+            Some(j) => format!(
+                "relative to observation {} ({}), fused alone",
+                j + 1,
+                self.inputs.obs[j].label_path.display()
+            ),
+            None => "against the DEM's shading".to_string(),
+        }
+    }
+
+    /// The length from which observation `k`'s estimate, made as `relative_to` says
+    /// ([`Context::against`]), is applied, and where that length comes from, in words.
+    fn apply_from(&self, k: usize, relative_to: Option<usize>) -> (f64, String) {
+        let elevation = |k: usize| self.sun_deg[k].map_or(f64::NAN, |s| s[1]);
+        match (relative_to, self.o.inputs.register_min_px) {
+            (Some(j), _) => {
                 let higher = elevation(k).max(elevation(j));
                 (
-                    format!(
-                        "relative to observation {} ({}), fused alone",
-                        j + 1,
-                        self.inputs.obs[j].label_path.display()
-                    ),
                     crate::registration::relative_apply_px(higher),
                     format!(
                         "twice the longest bias of such an estimate where the higher Sun stands {higher:.0}° high"
                     ),
                 )
             }
-            None => {
-                let (min_px, why) = match self.o.inputs.register_min_px {
-                    Some(m) => (m, "[inputs] register_min_px".to_string()),
-                    None => (
-                        crate::registration::dem_apply_px(elevation(k), self.psf),
-                        format!(
-                            "twice the longest bias of such an estimate under a Sun {:.0}° high, the DEM's point spread {:.1} px",
-                            elevation(k),
-                            self.psf
-                        ),
-                    ),
-                };
-                ("against the DEM's shading".to_string(), min_px, why)
-            }
+            (None, Some(m)) => (m, "[inputs] register_min_px".to_string()),
+            (None, None) => (
+                crate::registration::dem_apply_px(elevation(k), self.psf),
+                format!(
+                    "twice the longest bias of such an estimate under a Sun {:.0}° high, the DEM's point spread {:.1} px",
+                    elevation(k),
+                    self.psf
+                ),
+            ),
         }
     }
 
@@ -414,7 +416,8 @@ fn one_window(
     relative_to: Option<usize>,
 ) -> Registration {
     let search = cx.o.inputs.register_search_px;
-    let (what, min_px, why) = cx.against(k, relative_to);
+    let what = cx.against(relative_to);
+    let (min_px, why) = cx.apply_from(k, relative_to);
     match est {
         None => Registration {
             relative_to,
@@ -498,7 +501,7 @@ fn placed_segments(
                 shift_m: shift.as_ref().map(|s| cx.metres(s)),
                 shift,
                 relative,
-                min_px: Some(cx.against(k, partner.filter(|_| relative)).1),
+                min_px: Some(cx.apply_from(k, partner.filter(|_| relative)).0),
             }
         })
         .collect();
@@ -564,7 +567,7 @@ fn along_track(
     } else {
         Displacement::default()
     };
-    let (what, _, _) = cx.against(k, relative_to);
+    let what = cx.against(relative_to);
     let listed: Vec<String> = segs
         .iter()
         .map(|s| match s.shift {
@@ -607,7 +610,7 @@ fn along_track(
         shift_m: shift.as_ref().map(|s| cx.metres(s)),
         shift,
         relative_to,
-        min_px: cx.against(k, relative_to).1.into(),
+        min_px: Some(cx.apply_from(k, relative_to).0),
         applied,
         note: format!(
             "registered {what} on {} segments along the track ({}): {verdict}",
