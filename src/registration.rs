@@ -129,6 +129,33 @@ pub fn relative_apply_px(higher_elevation_deg: f64) -> f64 {
         .max(RELATIVE_MIN_APPLY_PX)
 }
 
+/// The mean elevation, degrees, of the Sun over the pixels of a window where `image` is finite
+/// (its usable pixels, cast shadows included): 90° less the mean of the to-Sun zenith angles
+/// arccos s_z, `sun` the unit vectors to the Sun in the grid frame (z up) — the mean
+/// [`crate::ingest::Survey::mean_sun`] takes over a whole footprint. NaN without such a pixel.
+/// Over a long polar strip the Sun's elevation changes along the track, so each window's
+/// estimate is judged by the Sun it was made under ([`dem_apply_px`], [`relative_apply_px`]).
+pub fn mean_sun_elevation_deg(
+    image: ArrayView2<f64>,
+    sun: ArrayView2<crate::photometry::Vec3f>,
+) -> f64 {
+    let (sum, n) = image
+        .iter()
+        .zip(sun.iter())
+        .filter(|(r, s)| r.is_finite() && s[2].is_finite())
+        .fold((0.0, 0usize), |(sum, n), (_, s)| {
+            (
+                sum + f64::from(s[2]).clamp(-1.0, 1.0).acos().to_degrees(),
+                n + 1,
+            )
+        });
+    if n == 0 {
+        f64::NAN
+    } else {
+        90.0 - sum / n as f64
+    }
+}
+
 /// Albedo the DEM is rendered with: the correlation does not depend on the image's scale, and
 /// this is a typical lunar single-scattering albedo at 1.2 µm for the Hapke model.
 const RENDER_ALBEDO: f64 = 0.4;
@@ -491,6 +518,43 @@ mod tests {
         assert!(close(relative_apply_px(80.0), 5.0));
         assert_eq!(dem_apply_px(f64::NAN, table), f64::INFINITY);
         assert_eq!(relative_apply_px(f64::NAN), f64::INFINITY);
+    }
+
+    /// A window's Sun: the mean of the zenith angles over the pixels with an image value, by
+    /// hand. Half the pixels under a Sun 20° high and half 40° high give 30°; a pixel without
+    /// an image value or without a Sun vector does not count, whatever its Sun; a window
+    /// without any gives none.
+    #[test]
+    fn a_windows_sun_is_the_mean_over_its_usable_pixels() {
+        let up = |el: f64| {
+            let e = el.to_radians();
+            [0.0, e.cos() as f32, e.sin() as f32]
+        };
+        let image = Array2::from_shape_fn(
+            (4, 4),
+            |(i, j)| {
+                if i == 3 && j == 3 {
+                    f64::NAN
+                } else {
+                    0.1
+                }
+            },
+        );
+        let sun = Array2::from_shape_fn((4, 4), |(i, j)| match (i, j) {
+            (3, 3) => up(85.0),
+            (3, 2) => [f32::NAN; 3],
+            (i, _) if i < 2 => up(20.0),
+            _ => up(40.0),
+        });
+        // Rows 0–1 (8 px at 20°) and rows 2–3 less two (6 px at 40°): 90 − (8·70 + 6·50)/14.
+        let el = mean_sun_elevation_deg(image.view(), sun.view());
+        let want = 90.0 - (8.0 * 70.0 + 6.0 * 50.0) / 14.0;
+        assert!((el - want).abs() < 1e-4, "{el} against {want}");
+        let half = Array2::from_shape_fn((4, 4), |(i, _)| if i < 2 { up(20.0) } else { up(40.0) });
+        let all = Array2::from_elem((4, 4), 0.1);
+        assert!((mean_sun_elevation_deg(all.view(), half.view()) - 30.0).abs() < 1e-4);
+        let none = Array2::from_elem((4, 4), f64::NAN);
+        assert!(mean_sun_elevation_deg(none.view(), half.view()).is_nan());
     }
 
     /// Where an estimate was made: the correlation's weight lies on the one feature of the

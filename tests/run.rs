@@ -2201,11 +2201,20 @@ fn a_displacement_drifting_along_the_strip_is_followed() {
     // Line l of 512 is off by l/511 of the drift: (rows south, columns east) per observation,
     // within the estimates' bias (against the DEM a few tenths of a pixel, relative to the
     // first observation less).
-    for (r, (rows, cols), within) in [(&r_reg[0], (0.0, 6.0), 0.6), (&r_reg[1], (3.0, 0.0), 0.4)] {
+    // Each segment's length is set by the Sun over its own window: the first observation's
+    // (30° high) against the DEM, the higher of the two (35°) relative to the first.
+    let suns = [30.0, 35.0];
+    for ((r, (rows, cols), within), sun) in
+        [(&r_reg[0], (0.0, 6.0), 0.6), (&r_reg[1], (3.0, 0.0), 0.4)]
+            .into_iter()
+            .zip(suns)
+    {
         assert_eq!(r["applied"], true, "{r}");
         let segments = r["along_track"].as_array().unwrap();
         assert_eq!(segments.len(), 2, "{r}");
         for s in segments {
+            let el = s["sun_elevation_deg"].as_f64().unwrap();
+            assert!((el - sun).abs() < 0.5, "{s}");
             let t = s["line"].as_f64().unwrap() / 511.0;
             let (y, x) = shift_of(s);
             assert!(

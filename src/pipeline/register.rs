@@ -41,8 +41,9 @@ pub struct Registration {
     /// The observation (input index) it was placed relative to; `None`: against the DEM.
     #[serde(default)]
     pub relative_to: Option<usize>,
-    /// The length, grid pixels, from which its estimate is applied (along the track, that of
-    /// the segments placed as `relative_to` says); `None` where nothing was estimated.
+    /// The length, grid pixels, from which its estimate is applied, set by the Sun's elevation
+    /// on its window (along the track, the shortest of the segments' placed as `relative_to`
+    /// says, each set by its own window's Sun); `None` where nothing was estimated.
     #[serde(default)]
     pub min_px: Option<f64>,
     /// Whether the run moves the observation back.
@@ -80,6 +81,11 @@ pub struct Segment {
     /// observation back.
     #[serde(default)]
     pub min_px: Option<f64>,
+    /// The Sun's elevation, degrees, that length was set by: the observation's mean over its
+    /// usable pixels on the segment's window (placed relative to another, the higher of the
+    /// two observations' there). Over a long strip it changes along the track.
+    #[serde(default)]
+    pub sun_elevation_deg: Option<f64>,
 }
 
 /// The largest window, pixels on a side, an observation is registered on.
@@ -117,6 +123,10 @@ struct Found {
     line: Option<f64>,
     /// The first and last swath lines on the window.
     extent: Option<(f64, f64)>,
+    /// The mean Sun elevation, degrees, over the observation's usable pixels on the window
+    /// and, placed relative to another, over that one's
+    /// ([`crate::registration::mean_sun_elevation_deg`]; NaN where there are none).
+    sun_elevation_deg: [f64; 2],
 }
 
 /// The run-wide quantities a registration window is estimated with.
@@ -129,8 +139,8 @@ struct Context<'a> {
     params: &'a FusionParams,
     scale: f64,
     /// Each observation's mean Sun over its pixels on the grid, degrees (azimuth, elevation;
-    /// [`super::plan::Plan::sun_deg`]): the elevation sets from what length an estimate is
-    /// applied.
+    /// [`super::plan::Plan::sun_deg`]): its elevation sets from what length an estimate is
+    /// applied where the estimate's window gives none.
     sun_deg: &'a [Option<[f64; 2]>],
 }
 
@@ -148,6 +158,10 @@ struct Context<'a> {
 ///   rendered under its own Sun and view, applied from `[inputs] register_min_px` or, by
 ///   default, from twice the longest bias measured under a Sun as high as its own
 ///   ([`crate::registration::dem_apply_px`], at least 1.25 px).
+///
+/// Each Sun's elevation is its mean over the observation's usable pixels on the window the
+/// estimate is made on ([`crate::registration::mean_sun_elevation_deg`]), so each segment of
+/// a long strip is judged by its own Sun.
 ///
 /// An estimate counts where the peak's correlation reaches
 /// [`crate::registration::APPLY_CORRELATION`]; the observation is moved back when one that
@@ -220,13 +234,8 @@ pub(super) fn register(
         let mut found = estimates(&none)?;
         out.push(if found.len() == 1 {
             let f = found.pop().expect("one");
-            one_window(
-                &cx,
-                k,
-                f.window,
-                f.shift,
-                f.relative.then_some(partner).flatten(),
-            )
+            let relative_to = f.relative.then_some(partner).flatten();
+            one_window(&cx, k, f, relative_to)
         } else {
             // Each segment's estimate is that of its middle only where the displacement is
             // the same along it: where it drifts, the peak is smeared and falls short. So once
@@ -299,9 +308,14 @@ impl Context<'_> {
         );
         // The earlier observation fused alone on the common window; `None`: place against
         // the DEM.
+        let mut partner_sun = f64::NAN;
         let fused = match partner {
             Some((j, r)) => {
                 let other = [(j, ingest(j, &r.displacement())?.0)];
+                partner_sun = crate::registration::mean_sun_elevation_deg(
+                    other[0].1.reflectance.view(),
+                    other[0].1.sun.view(),
+                );
                 let mut filled = dem.clone();
                 crate::pipeline::lab::fill_holes(&mut filled);
                 let problem = Problem {
@@ -322,6 +336,16 @@ impl Context<'_> {
             }
             None => None,
         };
+        let own_sun =
+            crate::registration::mean_sun_elevation_deg(img.reflectance.view(), img.sun.view());
+        let sun_elevation_deg = [
+            own_sun,
+            if fused.is_some() {
+                partner_sun
+            } else {
+                f64::NAN
+            },
+        ];
         let rendered = crate::registration::render(
             fused.as_ref().map_or(dem.view(), |f| f.view()),
             self.grid.spacing,
@@ -360,6 +384,7 @@ impl Context<'_> {
             relative: fused.is_some(),
             line,
             extent,
+            sun_elevation_deg,
         })
     }
 
@@ -376,28 +401,45 @@ impl Context<'_> {
     }
 
     /// The length from which observation `k`'s estimate, made as `relative_to` says
-    /// ([`Context::against`]), is applied, and where that length comes from, in words.
-    fn apply_from(&self, k: usize, relative_to: Option<usize>) -> (f64, String) {
-        let elevation = |k: usize| self.sun_deg[k].map_or(f64::NAN, |s| s[1]);
+    /// ([`Context::against`]) on a window under the Suns `sun` ([`Found::sun_elevation_deg`]),
+    /// is applied; the Sun's elevation it was set by, and where that length comes from, in
+    /// words. Where the window gives no elevation, the observation's mean over the region.
+    fn apply_from(
+        &self,
+        k: usize,
+        relative_to: Option<usize>,
+        sun: [f64; 2],
+    ) -> (f64, f64, String) {
+        let elevation = |i: usize, k: usize| {
+            if sun[i].is_finite() {
+                sun[i]
+            } else {
+                self.sun_deg[k].map_or(f64::NAN, |s| s[1])
+            }
+        };
         match (relative_to, self.o.inputs.register_min_px) {
             (Some(j), _) => {
-                let higher = elevation(k).max(elevation(j));
+                let higher = elevation(0, k).max(elevation(1, j));
                 (
                     crate::registration::relative_apply_px(higher),
+                    higher,
                     format!(
                         "twice the longest bias of such an estimate where the higher Sun stands {higher:.0}° high"
                     ),
                 )
             }
-            (None, Some(m)) => (m, "[inputs] register_min_px".to_string()),
-            (None, None) => (
-                crate::registration::dem_apply_px(elevation(k), self.psf),
-                format!(
-                    "twice the longest bias of such an estimate under a Sun {:.0}° high, the DEM's point spread {:.1} px",
-                    elevation(k),
-                    self.psf
-                ),
-            ),
+            (None, Some(m)) => (m, elevation(0, k), "[inputs] register_min_px".to_string()),
+            (None, None) => {
+                let el = elevation(0, k);
+                (
+                    crate::registration::dem_apply_px(el, self.psf),
+                    el,
+                    format!(
+                        "twice the longest bias of such an estimate under a Sun {el:.0}° high, the DEM's point spread {:.1} px",
+                        self.psf
+                    ),
+                )
+            }
         }
     }
 
@@ -407,17 +449,13 @@ impl Context<'_> {
     }
 }
 
-/// The registration of an observation estimated on one window.
-fn one_window(
-    cx: &Context,
-    k: usize,
-    win: [usize; 4],
-    est: Option<Shift>,
-    relative_to: Option<usize>,
-) -> Registration {
+/// The registration of observation `k` estimated on one window (`found`), placed as
+/// `relative_to` says.
+fn one_window(cx: &Context, k: usize, found: Found, relative_to: Option<usize>) -> Registration {
     let search = cx.o.inputs.register_search_px;
     let what = cx.against(relative_to);
-    let (min_px, why) = cx.apply_from(k, relative_to);
+    let (win, est) = (found.window, found.shift);
+    let (min_px, _, why) = cx.apply_from(k, relative_to, found.sun_elevation_deg);
     match est {
         None => Registration {
             relative_to,
@@ -484,6 +522,8 @@ fn placed_segments(
         .into_iter()
         .map(|f| {
             let (window, relative) = (f.window, f.relative);
+            let (min_px, el, _) =
+                cx.apply_from(k, partner.filter(|_| relative), f.sun_elevation_deg);
             // Without an estimate (display only): the middle of the window's lines.
             let line = f
                 .line
@@ -501,7 +541,8 @@ fn placed_segments(
                 shift_m: shift.as_ref().map(|s| cx.metres(s)),
                 shift,
                 relative,
-                min_px: Some(cx.apply_from(k, partner.filter(|_| relative)).0),
+                min_px: Some(min_px),
+                sun_elevation_deg: el.is_finite().then_some(el),
             }
         })
         .collect();
@@ -610,7 +651,13 @@ fn along_track(
         shift_m: shift.as_ref().map(|s| cx.metres(s)),
         shift,
         relative_to,
-        min_px: Some(cx.apply_from(k, relative_to).0),
+        min_px: Some(
+            segs.iter()
+                .filter(|s| s.relative == relative_to.is_some())
+                .filter_map(|s| s.min_px)
+                .reduce(f64::min)
+                .unwrap_or_else(|| cx.apply_from(k, relative_to, [f64::NAN; 2]).0),
+        ),
         applied,
         note: format!(
             "registered {what} on {} segments along the track ({}): {verdict}",
@@ -798,6 +845,7 @@ mod tests {
             shift_m: Some(m),
             relative: false,
             min_px: None,
+            sun_elevation_deg: None,
         }
     }
 
