@@ -134,9 +134,9 @@ pub struct OrbitalInputs {
     /// it, when the correlation at its peak reaches
     /// [`crate::registration::APPLY_CORRELATION`]. Default: twice the longest bias such an
     /// estimate showed on undisplaced synthetic scenes under a Sun as high as the
-    /// observation's mean Sun, and longer for a DEM coarser than those scenes', at least 1.25 px
+    /// observation's mean Sun on the estimate's window, and longer for a DEM coarser than those scenes', at least 1.25 px
     /// ([`crate::registration::dem_apply_px`]; with LDEM_64 under a 140 m grid 1.25 px under
-    /// Suns 30–40° high, 2.5 px at 20°, 2.8 px at 60°; docs/science.md "Registration").
+    /// Suns 13–40° high, 1.5 px at 10°, 2.8 px at 60°; docs/science.md "Registration").
     /// Estimates relative to another observation follow their own rule
     /// ([`crate::registration::relative_apply_px`]).
     #[serde(default)]

@@ -2268,16 +2268,21 @@ fn of_two_observations_the_displaced_one_is_moved_back() {
 }
 
 /// Displacements of the size of M3's usual selenolocation errors, shorter than the fixed
-/// thresholds of before (2.5 px against the DEM, 1.25 px relative): under Suns 30–35° high
-/// the estimates' own bias is at most 0.64 px against the DEM and 0.35 px relative, so they
-/// are applied from 1.25 px and 0.75 px (`registration::dem_apply_px`, `relative_apply_px`).
+/// thresholds of before (2.5 px against the DEM, 1.25 px relative): under Suns 20–35° high
+/// the estimates' own bias is at most 0.52 px against the DEM (its shadows cast under a Sun
+/// at 0.7 of the elevation up to 25°, `registration::shadow_lowering`) and 0.35 px relative, so
+/// they are applied from 1.25 px and 0.75 px (`registration::dem_apply_px`,
+/// `relative_apply_px`).
 /// - One observation (Sun 105/30) whose LOC puts it 250 m (1.8 px) east: moved back against
 ///   the DEM. Left, it is at 17.0 m against 8.4 m in place; moved back, 8.5 m.
+/// - The same under a Sun 45/20: in place 8.4 m, moved back 8.6 m, left 16.4 m. With the DEM's shadows
+///   cast under the Sun itself the estimate's bias there reached 1.15 px, so it was applied
+///   only from 2.3 px and this one was left.
 /// - Two Suns, the second observation's LOC 140 m (1 px) north: moved back relative to the
 ///   first. Left, the pair is at 8.0 m against 4.2 m in place, no better than one image;
 ///   moved back, 4.4 m.
 #[test]
-fn displacements_of_a_pixel_or_two_are_moved_back_under_mid_suns() {
+fn displacements_of_a_pixel_or_two_are_moved_back_under_low_and_mid_suns() {
     let p = scene_products(256, 10);
     let dir = scratch("registration-short");
     let truth = read_tiff(&p.truth_dem).unwrap().data;
@@ -2286,6 +2291,26 @@ fn displacements_of_a_pixel_or_two_are_moved_back_under_mid_suns() {
     let (e_reg, r_reg) = registered_run(&dir, "registered", &q, true, &truth);
     let (e_off, _) = registered_run(&dir, "unregistered", &q, false, &truth);
     eprintln!("in place {e_base:.2} m; 250 m east: registered {e_reg:.2} m, not {e_off:.2} m");
+    assert_eq!(r_base[0]["applied"], false, "{}", r_base[0]);
+    let (rows, cols) = shift_of(&r_reg[0]);
+    assert!(
+        r_reg[0]["applied"] == true
+            && r_reg[0]["min_px"] == 1.25
+            && (cols - 250.0 / 140.0).abs() < 0.5
+            && rows.abs() < 0.5,
+        "{}",
+        r_reg[0]
+    );
+    registration_pays((e_base, e_reg, e_off), 1.1, 1.5);
+    std::fs::remove_dir_all(&dir).unwrap();
+
+    let (dir, p) = observation_products(256, 10, (&[(45.0, 20.0)], &[], false), "registration-low");
+    let truth = read_tiff(&p.truth_dem).unwrap().data;
+    let q = displaced_products(&p, 0, [250.0, 0.0], &dir.join("moved"));
+    let (e_base, r_base) = registered_run(&dir, "base", &p, true, &truth);
+    let (e_reg, r_reg) = registered_run(&dir, "registered", &q, true, &truth);
+    let (e_off, _) = registered_run(&dir, "unregistered", &q, false, &truth);
+    eprintln!("Sun 20° high, in place {e_base:.2} m; 250 m east: registered {e_reg:.2} m, not {e_off:.2} m");
     assert_eq!(r_base[0]["applied"], false, "{}", r_base[0]);
     let (rows, cols) = shift_of(&r_reg[0]);
     assert!(

@@ -346,15 +346,16 @@ impl Context<'_> {
                 f64::NAN
             },
         ];
-        let rendered = crate::registration::render(
+        // The fused relief is as sharp as the image; the DEM's is blurred by σ_B, and casts
+        // its shadows under a lower Sun to make up for its lower rims.
+        let against_psf = if fused.is_some() { 0.0 } else { self.psf };
+        let rendered = crate::registration::render_lowered(
             fused.as_ref().map_or(dem.view(), |f| f.view()),
             self.grid.spacing,
             inputs.model.as_ref(),
-            &sun,
-            &view,
+            (&sun, &view),
+            against_psf,
         );
-        // The fused relief is as sharp as the image; the DEM's is blurred by σ_B.
-        let against_psf = if fused.is_some() { 0.0 } else { self.psf };
         let est = crate::registration::estimate(
             img.reflectance.view(),
             rendered.view(),
