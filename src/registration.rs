@@ -259,9 +259,7 @@ pub fn render(
     sun: &Directions,
     view: &Directions,
 ) -> Array2<f64> {
-    let mut out = shading(dem, spacing, model, sun, view);
-    cast_shadows(dem, spacing, sun, &mut out);
-    out
+    render_lowered(dem, spacing, model, (sun, view), 0.0)
 }
 
 /// Set `r` to 0 where `dem` casts a shadow under `sun`: where, marching from the pixel towards
@@ -350,7 +348,25 @@ pub fn render_lowered(
     (sun, view): (&Directions, &Directions),
     psf_px: f64,
 ) -> Array2<f64> {
-    let mut out = shading(dem, spacing, model, sun, view);
+    let (p, q) = ops::gradient(dem, spacing);
+    let mut out = Array2::from_elem(dem.dim(), f64::NAN);
+    Zip::indexed(&mut out)
+        .and(&p)
+        .and(&q)
+        .par_for_each(|(i, j), r, &p, &q| {
+            let (s, v) = (sun.at(i, j), view.at(i, j));
+            if !(p.is_finite() && q.is_finite() && s.iter().chain(&v).all(|c| c.is_finite())) {
+                return;
+            }
+            let sh = model.shade_observed(p, q, RENDER_ALBEDO, &s, &v);
+            if sh.lit && sh.r > 0.0 {
+                *r = sh.r;
+            }
+        });
+    if psf_px <= 0.0 {
+        cast_shadows(dem, spacing, sun, &mut out);
+        return out;
+    }
     // The same azimuth, the elevation lowered.
     let lower = |s: [f64; 3]| {
         let h = s[0].hypot(s[1]);
@@ -371,33 +387,6 @@ pub fn render_lowered(
         }
     };
     cast_shadows(dem, spacing, &lowered, &mut out);
-    out
-}
-
-/// R of `model` at the central-difference slopes of `dem` under `sun` and `view` at
-/// [`RENDER_ALBEDO`]; NaN where the DEM is not finite or the surface is unlit or unseen.
-fn shading(
-    dem: ArrayView2<f64>,
-    spacing: f64,
-    model: &dyn ReflectanceModel,
-    sun: &Directions,
-    view: &Directions,
-) -> Array2<f64> {
-    let (p, q) = ops::gradient(dem, spacing);
-    let mut out = Array2::from_elem(dem.dim(), f64::NAN);
-    Zip::indexed(&mut out)
-        .and(&p)
-        .and(&q)
-        .par_for_each(|(i, j), r, &p, &q| {
-            let (s, v) = (sun.at(i, j), view.at(i, j));
-            if !(p.is_finite() && q.is_finite() && s.iter().chain(&v).all(|c| c.is_finite())) {
-                return;
-            }
-            let sh = model.shade_observed(p, q, RENDER_ALBEDO, &s, &v);
-            if sh.lit && sh.r > 0.0 {
-                *r = sh.r;
-            }
-        });
     out
 }
 
@@ -768,6 +757,19 @@ mod tests {
         })
     }
 
+    /// The DEM of `pr` rendered under its first observation's Sun and view as the plan renders
+    /// it for an estimate against the DEM ([`render_lowered`] at the DEM's point spread).
+    fn against_the_dem(pr: &crate::fusion::Problem) -> Array2<f64> {
+        let o = &pr.observations[0];
+        render_lowered(
+            pr.dem,
+            pr.spacing,
+            pr.model,
+            (&o.sun, &o.view),
+            pr.dem_psf_sigma,
+        )
+    }
+
     /// The 256² synthetic scene of `seed` (one Sun, 105/30).
     fn scene(seed: u64) -> crate::synth::Scene {
         generate(&SceneSpec {
@@ -781,14 +783,7 @@ mod tests {
     fn a_displaced_image_is_found_where_it_was_put() {
         let sc = scene(10);
         let pr = sc.problem();
-        let o = &pr.observations[0];
-        let rendered = render_lowered(
-            pr.dem,
-            pr.spacing,
-            pr.model,
-            (&o.sun, &o.view),
-            pr.dem_psf_sigma,
-        );
+        let rendered = against_the_dem(&pr);
         // In place: the estimate is biased by the shading of relief sharper than the DEM's
         // (up to 1.3 px over the scenes and Suns measured where the correlation reaches 0.5,
         // docs/science.md "Registration") — under the 1.25 px from which a run applies it
@@ -818,14 +813,7 @@ mod tests {
     fn an_image_of_other_relief_is_not_placed() {
         let (a, b) = (scene(10), scene(11));
         let pr = a.problem();
-        let o = &pr.observations[0];
-        let rendered = render_lowered(
-            pr.dem,
-            pr.spacing,
-            pr.model,
-            (&o.sun, &o.view),
-            pr.dem_psf_sigma,
-        );
+        let rendered = against_the_dem(&pr);
         assert_eq!(
             estimate(b.image.view(), rendered.view(), pr.dem_psf_sigma, 8),
             None

@@ -2283,45 +2283,11 @@ fn of_two_observations_the_displaced_one_is_moved_back() {
 ///   moved back, 4.4 m.
 #[test]
 fn displacements_of_a_pixel_or_two_are_moved_back_under_low_and_mid_suns() {
-    let p = scene_products(256, 10);
     let dir = scratch("registration-short");
-    let truth = read_tiff(&p.truth_dem).unwrap().data;
-    let q = displaced_products(p, 0, [250.0, 0.0], &dir.join("moved"));
-    let (e_base, r_base) = registered_run(&dir, "base", p, true, &truth);
-    let (e_reg, r_reg) = registered_run(&dir, "registered", &q, true, &truth);
-    let (e_off, _) = registered_run(&dir, "unregistered", &q, false, &truth);
-    eprintln!("in place {e_base:.2} m; 250 m east: registered {e_reg:.2} m, not {e_off:.2} m");
-    assert_eq!(r_base[0]["applied"], false, "{}", r_base[0]);
-    let (rows, cols) = shift_of(&r_reg[0]);
-    assert!(
-        r_reg[0]["applied"] == true
-            && r_reg[0]["min_px"] == 1.25
-            && (cols - 250.0 / 140.0).abs() < 0.5
-            && rows.abs() < 0.5,
-        "{}",
-        r_reg[0]
-    );
-    registration_pays((e_base, e_reg, e_off), 1.1, 1.5);
+    one_moved_back_from_250_m_east(&dir, scene_products(256, 10), "Sun 105/30");
     std::fs::remove_dir_all(&dir).unwrap();
-
     let (dir, p) = observation_products(256, 10, (&[(45.0, 20.0)], &[], false), "registration-low");
-    let truth = read_tiff(&p.truth_dem).unwrap().data;
-    let q = displaced_products(&p, 0, [250.0, 0.0], &dir.join("moved"));
-    let (e_base, r_base) = registered_run(&dir, "base", &p, true, &truth);
-    let (e_reg, r_reg) = registered_run(&dir, "registered", &q, true, &truth);
-    let (e_off, _) = registered_run(&dir, "unregistered", &q, false, &truth);
-    eprintln!("Sun 20° high, in place {e_base:.2} m; 250 m east: registered {e_reg:.2} m, not {e_off:.2} m");
-    assert_eq!(r_base[0]["applied"], false, "{}", r_base[0]);
-    let (rows, cols) = shift_of(&r_reg[0]);
-    assert!(
-        r_reg[0]["applied"] == true
-            && r_reg[0]["min_px"] == 1.25
-            && (cols - 250.0 / 140.0).abs() < 0.5
-            && rows.abs() < 0.5,
-        "{}",
-        r_reg[0]
-    );
-    registration_pays((e_base, e_reg, e_off), 1.1, 1.5);
+    one_moved_back_from_250_m_east(&dir, &p, "Sun 45/20");
     std::fs::remove_dir_all(&dir).unwrap();
 
     let (dir, p) = observation_products(
@@ -2350,6 +2316,31 @@ fn displacements_of_a_pixel_or_two_are_moved_back_under_low_and_mid_suns() {
     );
     registration_pays((e_base, e_reg, e_off), 1.1, 1.5);
     std::fs::remove_dir_all(&dir).unwrap();
+}
+
+/// One observation `p` (in `dir`) in place, its LOC 250 m (1.8 px) east, registered and not:
+/// moved back against the DEM from 1.25 px, to within 1.1× the error in place; left, at least
+/// 1.5× it.
+fn one_moved_back_from_250_m_east(dir: &Path, p: &sfsfuse::synth::products::Products, what: &str) {
+    let truth = read_tiff(&p.truth_dem).unwrap().data;
+    let q = displaced_products(p, 0, [250.0, 0.0], &dir.join("moved"));
+    let (e_base, r_base) = registered_run(dir, "base", p, true, &truth);
+    let (e_reg, r_reg) = registered_run(dir, "registered", &q, true, &truth);
+    let (e_off, _) = registered_run(dir, "unregistered", &q, false, &truth);
+    eprintln!(
+        "{what}: in place {e_base:.2} m; 250 m east: registered {e_reg:.2} m, not {e_off:.2} m"
+    );
+    assert_eq!(r_base[0]["applied"], false, "{}", r_base[0]);
+    let (rows, cols) = shift_of(&r_reg[0]);
+    assert!(
+        r_reg[0]["applied"] == true
+            && r_reg[0]["min_px"] == 1.25
+            && (cols - 250.0 / 140.0).abs() < 0.5
+            && rows.abs() < 0.5,
+        "{what}: {}",
+        r_reg[0]
+    );
+    registration_pays((e_base, e_reg, e_off), 1.1, 1.5);
 }
 
 /// A grid coarser than the image's pixels gets the image averaged over each grid pixel
