@@ -317,10 +317,10 @@ pub const SHADOW_REACH: f64 = 400.0;
 /// shadows cast under the Sun itself, and 0.20 / 0.25 / 0.26 / 0.16 px under 0.7 of it (the
 /// longest 1.29 / 1.23 / 1.15 / 0.76 px against 0.62 / 0.52 / 0.52 / 0.27 px). The best
 /// factor lies near 0.65–0.7 there (lower for coarser DEMs). From 30° up the DEM's shadows are
-/// few, the estimate's bias is under the 1.25 px floor's half either way, and casting them
-/// lower costs the peak's correlation more than it gains (0.88 → 0.84 on average at 30°, which
-/// left a segment over which the displacement drifts without a clear peak), so there it is not
-/// done (docs/science.md, "Registration").
+/// few and lowering them gains little (at 30° the longest bias 0.54 → 0.52 px, under half the
+/// 1.25 px floor either way) while it costs the peak's correlation (0.88 → 0.84 on average at
+/// 30°, which left a segment over which the displacement drifts without a clear peak), so
+/// there it is not done (docs/science.md, "Registration").
 pub fn shadow_lowering(elevation_deg: f64, psf_px: f64) -> f64 {
     let fade = ((SHADOW_LOWERING_END_DEG - elevation_deg)
         / (SHADOW_LOWERING_END_DEG - SHADOW_LOWERING_FULL_DEG))
