@@ -2284,10 +2284,10 @@ fn of_two_observations_the_displaced_one_is_moved_back() {
 #[test]
 fn displacements_of_a_pixel_or_two_are_moved_back_under_low_and_mid_suns() {
     let dir = scratch("registration-short");
-    one_moved_back_from_250_m_east(&dir, scene_products(256, 10), "Sun 105/30");
+    one_moved_back_from_250_m_east(&dir, scene_products(256, 10), ("Sun 105/30", 30.0));
     std::fs::remove_dir_all(&dir).unwrap();
     let (dir, p) = observation_products(256, 10, (&[(45.0, 20.0)], &[], false), "registration-low");
-    one_moved_back_from_250_m_east(&dir, &p, "Sun 45/20");
+    one_moved_back_from_250_m_east(&dir, &p, ("Sun 45/20", 20.0));
     std::fs::remove_dir_all(&dir).unwrap();
 
     let (dir, p) = observation_products(
@@ -2319,9 +2319,13 @@ fn displacements_of_a_pixel_or_two_are_moved_back_under_low_and_mid_suns() {
 }
 
 /// One observation `p` (in `dir`) in place, its LOC 250 m (1.8 px) east, registered and not:
-/// moved back against the DEM from 1.25 px, to within 1.1× the error in place; left, at least
-/// 1.5× it.
-fn one_moved_back_from_250_m_east(dir: &Path, p: &sfsfuse::synth::products::Products, what: &str) {
+/// moved back against the DEM from 1.25 px, the length its Sun `elevation` degrees high sets
+/// (recorded with it), to within 1.1× the error in place; left, at least 1.5× it.
+fn one_moved_back_from_250_m_east(
+    dir: &Path,
+    p: &sfsfuse::synth::products::Products,
+    (what, elevation): (&str, f64),
+) {
     let truth = read_tiff(&p.truth_dem).unwrap().data;
     let q = displaced_products(p, 0, [250.0, 0.0], &dir.join("moved"));
     let (e_base, r_base) = registered_run(dir, "base", p, true, &truth);
@@ -2332,9 +2336,11 @@ fn one_moved_back_from_250_m_east(dir: &Path, p: &sfsfuse::synth::products::Prod
     );
     assert_eq!(r_base[0]["applied"], false, "{}", r_base[0]);
     let (rows, cols) = shift_of(&r_reg[0]);
+    let el = r_reg[0]["sun_elevation_deg"].as_f64().unwrap();
     assert!(
         r_reg[0]["applied"] == true
             && r_reg[0]["min_px"] == 1.25
+            && (el - elevation).abs() < 0.5
             && (cols - 250.0 / 140.0).abs() < 0.5
             && rows.abs() < 0.5,
         "{what}: {}",

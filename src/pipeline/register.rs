@@ -46,6 +46,10 @@ pub struct Registration {
     /// says, each set by its own window's Sun); `None` where nothing was estimated.
     #[serde(default)]
     pub min_px: Option<f64>,
+    /// On one window, the Sun's elevation, degrees, `min_px` was set by (as
+    /// [`Segment::sun_elevation_deg`]); along the track each segment records its own.
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub sun_elevation_deg: Option<f64>,
     /// Whether the run moves the observation back.
     pub applied: bool,
     /// Where its footprint spans two or more [`REGISTER_SEGMENT`]s along the track: each
@@ -264,6 +268,7 @@ fn not(note: String) -> Registration {
         shift_m: None,
         relative_to: None,
         min_px: None,
+        sun_elevation_deg: None,
         applied: false,
         along_track: Vec::new(),
         displacement: Displacement::default(),
@@ -456,7 +461,7 @@ fn one_window(cx: &Context, k: usize, found: Found, relative_to: Option<usize>) 
     let search = cx.o.inputs.register_search_px;
     let what = cx.against(relative_to);
     let (win, est) = (found.window, found.shift);
-    let (min_px, _, why) = cx.apply_from(k, relative_to, found.sun_elevation_deg);
+    let (min_px, el, why) = cx.apply_from(k, relative_to, found.sun_elevation_deg);
     match est {
         None => Registration {
             relative_to,
@@ -477,6 +482,7 @@ fn one_window(cx: &Context, k: usize, found: Found, relative_to: Option<usize>) 
                 shift_m: Some(m),
                 relative_to,
                 min_px: Some(min_px),
+                sun_elevation_deg: el.is_finite().then_some(el),
                 applied,
                 along_track: Vec::new(),
                 displacement: if applied {
@@ -659,6 +665,7 @@ fn along_track(
                 .reduce(f64::min)
                 .unwrap_or_else(|| cx.apply_from(k, relative_to, [f64::NAN; 2]).0),
         ),
+        sun_elevation_deg: None,
         applied,
         note: format!(
             "registered {what} on {} segments along the track ({}): {verdict}",
