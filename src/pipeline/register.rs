@@ -133,6 +133,23 @@ struct Found {
     sun_elevation_deg: [f64; 2],
 }
 
+/// From what length an estimate is applied ([`Context::apply_from`]).
+struct ApplyFrom {
+    /// The length, grid pixels.
+    px: f64,
+    /// The Sun's elevation, degrees, that set it (NaN without one).
+    elevation_deg: f64,
+    /// Where the length comes from, in words.
+    why: String,
+}
+
+impl ApplyFrom {
+    /// The elevation where there is one.
+    fn elevation(&self) -> Option<f64> {
+        self.elevation_deg.is_finite().then_some(self.elevation_deg)
+    }
+}
+
 /// The run-wide quantities a registration window is estimated with.
 struct Context<'a> {
     o: &'a Orbital,
@@ -408,14 +425,9 @@ impl Context<'_> {
 
     /// The length from which observation `k`'s estimate, made as `relative_to` says
     /// ([`Context::against`]) on a window under the Suns `sun` ([`Found::sun_elevation_deg`]),
-    /// is applied; the Sun's elevation it was set by, and where that length comes from, in
-    /// words. Where the window gives no elevation, the observation's mean over the region.
-    fn apply_from(
-        &self,
-        k: usize,
-        relative_to: Option<usize>,
-        sun: [f64; 2],
-    ) -> (f64, f64, String) {
+    /// is applied ([`ApplyFrom`]). Where the window gives no elevation, the observation's
+    /// mean over the region.
+    fn apply_from(&self, k: usize, relative_to: Option<usize>, sun: [f64; 2]) -> ApplyFrom {
         let elevation = |i: usize, k: usize| {
             if sun[i].is_finite() {
                 sun[i]
@@ -426,25 +438,29 @@ impl Context<'_> {
         match (relative_to, self.o.inputs.register_min_px) {
             (Some(j), _) => {
                 let higher = elevation(0, k).max(elevation(1, j));
-                (
-                    crate::registration::relative_apply_px(higher),
-                    higher,
-                    format!(
+                ApplyFrom {
+                    px: crate::registration::relative_apply_px(higher),
+                    elevation_deg: higher,
+                    why: format!(
                         "twice the longest bias of such an estimate where the higher Sun stands {higher:.0}° high"
                     ),
-                )
+                }
             }
-            (None, Some(m)) => (m, elevation(0, k), "[inputs] register_min_px".to_string()),
+            (None, Some(m)) => ApplyFrom {
+                px: m,
+                elevation_deg: elevation(0, k),
+                why: "[inputs] register_min_px".to_string(),
+            },
             (None, None) => {
                 let el = elevation(0, k);
-                (
-                    crate::registration::dem_apply_px(el, self.psf),
-                    el,
-                    format!(
+                ApplyFrom {
+                    px: crate::registration::dem_apply_px(el, self.psf),
+                    elevation_deg: el,
+                    why: format!(
                         "twice the longest bias of such an estimate under a Sun {el:.0}° high, the DEM's point spread {:.1} px",
                         self.psf
                     ),
-                )
+                }
             }
         }
     }
@@ -461,7 +477,8 @@ fn one_window(cx: &Context, k: usize, found: Found, relative_to: Option<usize>) 
     let search = cx.o.inputs.register_search_px;
     let what = cx.against(relative_to);
     let (win, est) = (found.window, found.shift);
-    let (min_px, el, why) = cx.apply_from(k, relative_to, found.sun_elevation_deg);
+    let from = cx.apply_from(k, relative_to, found.sun_elevation_deg);
+    let (min_px, why) = (from.px, &from.why);
     match est {
         None => Registration {
             relative_to,
@@ -482,7 +499,7 @@ fn one_window(cx: &Context, k: usize, found: Found, relative_to: Option<usize>) 
                 shift_m: Some(m),
                 relative_to,
                 min_px: Some(min_px),
-                sun_elevation_deg: el.is_finite().then_some(el),
+                sun_elevation_deg: from.elevation(),
                 applied,
                 along_track: Vec::new(),
                 displacement: if applied {
@@ -529,8 +546,7 @@ fn placed_segments(
         .into_iter()
         .map(|f| {
             let (window, relative) = (f.window, f.relative);
-            let (min_px, el, _) =
-                cx.apply_from(k, partner.filter(|_| relative), f.sun_elevation_deg);
+            let from = cx.apply_from(k, partner.filter(|_| relative), f.sun_elevation_deg);
             // Without an estimate (display only): the middle of the window's lines.
             let line = f
                 .line
@@ -548,8 +564,8 @@ fn placed_segments(
                 shift_m: shift.as_ref().map(|s| cx.metres(s)),
                 shift,
                 relative,
-                min_px: Some(min_px),
-                sun_elevation_deg: el.is_finite().then_some(el),
+                min_px: Some(from.px),
+                sun_elevation_deg: from.elevation(),
             }
         })
         .collect();
@@ -663,7 +679,7 @@ fn along_track(
                 .filter(|s| s.relative == relative_to.is_some())
                 .filter_map(|s| s.min_px)
                 .reduce(f64::min)
-                .unwrap_or_else(|| cx.apply_from(k, relative_to, [f64::NAN; 2]).0),
+                .unwrap_or_else(|| cx.apply_from(k, relative_to, [f64::NAN; 2]).px),
         ),
         sun_elevation_deg: None,
         applied,
