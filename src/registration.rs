@@ -262,12 +262,18 @@ pub fn render(
     render_lowered(dem, spacing, model, (sun, view), 0.0)
 }
 
-/// Set `r` to 0 where `dem` casts a shadow under `sun`: where, marching from the pixel towards
-/// the Sun in half-pixel steps, the DEM (bilinear) rises above the ray at the Sun's elevation.
-/// The march stops at the grid's edge, at [`SHADOW_REACH`] pixels, or where the ray clears the
-/// DEM's highest point. The images' shadows are dark too; without them the estimate's bias
-/// under a Sun 10° high was 1.6–2.0 px, with them 1.0–1.2 px.
-fn cast_shadows(dem: ArrayView2<f64>, spacing: f64, sun: &Directions, r: &mut Array2<f64>) {
+/// Set `r` to 0 where `dem` casts a shadow under `sun`, lowered by [`shadow_lowering`] of its
+/// elevation for a DEM of point spread `psf_px` (its azimuth kept): where, marching from the
+/// pixel towards the Sun in half-pixel steps, the DEM (bilinear) rises above the ray at that
+/// elevation. The march stops at the grid's edge, at [`SHADOW_REACH`] pixels, or where the ray
+/// clears the DEM's highest point. The images' shadows are dark too; without them the
+/// estimate's bias under a Sun 10° high was 1.6–2.0 px, with them 1.0–1.2 px.
+fn cast_shadows(
+    dem: ArrayView2<f64>,
+    spacing: f64,
+    (sun, psf_px): (&Directions, f64),
+    r: &mut Array2<f64>,
+) {
     let (ny, nx) = dem.dim();
     let top = dem
         .iter()
@@ -280,8 +286,16 @@ fn cast_shadows(dem: ArrayView2<f64>, spacing: f64, sun: &Directions, r: &mut Ar
         if !(r.is_finite() && h > 0.0 && s[2] > 0.0) {
             return;
         }
+        // The ray's rise per pixel: tan e, or tan of the lowered elevation.
+        let e = s[2].clamp(-1.0, 1.0).asin();
+        let cut = shadow_lowering(e.to_degrees(), psf_px);
+        let tan = if cut > 0.0 {
+            ((1.0 - cut) * e).tan()
+        } else {
+            s[2] / h
+        };
         // Grid rows run south: towards the Sun, the row falls by its northward component.
-        let (east, north, rise) = (s[0] / h, s[1] / h, s[2] / h * spacing);
+        let (east, north, rise) = (s[0] / h, s[1] / h, tan * spacing);
         let reach = ((top - z0) / rise).min(SHADOW_REACH);
         let mut t = 0.5;
         while t <= reach {
@@ -363,30 +377,7 @@ pub fn render_lowered(
                 *r = sh.r;
             }
         });
-    if psf_px <= 0.0 {
-        cast_shadows(dem, spacing, sun, &mut out);
-        return out;
-    }
-    // The same azimuth, the elevation lowered.
-    let lower = |s: [f64; 3]| {
-        let h = s[0].hypot(s[1]);
-        let e = s[2].clamp(-1.0, 1.0).asin();
-        let cut = shadow_lowering(e.to_degrees(), psf_px);
-        if h > 0.0 && cut > 0.0 {
-            let e = (1.0 - cut) * e;
-            let k = e.cos() / h;
-            [s[0] * k, s[1] * k, e.sin()]
-        } else {
-            s
-        }
-    };
-    let lowered = match sun {
-        Directions::Uniform(s) => Directions::Uniform(lower(*s)),
-        Directions::PerPixel(a) => {
-            Directions::PerPixel(a.mapv(|s| lower(s.map(f64::from)).map(|c| c as f32)).into())
-        }
-    };
-    cast_shadows(dem, spacing, &lowered, &mut out);
+    cast_shadows(dem, spacing, (sun, psf_px), &mut out);
     out
 }
 
