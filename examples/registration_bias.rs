@@ -21,20 +21,28 @@ struct Lengths {
     not: usize,
 }
 
+/// The elevations, the DEM factor and the size from the command line; `None` when one does
+/// not parse.
+fn parse(args: &[String]) -> Option<(Vec<f64>, usize, usize)> {
+    let elevations = args
+        .get(1)?
+        .split(',')
+        .map(|x| x.parse::<f64>().ok())
+        .collect::<Option<Vec<_>>>()?;
+    let dem_factor = args.get(2).map_or(Some(4), |s| s.parse().ok())?;
+    let size = args.get(3).map_or(Some(256), |s| s.parse().ok())?;
+    Some((elevations, dem_factor, size))
+}
+
 fn main() {
     let args: Vec<String> = std::env::args().collect();
-    let Some(elevations) = args.get(1).map(|a| {
-        a.split(',')
-            .map(|x| x.parse::<f64>().expect("an elevation in degrees"))
-            .collect::<Vec<_>>()
-    }) else {
-        eprintln!("usage: registration_bias ELEVATIONS [DEM_FACTOR] [SIZE], e.g. 10,20,30 4 256");
+    let Some((elevations, dem_factor, size)) = parse(&args) else {
+        eprintln!(
+            "usage: registration_bias ELEVATIONS [DEM_FACTOR] [SIZE]: elevations in degrees, comma-separated, \
+             the DEM's coarseness (default 4) and the scene's side in pixels (default 256), e.g. 10,20,30 4 256"
+        );
         std::process::exit(2);
     };
-    let dem_factor: usize = args.get(2).map_or(4, |s| s.parse().expect("a DEM factor"));
-    let size: usize = args
-        .get(3)
-        .map_or(256, |s| s.parse().expect("a size in pixels"));
     for &el in &elevations {
         let mut lengths = [Lengths::default(), Lengths::default()];
         let mut cut = 0.0;
