@@ -57,7 +57,7 @@ fn main() {
                     ..SceneSpec::default()
                 });
                 let pr = sc.problem();
-                let (sun, view) = (Directions::Uniform(sc.sun), Directions::Uniform(sc.view));
+                let (sun, view) = (sc.sun.directions(size, size), Directions::Uniform(sc.view));
                 cut = shadow_lowering(el, pr.dem_psf_sigma);
                 for (l, psf) in lengths.iter_mut().zip([0.0, pr.dem_psf_sigma]) {
                     let r = render_lowered(pr.dem, pr.spacing, pr.model, (&sun, &view), psf);

@@ -248,6 +248,12 @@ struct SynthArgs {
     /// Default: one observation, Sun at 105/30.
     #[arg(long = "sun", value_parser = sfsfuse::synth::parse_sun)]
     suns: Vec<(f64, f64)>,
+    /// How the Sun of each observation moves along its strip, as ΔAZIMUTH/ΔELEVATION in
+    /// degrees (in `--sun` order; missing ones are 0/0): from its `--sun` at the first line
+    /// to that much further at the last, in proportion to the line, as the local time and
+    /// latitude change along a polar orbit's track, e.g. `--sun 105/20 --sun-drift 0/15`.
+    #[arg(long = "sun-drift", allow_hyphen_values = true, value_parser = sfsfuse::synth::parse_sun_drift)]
+    sun_drifts: Vec<[f64; 2]>,
     /// Radiometric gain of each further observation relative to the first (in `--sun`
     /// order from the second on; missing ones are 1).
     #[arg(long = "gain")]
@@ -308,6 +314,7 @@ fn synth(a: SynthArgs) -> Result<(), sfsfuse::Error> {
         size,
         seed,
         suns,
+        sun_drifts,
         gains,
         strips,
         loc_offsets,
@@ -326,6 +333,7 @@ fn synth(a: SynthArgs) -> Result<(), sfsfuse::Error> {
         )));
     }
     for (name, n) in [
+        ("--sun-drift", sun_drifts.len()),
         ("--loc-offset", loc_offsets.len()),
         ("--loc-drift", loc_drifts.len()),
         ("--gain-trend", gain_trends.len()),
@@ -391,6 +399,9 @@ fn synth(a: SynthArgs) -> Result<(), sfsfuse::Error> {
     } else {
         spec.with_observations(&suns, &all_gains, strips)
     };
+    let spec = spec
+        .with_sun_drifts(&sun_drifts)
+        .map_err(sfsfuse::Error::Usage)?;
     if size < 16 {
         return Err(sfsfuse::Error::Usage(format!(
             "--size {size} is too small: use at least 16"

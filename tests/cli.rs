@@ -776,6 +776,64 @@ fn synth_writes_an_observation_with_coarser_pixels_where_asked() {
     std::fs::remove_dir_all(&base).unwrap();
 }
 
+/// `synth --sun-drift ΔAZ/ΔEL` writes an observation whose Sun moves along its strip: in its
+/// OBS backplane line i of 32 has the Sun's azimuth ΔAZ·i/31 further round and its zenith
+/// ΔEL·i/31 smaller than without the drift, at every sample; the observation without one is
+/// written as before; a drift that takes a Sun below the horizon, one that is not two numbers
+/// and more values than `--sun`s are refused.
+#[test]
+fn synth_writes_a_sun_moving_along_the_strip_where_asked() {
+    let base = scratch("sun-drift");
+    let write = |name: &str, extra: &[&str]| synth_two_suns(&base.join(name), extra);
+    let plain = write("plain", &[]);
+    let moving = write("moving", &["--sun-drift", "0/0", "--sun-drift", "20/-10"]);
+    let obs =
+        |dir: &std::path::Path, id: &str| le_values(&dir.join(format!("{id}_V03_OBS.IMG")), 4);
+    let (first, second) = ("M3G20991231T000000", "M3G20991231T010000");
+    assert_eq!(obs(&plain, first), obs(&moving, first));
+    let (a, b) = (obs(&plain, second), obs(&moving, second));
+    // Line-interleaved: each line holds the ten bands' 32 samples in turn, to-Sun azimuth first,
+    // then to-Sun zenith.
+    for (i, (la, lb)) in a.chunks_exact(320).zip(b.chunks_exact(320)).enumerate() {
+        let t = i as f64 / 31.0;
+        for s in 0..32 {
+            let turned = (lb[s] - la[s] - 20.0 * t + 180.0).rem_euclid(360.0) - 180.0;
+            assert!(
+                turned.abs() < 1e-3,
+                "line {i} sample {s}: azimuth {} against {}",
+                lb[s],
+                la[s]
+            );
+            assert!(
+                (lb[32 + s] - la[32 + s] - 10.0 * t).abs() < 1e-3,
+                "line {i} sample {s}"
+            );
+        }
+    }
+    synth_refuses(
+        &base,
+        &[
+            (
+                vec!["--sun-drift", "0/0", "--sun-drift", "0/-40"],
+                "above the horizon",
+            ),
+            (vec!["--sun-drift", "10"], "ΔAZIMUTH/ΔELEVATION"),
+            (
+                vec![
+                    "--sun-drift",
+                    "0/0",
+                    "--sun-drift",
+                    "1/1",
+                    "--sun-drift",
+                    "2/2",
+                ],
+                "at most one per --sun",
+            ),
+        ],
+    );
+    std::fs::remove_dir_all(&base).unwrap();
+}
+
 /// `synth` with two Suns and each of `cases`' extra arguments fails, saying what is given.
 fn synth_refuses(base: &std::path::Path, cases: &[(Vec<&str>, &str)]) {
     for (bad, says) in cases {

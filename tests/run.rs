@@ -2230,6 +2230,68 @@ fn a_displacement_drifting_along_the_strip_is_followed() {
     std::fs::remove_dir_all(&dir).unwrap();
 }
 
+/// Over a long strip the Sun moves along the track. Two observations whose Suns move the
+/// opposite ways (105/25 rising to 40° high over the 512 lines, 225/35 sinking to 25° while
+/// turning to 245°): each segment's estimate is judged by the Sun over its own window, the
+/// first observation's against the DEM, the second's, placed relative to the first, by the
+/// higher of the two there, which is the second's on the northern segment and the first's
+/// on the southern. The elevations the record gives are the mean of the linear ramp over the
+/// window's rows, to 0.1° (shadows, which the mean leaves out, fall evenly enough). The pair
+/// keeps the several-observation bar against the better of its single images under the same
+/// moving Suns.
+#[test]
+fn each_segment_is_judged_by_the_sun_over_its_own_rows() {
+    let suns = [(105.0, 25.0), (225.0, 35.0)];
+    let drifts = [[0.0, 15.0], [20.0, -10.0]];
+    let (dir, p) = support::drifting_sun_products(512, 3, &suns, &drifts, "sun-drift");
+    let truth = read_tiff(&p.truth_dem).unwrap().data;
+    let (e_pair, regs) = registered_run(&dir, "pair", &p, true, &truth);
+    // The mean elevation of observation k's Sun over rows [r0, r0 + n) of 512.
+    let ramp =
+        |k: usize, r0: f64, n: f64| suns[k].1 + drifts[k][1] * (r0 + (n - 1.0) / 2.0) / 511.0;
+    assert!(regs[0]["relative_to"].is_null() && regs[1]["relative_to"] == 0);
+    let mut judged_by = Vec::new();
+    for (k, r) in regs.iter().enumerate() {
+        let segments = r["along_track"].as_array().unwrap();
+        assert_eq!(segments.len(), 2, "{r}");
+        for s in segments {
+            let w = &s["window"];
+            let (r0, n) = (w[0].as_f64().unwrap(), w[1].as_f64().unwrap());
+            let want = match k {
+                0 => ramp(0, r0, n),
+                _ => ramp(0, r0, n).max(ramp(1, r0, n)),
+            };
+            let el = s["sun_elevation_deg"].as_f64().unwrap();
+            assert!(
+                (el - want).abs() < 0.1,
+                "observation {k}: {el}° against {want}°: {s}"
+            );
+            judged_by.push(el);
+        }
+    }
+    // The northern and southern segments are judged by different Suns, 7–8° apart.
+    assert!((judged_by[1] - judged_by[0]).abs() > 5.0 && (judged_by[3] - judged_by[2]).abs() > 3.0);
+    let single = |k: usize| {
+        let (d, q) = support::drifting_sun_products(
+            512,
+            3,
+            &suns[k..=k],
+            &drifts[k..=k],
+            &format!("sun-drift-{k}"),
+        );
+        let (e, _) = registered_run(&d, "single", &q, true, &truth);
+        std::fs::remove_dir_all(&d).unwrap();
+        e
+    };
+    let best = single(0).min(single(1));
+    eprintln!("moving Suns: pair {e_pair:.2} m, better single {best:.2} m");
+    assert!(
+        e_pair <= 0.65 * best,
+        "pair {e_pair:.2} m against {best:.2} m"
+    );
+    std::fs::remove_dir_all(&dir).unwrap();
+}
+
 /// Two Suns, the second observation's LOC 1.5 px (210 m) north-east of where it lies — about
 /// the RMS error of M3's selenolocation between observations: only it is moved back, placed
 /// against the first observation fused alone, and the pair comes close to the undisplaced

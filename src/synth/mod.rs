@@ -32,9 +32,13 @@ pub struct SceneSpec {
     /// Metres per pixel.
     pub spacing: f64,
     pub seed: u64,
-    /// Sun incidence (zenith) angle and azimuth (clockwise from north), degrees.
+    /// Sun incidence (zenith) angle and azimuth (clockwise from north), degrees, at the first
+    /// row.
     pub sun_incidence_deg: f64,
     pub sun_azimuth_deg: f64,
+    /// How the Sun's azimuth and elevation change, degrees, from the first row to the last
+    /// ([`SunPath`]; `[0, 0]`: the same Sun everywhere).
+    pub sun_drift_deg: [f64; 2],
     /// Camera zenith and azimuth, degrees.
     pub view_zenith_deg: f64,
     pub view_azimuth_deg: f64,
@@ -62,6 +66,8 @@ pub struct SceneSpec {
 pub struct ShotSpec {
     pub sun_incidence_deg: f64,
     pub sun_azimuth_deg: f64,
+    /// How its Sun's azimuth and elevation change from the first row to the last, degrees.
+    pub sun_drift_deg: [f64; 2],
     /// Radiometric gain: the image is g × the rendered reflectance (detector and calibration
     /// differences between observations).
     pub gain: f64,
@@ -76,7 +82,7 @@ pub struct Shot {
     /// g × reflectance (sr⁻¹) with noise; NaN outside its columns.
     pub image: Array2<f64>,
     pub shadow: Array2<bool>,
-    pub sun: Vec3,
+    pub sun: SunPath,
 }
 
 impl Default for SceneSpec {
@@ -89,6 +95,7 @@ impl Default for SceneSpec {
             seed: 1,
             sun_incidence_deg: 60.0,
             sun_azimuth_deg: 105.0,
+            sun_drift_deg: [0.0, 0.0],
             view_zenith_deg: 3.0,
             view_azimuth_deg: 250.0,
             noise: 0.01,
@@ -130,6 +137,17 @@ pub fn parse_sun(text: &str) -> Result<(f64, f64), String> {
         ));
     }
     Ok((a, e))
+}
+
+/// `--sun-drift` ΔAZ/ΔEL: how far a Sun moves along a strip, degrees, each finite (the
+/// range is checked against the Sun it moves, [`SceneSpec::with_sun_drifts`]).
+pub fn parse_sun_drift(text: &str) -> Result<[f64; 2], String> {
+    match parse_pair(text) {
+        Some((a, e)) if a.is_finite() && e.is_finite() => Ok([a, e]),
+        _ => Err(format!(
+            "--sun-drift {text}: expected ΔAZIMUTH/ΔELEVATION in degrees, e.g. 0/15"
+        )),
+    }
 }
 
 /// `--loc-offset` and `--loc-drift` EAST/NORTH: a selenolocation error in metres, each finite and within
@@ -181,11 +199,55 @@ impl SceneSpec {
             .map(|(i, &(az, el))| ShotSpec {
                 sun_incidence_deg: 90.0 - el,
                 sun_azimuth_deg: az,
+                sun_drift_deg: [0.0, 0.0],
                 gain: gains.get(i).copied().unwrap_or(1.0),
                 columns: strip(i),
             })
             .collect();
         self
+    }
+}
+
+impl SceneSpec {
+    /// The Suns of its observations moving along the rows (in observation order; missing ones
+    /// do not move): Δazimuth and Δelevation, degrees, from the first row to the last
+    /// ([`SunPath`]). Refused, naming the observation, where a Sun would end at or below the
+    /// horizon or past the zenith, or turn by more than 180° in azimuth.
+    pub fn with_sun_drifts(mut self, drifts: &[[f64; 2]]) -> Result<Self, String> {
+        for (k, &d) in drifts.iter().enumerate() {
+            let path = match k {
+                0 => self.sun_path(),
+                _ => match self.more.get(k - 1) {
+                    Some(m) => m.sun_path(),
+                    None => {
+                        return Err(format!(
+                            "--sun-drift {}/{}: observation {} has no --sun",
+                            d[0],
+                            d[1],
+                            k + 1
+                        ))
+                    }
+                },
+            };
+            let end = 90.0 - path.zenith_deg + d[1];
+            if !(d[0].is_finite() && d[0].abs() <= 180.0 && end > 0.0 && end <= 90.0) {
+                return Err(format!(
+                    "--sun-drift {}/{}: observation {}'s Sun at {}/{} would end at {}/{}: the azimuth may turn by at most 180° and the elevation must stay above the horizon (0 < elevation ≤ 90)",
+                    d[0],
+                    d[1],
+                    k + 1,
+                    path.azimuth_deg,
+                    90.0 - path.zenith_deg,
+                    (path.azimuth_deg + d[0]).rem_euclid(360.0),
+                    end
+                ));
+            }
+            match k {
+                0 => self.sun_drift_deg = d,
+                _ => self.more[k - 1].sun_drift_deg = d,
+            }
+        }
+        Ok(self)
     }
 }
 
@@ -200,7 +262,7 @@ pub struct Scene {
     /// True where the truth surface is in cast or self shadow.
     pub shadow: Array2<bool>,
     pub input_dem: Array2<f64>,
-    pub sun: Vec3,
+    pub sun: SunPath,
     pub view: Vec3,
     pub model: Hapke,
     /// The further observations of `spec.more`.
@@ -212,6 +274,71 @@ pub struct Scene {
 pub fn direction(zenith_deg: f64, azimuth_deg: f64) -> Vec3 {
     let (z, a) = (zenith_deg.to_radians(), azimuth_deg.to_radians());
     [z.sin() * a.sin(), z.sin() * a.cos(), z.cos()]
+}
+
+/// The Sun of one observation over a scene: azimuth (clockwise from north) and zenith angle,
+/// degrees, at the first grid row, the azimuth and the elevation changing in proportion to the
+/// row by `drift_deg` = [Δazimuth, Δelevation] at the last. Over a strip whose track runs north–south, as M3's polar orbit's did, the Sun
+/// moves so as the local time and latitude change along it (`sfsfuse synth --sun-drift`).
+#[derive(Debug, Clone, Copy, PartialEq, Serialize)]
+pub struct SunPath {
+    pub azimuth_deg: f64,
+    pub zenith_deg: f64,
+    pub drift_deg: [f64; 2],
+}
+
+impl SunPath {
+    /// The Sun over row `row` (fractional) of `rows`: azimuth + t·Δazimuth, zenith − t·Δelevation,
+    /// t = row/(rows − 1), as a unit east-north-up vector ([`direction`]; a Sun that does not
+    /// move is exactly `direction(zenith, azimuth)` on every row).
+    pub fn at_row(&self, row: f64, rows: usize) -> Vec3 {
+        let t = if rows > 1 {
+            row / (rows - 1) as f64
+        } else {
+            0.0
+        };
+        let [da, de] = self.drift_deg;
+        direction(self.zenith_deg - t * de, self.azimuth_deg + t * da)
+    }
+
+    /// Whether the Sun is the same over every row.
+    pub fn is_uniform(&self) -> bool {
+        self.drift_deg == [0.0, 0.0]
+    }
+
+    /// The Sun at each pixel of a `rows` × `cols` grid, as the fusion takes it: one vector
+    /// when it does not change, one per pixel (f32) when it does.
+    pub fn directions<'a>(&self, rows: usize, cols: usize) -> Directions<'a> {
+        if self.is_uniform() {
+            return Directions::Uniform(self.at_row(0.0, rows));
+        }
+        let per_row: Vec<crate::photometry::Vec3f> = (0..rows)
+            .map(|i| self.at_row(i as f64, rows).map(|x| x as f32))
+            .collect();
+        Directions::PerPixel(Array2::from_shape_fn((rows, cols), |(i, _)| per_row[i]).into())
+    }
+}
+
+impl SceneSpec {
+    /// The first observation's Sun over the scene.
+    pub fn sun_path(&self) -> SunPath {
+        SunPath {
+            azimuth_deg: self.sun_azimuth_deg,
+            zenith_deg: self.sun_incidence_deg,
+            drift_deg: self.sun_drift_deg,
+        }
+    }
+}
+
+impl ShotSpec {
+    /// This observation's Sun over the scene.
+    pub fn sun_path(&self) -> SunPath {
+        SunPath {
+            azimuth_deg: self.sun_azimuth_deg,
+            zenith_deg: self.sun_incidence_deg,
+            drift_deg: self.sun_drift_deg,
+        }
+    }
 }
 
 struct Crater {
@@ -291,7 +418,7 @@ pub fn generate(spec: &SceneSpec) -> Scene {
     // Rendering: each pixel averages the radiance of its SUB × SUB subsamples, as a detector
     // integrates over its footprint; the albedo is constant over a pixel.
     let model = Hapke::moon();
-    let sun = direction(spec.sun_incidence_deg, spec.sun_azimuth_deg);
+    let sun = spec.sun_path();
     let view = direction(spec.view_zenith_deg, spec.view_azimuth_deg);
     let surface = Subsampled {
         height: &height,
@@ -311,7 +438,7 @@ pub fn generate(spec: &SceneSpec) -> Scene {
             // observation and the input DEM do not depend on how many there are.
             let mut rng =
                 Rng::new(spec.seed ^ (0x9E37_79B9_7F4A_7C15u64.wrapping_mul(k as u64 + 1)));
-            let sun = direction(m.sun_incidence_deg, m.sun_azimuth_deg);
+            let sun = m.sun_path();
             let (mut image, shadow) = surface.render(&model, &sun, &view, spec.noise, &mut rng);
             image.mapv_inplace(|r| r * m.gain);
             mask_columns(&mut image, m.columns);
@@ -535,23 +662,26 @@ struct Subsampled<'a> {
 
 impl Subsampled<'_> {
     /// The image under `sun` seen from `view` (each pixel the mean of its subsamples, cast
-    /// shadows by ray marching), plus Gaussian noise of `noise` × the mean lit reflectance;
-    /// and where more than half a pixel is in shadow.
+    /// shadows by ray marching; the Sun of the pixel's row over all of them), plus Gaussian
+    /// noise of `noise` × the mean lit reflectance; and where more than half a pixel is in
+    /// shadow.
     fn render(
         &self,
         model: &Hapke,
-        sun: &Vec3,
+        sun: &SunPath,
         view: &Vec3,
         noise: f64,
         rng: &mut Rng,
     ) -> (Array2<f64>, Array2<bool>) {
         let n = self.albedo.nrows();
-        let cast = cast_shadow(self.height, self.h_sub, sun);
+        let rows: Vec<Vec3> = (0..n).map(|i| sun.at_row(i as f64, n)).collect();
+        let cast = cast_shadow(self.height, self.h_sub, &|si| rows[si / SUB]);
         let mut image = Array2::zeros((n, n));
         let mut shadow = Array2::from_elem((n, n), false);
         Zip::indexed(&mut image)
             .and(&mut shadow)
             .par_for_each(|(i, j), r, s| {
+                let sun = &rows[i];
                 let (mut sum, mut dark) = (0.0, 0);
                 for si in i * SUB..(i + 1) * SUB {
                     for sj in j * SUB..(j + 1) * SUB {
@@ -593,9 +723,9 @@ const PATCH_ZERO_PX: f64 = 1424.0;
 /// terrain it clears.
 const SHADOW_BLOCKS: [usize; 3] = [64, 16, 4];
 
-/// Cast shadows: march from each pixel towards the Sun over the bilinearly interpolated DEM,
-/// in steps of half a cell, until the terrain rises above the ray (shadow), the ray leaves the
-/// grid or rises above the highest point (lit).
+/// Cast shadows: march from each pixel towards the Sun of its row (`sun_of_row`) over the
+/// bilinearly interpolated DEM, in steps of half a cell, until the terrain rises above the ray
+/// (shadow), the ray leaves the grid or rises above the highest point (lit).
 ///
 /// A bilinear sample in cell (i0, j0) mixes the heights at rows i0, i0 + 1 and columns
 /// j0, j0 + 1, so it cannot exceed the maximum over the cell's block (of any size in
@@ -606,19 +736,15 @@ const SHADOW_BLOCKS: [usize; 3] = [64, 16, 4];
 /// step outside it): the same steps decide, so the result is the plain march's exactly,
 /// without sampling the terrain the ray clears — with kilometre-deep craters the plain march
 /// takes thousands of steps per pixel.
-fn cast_shadow(h: &Array2<f64>, eps: f64, sun: &Vec3) -> Array2<bool> {
+fn cast_shadow(
+    h: &Array2<f64>,
+    eps: f64,
+    sun_of_row: &(dyn Fn(usize) -> Vec3 + Sync),
+) -> Array2<bool> {
     let (ny, nx) = h.dim();
-    let horiz = (sun[0] * sun[0] + sun[1] * sun[1]).sqrt();
     let mut out = Array2::from_elem((ny, nx), false);
-    if horiz < 1e-12 {
-        return out;
-    }
-    let rise = sun[2] / horiz; // metres of ray rise per metre travelled
-    let (dj, di) = (sun[0] / horiz, -sun[1] / horiz); // per pixel step, columns east, rows south
     let hmax = h.iter().cloned().fold(f64::MIN, f64::max);
-    // A ray that sinks (the Sun below the horizon) may not skip anything: no blocks.
-    let blocks: &[usize] = if rise >= 0.0 { &SHADOW_BLOCKS } else { &[] };
-    let maxima: Vec<(usize, Array2<f64>)> = blocks
+    let maxima: Vec<(usize, Array2<f64>)> = SHADOW_BLOCKS
         .iter()
         .map(|&b| {
             let m = Array2::from_shape_fn((ny.div_ceil(b), nx.div_ceil(b)), |(bi, bj)| {
@@ -653,6 +779,15 @@ fn cast_shadow(h: &Array2<f64>, eps: f64, sun: &Vec3) -> Array2<bool> {
     };
     let step = 0.5;
     Zip::indexed(&mut out).par_for_each(|(i, j), s| {
+        let sun = sun_of_row(i);
+        let horiz = (sun[0] * sun[0] + sun[1] * sun[1]).sqrt();
+        if horiz < 1e-12 {
+            return;
+        }
+        let rise = sun[2] / horiz; // metres of ray rise per metre travelled
+        let (dj, di) = (sun[0] / horiz, -sun[1] / horiz); // per pixel step, columns east, rows south
+                                                          // A ray that sinks (the Sun below the horizon) may not skip anything: no blocks.
+        let blocks = if rise >= 0.0 { &maxima[..] } else { &[] };
         let h0 = h[(i, j)];
         // t = k·step exactly (multiples of 0.5).
         let mut k: u64 = 1;
@@ -667,7 +802,7 @@ fn cast_shadow(h: &Array2<f64>, eps: f64, sun: &Vec3) -> Array2<bool> {
                 break;
             }
             let (ci, cj) = (fi.floor() as usize, fj.floor() as usize);
-            let clear = maxima.iter().find(|(b, m)| ray > m[(ci / b, cj / b)]);
+            let clear = blocks.iter().find(|(b, m)| ray > m[(ci / b, cj / b)]);
             if let Some(&(b, _)) = clear {
                 let (lo_i, lo_j) = (ci / b * b, cj / b * b);
                 let t_exit = exit(i as f64, di, lo_i, b).min(exit(j as f64, dj, lo_j, b));
@@ -752,7 +887,7 @@ impl Scene {
     pub fn problem(&self) -> crate::fusion::Problem<'_> {
         let mut pr = crate::fusion::Problem::single(
             self.image.view(),
-            Directions::Uniform(self.sun),
+            self.sun.directions(self.image.nrows(), self.image.ncols()),
             Directions::Uniform(self.view),
             self.input_dem.view(),
             self.spec.spacing,
@@ -762,7 +897,7 @@ impl Scene {
         pr.observations
             .extend(self.more.iter().map(|m| crate::fusion::Observation {
                 image: m.image.view(),
-                sun: Directions::Uniform(m.sun),
+                sun: m.sun.directions(m.image.nrows(), m.image.ncols()),
                 view: Directions::Uniform(self.view),
             }));
         pr
@@ -781,13 +916,18 @@ mod tests {
 
     /// The plain march, every half cell from the pixel: the reference the block skipping of
     /// [`cast_shadow`] must reproduce exactly.
-    fn cast_shadow_plain(h: &Array2<f64>, eps: f64, sun: &Vec3) -> Array2<bool> {
+    fn cast_shadow_plain(
+        h: &Array2<f64>,
+        eps: f64,
+        sun_of_row: &dyn Fn(usize) -> Vec3,
+    ) -> Array2<bool> {
         let (ny, nx) = h.dim();
-        let horiz = (sun[0] * sun[0] + sun[1] * sun[1]).sqrt();
-        let rise = sun[2] / horiz;
-        let (dj, di) = (sun[0] / horiz, -sun[1] / horiz);
         let hmax = h.iter().cloned().fold(f64::MIN, f64::max);
         Array2::from_shape_fn((ny, nx), |(i, j)| {
+            let sun = sun_of_row(i);
+            let horiz = (sun[0] * sun[0] + sun[1] * sun[1]).sqrt();
+            let rise = sun[2] / horiz;
+            let (dj, di) = (sun[0] / horiz, -sun[1] / horiz);
             let mut t = 0.5;
             loop {
                 let (fi, fj) = (i as f64 + di * t, j as f64 + dj * t);
@@ -809,6 +949,56 @@ mod tests {
                 t += 0.5;
             }
         })
+    }
+
+    /// A Sun moving along the rows: at the first and last rows the given directions, between
+    /// them in proportion to the row (worked out by hand at the middle row of 5); a Sun that
+    /// does not move is one vector for the whole grid; a drift that ends at or below the
+    /// horizon is refused, naming the observation.
+    #[test]
+    fn a_suns_path_moves_in_proportion_to_the_row() {
+        let path = SunPath {
+            azimuth_deg: 350.0,
+            zenith_deg: 70.0,
+            drift_deg: [20.0, 10.0],
+        };
+        let close = |a: Vec3, b: Vec3| a.iter().zip(&b).all(|(x, y)| (x - y).abs() < 1e-12);
+        assert!(close(path.at_row(0.0, 5), direction(70.0, 350.0)));
+        assert!(close(path.at_row(4.0, 5), direction(60.0, 10.0)));
+        // Row 2 of 5: halfway, azimuth 0° (due north) and elevation 25°.
+        let mid = path.at_row(2.0, 5);
+        let e = 25f64.to_radians();
+        assert!(close(mid, [0.0, e.cos(), e.sin()]), "{mid:?}");
+        match path.directions(5, 3) {
+            Directions::PerPixel(a) => {
+                assert_eq!(a.dim(), (5, 3));
+                assert_eq!(a[(2, 0)], a[(2, 2)]);
+                assert!((f64::from(a[(2, 1)][2]) - e.sin()).abs() < 1e-6);
+            }
+            Directions::Uniform(_) => panic!("a moving Sun must be given per pixel"),
+        }
+        let still = SunPath {
+            drift_deg: [0.0, 0.0],
+            ..path
+        };
+        assert!(
+            matches!(still.directions(5, 3), Directions::Uniform(v) if close(v, direction(70.0, 350.0)))
+        );
+        let spec =
+            SceneSpec::default().with_observations(&[(105.0, 30.0), (225.0, 35.0)], &[], false);
+        let moved = spec
+            .clone()
+            .with_sun_drifts(&[[0.0, 0.0], [20.0, -10.0]])
+            .unwrap();
+        assert_eq!(moved.more[0].sun_drift_deg, [20.0, -10.0]);
+        assert_eq!(moved.sun_drift_deg, [0.0, 0.0]);
+        let err = spec
+            .with_sun_drifts(&[[0.0, 0.0], [0.0, -35.0]])
+            .unwrap_err();
+        assert!(
+            err.contains("observation 2") && err.contains("above the horizon"),
+            "{err}"
+        );
     }
 
     /// Complex craters: continuous at 15 km, depth ∝ D^0.301 beyond (Pike 1977), so that the
@@ -854,14 +1044,24 @@ mod tests {
             (60.0, 270.0),
         ] {
             let sun = direction(zenith, azimuth);
-            let fast = cast_shadow(&h, 50.0, &sun);
+            let fast = cast_shadow(&h, 50.0, &|_| sun);
             assert_eq!(
                 fast,
-                cast_shadow_plain(&h, 50.0, &sun),
+                cast_shadow_plain(&h, 50.0, &|_| sun),
                 "Sun {zenith}/{azimuth}"
             );
             shadowed += fast.iter().filter(|&&s| s).count();
         }
         assert!(shadowed > 500, "the scene must cast shadows: {shadowed}");
+        // A Sun that moves along the rows, as over a long strip: each ray its own row's.
+        let path = SunPath {
+            azimuth_deg: 200.0,
+            zenith_deg: 82.0,
+            drift_deg: [-60.0, 20.0],
+        };
+        let sun = |i: usize| path.at_row(i as f64, ny);
+        let fast = cast_shadow(&h, 50.0, &sun);
+        assert_eq!(fast, cast_shadow_plain(&h, 50.0, &sun));
+        assert!(fast.iter().filter(|&&s| s).count() > 100);
     }
 }

@@ -235,7 +235,7 @@ fn write_truth(scene: &Scene, grid: &Grid, dir: &Path) -> Result<(PathBuf, PathB
 /// One observation to write: its image on the grid, its Sun, the columns its swath covers.
 struct Shot<'a> {
     image: ndarray::ArrayView2<'a, f64>,
-    sun: crate::photometry::Vec3,
+    sun: super::SunPath,
     columns: Option<[usize; 2]>,
     /// How LOC misplaces the pixels.
     loc_error: ProductErrors,
@@ -462,7 +462,8 @@ fn write_obs(
             for b in 0..cols {
                 let (i, j) = swath.centre(i, b);
                 let t = geo.bearing[(i, j)];
-                let (s, v) = (to_enu(shot.sun, t), to_enu(scene.view, t));
+                let sun = shot.sun.at_row(i as f64, scene.truth_height.nrows());
+                let (s, v) = (to_enu(sun, t), to_enu(scene.view, t));
                 let (saz, sz) = az_zen(s);
                 let (vaz, vz) = az_zen(v);
                 let phase = (s[0] * v[0] + s[1] * v[1] + s[2] * v[2])

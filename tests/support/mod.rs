@@ -67,6 +67,22 @@ pub fn observation_products(
     )
 }
 
+/// [`observation_products`] with each observation's Sun moving along the rows by
+/// `drifts[k]` (Δazimuth/Δelevation, degrees, first row to last; `synth --sun-drift`).
+pub fn drifting_sun_products(
+    size: usize,
+    seed: u64,
+    suns: &[(f64, f64)],
+    drifts: &[[f64; 2]],
+    name: &str,
+) -> (PathBuf, products::Products) {
+    let spec = spec_of(size, seed)
+        .with_observations(suns, &[], false)
+        .with_sun_drifts(drifts)
+        .unwrap();
+    products_of(&spec, name, &[])
+}
+
 /// The synthetic scene of `size`² pixels and `seed`, otherwise the defaults.
 fn spec_of(size: usize, seed: u64) -> SceneSpec {
     SceneSpec {
