@@ -150,6 +150,10 @@ pub struct Survey {
     /// and cosine of the to-Sun azimuth (clockwise from north) — the observation's mean
     /// illumination over the region ([`Survey::mean_sun`]).
     pub sun_sums: [f64; 3],
+    /// Over the same pixels: the smallest and largest OBS to-Sun zenith, degrees
+    /// ([`Survey::sun_elevation_range`]; [∞, −∞] without any). Over a long polar strip the Sun
+    /// changes along the track.
+    pub sun_zenith_range: [f64; 2],
     /// OBS's Sun against the ephemeris at the label's times over every pixel of the swath
     /// ([`SunCheck`]; `None` where the label gives no START_TIME, as synthetic products).
     pub sun_ephemeris: Option<SunCheck>,
@@ -348,6 +352,14 @@ impl Survey {
             let az = sin.atan2(cos).to_degrees().rem_euclid(360.0);
             (az, 90.0 - zen / self.count as f64)
         })
+    }
+
+    /// The lowest and highest Sun over the observation's usable pixels on the grid, as
+    /// [elevation, elevation] in degrees above the local horizontal (90° less the largest and
+    /// smallest OBS to-Sun zenith). `None` without a usable pixel.
+    pub fn sun_elevation_range(&self) -> Option<[f64; 2]> {
+        let [lo, hi] = self.sun_zenith_range;
+        (self.count > 0).then_some([90.0 - hi, 90.0 - lo])
     }
 }
 
@@ -642,6 +654,7 @@ pub fn survey(
     let (mut sum, mut count) = (0.0, 0usize);
     let (mut on_grid_count, mut refused) = (0usize, Refusals::default());
     let mut sun_sums = [0.0; 3];
+    let mut sun_zenith_range = [f64::INFINITY, f64::NEG_INFINITY];
     let sun_time = sun_at_label_times(obs);
     let mut sun_check = sun_time.map(|(_, check)| check);
     let mut loc_heights = LocHeights::default();
@@ -701,6 +714,7 @@ pub fn survey(
                     sun_sums[0] += zen;
                     sun_sums[1] += a.sin();
                     sun_sums[2] += a.cos();
+                    sun_zenith_range = [sun_zenith_range[0].min(zen), sun_zenith_range[1].max(zen)];
                     let (i, j) = (k / loc.samples, k % loc.samples);
                     if i % LOC_HEIGHT_STEP == 0 && j % LOC_HEIGHT_STEP == 0 {
                         let h = radius[i / LOC_HEIGHT_STEP][j] - grid::MOON_RADIUS_M;
@@ -726,6 +740,7 @@ pub fn survey(
         on_grid: on_grid_count,
         refused,
         sun_sums,
+        sun_zenith_range,
         sun_ephemeris: sun_check,
         striping: columns.gains(),
         loc_heights,
@@ -1576,13 +1591,21 @@ mod tests {
                 let a = f64::to_radians(az);
                 [z + zen, s + a.sin(), c + a.cos()]
             }),
+            sun_zenith_range: pixels
+                .iter()
+                .fold([f64::INFINITY, f64::NEG_INFINITY], |[lo, hi], &(_, zen)| {
+                    [lo.min(zen), hi.max(zen)]
+                }),
             sun_ephemeris: None,
             striping: None,
             loc_heights: LocHeights::default(),
         };
-        let (az, el) = survey(&[(350.0, 60.0), (20.0, 70.0)]).mean_sun().unwrap();
+        let s = survey(&[(350.0, 60.0), (20.0, 70.0)]);
+        let (az, el) = s.mean_sun().unwrap();
         assert!((az - 5.0).abs() < 1e-9, "{az}");
         assert!((el - 25.0).abs() < 1e-9, "{el}");
+        // The lowest Sun is 90° less the largest zenith.
+        assert_eq!(s.sun_elevation_range(), Some([20.0, 30.0]));
         assert_eq!(survey(&[]).mean_sun(), None);
     }
 

@@ -2245,7 +2245,21 @@ fn each_segment_is_judged_by_the_sun_over_its_own_rows() {
     let drifts = [[0.0, 15.0], [20.0, -10.0]];
     let (dir, p) = support::drifting_sun_products(512, 3, &suns, &drifts, "sun-drift");
     let truth = read_tiff(&p.truth_dem).unwrap().data;
-    let (e_pair, regs) = registered_run(&dir, "pair", &p, true, &truth);
+    let (e_pair, rec) = run_with(&dir, "pair", &p, "register = true", &truth);
+    let observations = rec["observations"].as_array().unwrap();
+    // Each observation's Sun over the region spans its ramp (the first and last rows hold
+    // usable pixels), to the f32 of the OBS backplane.
+    for (o, want) in observations.iter().zip([[25.0, 40.0], [25.0, 35.0]]) {
+        let range = &o["sun"]["elevation_range_deg"];
+        for (i, w) in want.iter().enumerate() {
+            let got = range[i].as_f64().unwrap();
+            assert!((got - w).abs() < 1e-3, "{range} against {want:?}");
+        }
+    }
+    let regs: Vec<_> = observations
+        .iter()
+        .map(|o| o["registration"].clone())
+        .collect();
     // The mean elevation of observation k's Sun over rows [r0, r0 + n) of 512.
     let ramp =
         |k: usize, r0: f64, n: f64| suns[k].1 + drifts[k][1] * (r0 + (n - 1.0) / 2.0) / 511.0;

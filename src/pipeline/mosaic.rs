@@ -310,6 +310,10 @@ pub(super) struct MeanSun {
     pub(super) azimuth_deg: f64,
     /// Above the local horizontal of the reference sphere (90° − the mean OBS to-Sun zenith).
     pub(super) elevation_deg: f64,
+    /// The lowest and highest elevation over the same pixels (over a long strip the Sun
+    /// changes along the track).
+    #[serde(skip_serializing_if = "Option::is_none")]
+    pub(super) elevation_range_deg: Option<[f64; 2]>,
 }
 
 /// Below this mean Sun elevation, degrees, an observation used with others is named in a
@@ -622,6 +626,7 @@ fn observation_records(
                 .map(|[az, el]| MeanSun {
                     azimuth_deg: az,
                     elevation_deg: el,
+                    elevation_range_deg: plan.sun_elevation_range_deg.get(k).copied().flatten(),
                 }),
             sun_ephemeris: match plan.sun_ephemeris.get(k).copied().flatten() {
                 Some(c) => SunEphemeris::Checked(c),

@@ -78,6 +78,11 @@ pub struct Plan {
     /// input order.
     #[serde(default)]
     pub sun_deg: Vec<Option<[f64; 2]>>,
+    /// Each observation's lowest and highest Sun over its usable pixels on the grid,
+    /// [elevation, elevation] in degrees ([`ingest::Survey::sun_elevation_range`]; `None`
+    /// without any), in input order.
+    #[serde(default)]
+    pub sun_elevation_range_deg: Vec<Option<[f64; 2]>>,
     /// Each observation's OBS Sun against the ephemeris at its label's times
     /// ([`ingest::SunCheck`]; `None`: the label gives no START_TIME), in input order.
     #[serde(default)]
@@ -630,6 +635,7 @@ pub(super) fn plan(
         means,
         sums,
         sun_deg,
+        sun_elevation_range_deg,
         sun_ephemeris,
         dem_vs_loc,
         striping,
@@ -738,6 +744,7 @@ pub(super) fn plan(
         registration,
         pixel_size_m,
         sun_deg,
+        sun_elevation_range_deg,
         sun_ephemeris,
         dem_vs_loc,
         striping,
@@ -973,6 +980,8 @@ struct Surveyed {
     means: Vec<Option<f64>>,
     sums: Vec<f64>,
     sun_deg: Vec<Option<[f64; 2]>>,
+    /// Per observation: its lowest and highest Sun elevation, degrees.
+    sun_elevation_range_deg: Vec<Option<[f64; 2]>>,
     /// Per observation: its OBS Sun against the ephemeris ([`ingest::SunCheck`]).
     sun_ephemeris: Vec<Option<ingest::SunCheck>>,
     /// Per observation: LOC's heights against the DEM ([`ingest::DemVsLoc`]).
@@ -998,6 +1007,7 @@ fn survey_all(
     let mut means = Vec::new();
     let mut sums = Vec::new();
     let mut sun_deg = Vec::new();
+    let mut sun_elevation_range_deg = Vec::new();
     let mut sun_ephemeris = Vec::new();
     let mut dem_vs_loc = Vec::new();
     let mut striping = Vec::new();
@@ -1027,6 +1037,7 @@ fn survey_all(
         means.push((s.count > 0).then(|| s.sum / s.count as f64));
         sums.push(s.sum);
         sun_deg.push(s.mean_sun().map(|(az, el)| [az, el]));
+        sun_elevation_range_deg.push(s.sun_elevation_range());
         why.push(if s.on_grid == 0 {
             format!(
                 "{}: no pixel of its swath falls on the grid (region)",
@@ -1059,6 +1070,7 @@ fn survey_all(
         means,
         sums,
         sun_deg,
+        sun_elevation_range_deg,
         sun_ephemeris,
         dem_vs_loc,
         striping,
@@ -1146,10 +1158,14 @@ fn report(p: &Plan, o: &Orbital, inputs: &Inputs, progress: &Progress) {
         p.high_sun_east_west, p.high_sun_east_west_source
     ));
     progress.note(&format!("plan: membrane {}", p.membrane));
-    for (obs, sun) in inputs.obs.iter().zip(&p.sun_deg) {
+    for (k, (obs, sun)) in inputs.obs.iter().zip(&p.sun_deg).enumerate() {
         if let Some([az, el]) = sun {
+            let range = match p.sun_elevation_range_deg.get(k).copied().flatten() {
+                Some([lo, hi]) if hi - lo >= 0.05 => format!(" ({lo:.1}–{hi:.1}°)"),
+                _ => String::new(),
+            };
             progress.note(&format!(
-                "plan: {}: mean Sun over its pixels on the grid at azimuth {az:.1}°, elevation {el:.1}°",
+                "plan: {}: mean Sun over its pixels on the grid at azimuth {az:.1}°, elevation {el:.1}°{range}",
                 obs.label_path.display()
             ));
         }
