@@ -1516,19 +1516,23 @@ fn suns_mirrored_about_the_east_west_line_or_alike_are_named_in_a_warning() {
 
 /// Each observation's mean Sun over the region is recorded (run.json `sun`, from the OBS
 /// backplane: the synthetic products give every pixel the Sun they were rendered under), and an
-/// observation used alongside another under a Sun less than 10° high is named in a warning: its
-/// image is mostly cast shadow and grazing light (docs/science.md, "Several observations").
+/// observation used alongside another under a Sun less than 10° high, on average or over part
+/// of the region, is named in a warning: its image, or that part, is mostly cast shadow and
+/// grazing light (docs/science.md, "Several observations"). The third observation's Sun sinks
+/// from 20° at the first line to 6° at the last: 13° on average, under 10° over the southern
+/// part.
 #[test]
 fn a_low_sun_is_recorded_and_named_in_a_warning() {
-    let suns = [(105.0, 30.0), (100.0, 5.0)];
-    let (dir, p) = observation_products(128, 10, (&suns, &[], false), "lowsun");
+    let suns = [(105.0, 30.0), (100.0, 5.0), (250.0, 20.0)];
+    let drifts = [[0.0, 0.0], [0.0, 0.0], [0.0, -14.0]];
+    let (dir, p) = support::drifting_sun_products(128, 10, &suns, &drifts, "lowsun");
     let out = dir.join("out");
     let wf = write_workflow(&dir, &workflow(&p, &out, 512, ""));
     run_ok(&["run", "--progress", "quiet"], &wf);
     let rec: serde_json::Value =
         serde_json::from_slice(&std::fs::read(out.join("run.json")).unwrap()).unwrap();
     let obs = rec["observations"].as_array().unwrap();
-    for (o, (az, el)) in obs.iter().zip(suns) {
+    for (o, (az, el)) in obs.iter().zip(&suns[..2]) {
         let sun = &o["sun"];
         let (a, e) = (
             sun["azimuth_deg"].as_f64().unwrap(),
@@ -1550,6 +1554,17 @@ fn a_low_sun_is_recorded_and_named_in_a_warning() {
     let first = obs[0]["label"].as_str().unwrap();
     assert!(
         low[0].contains(&format!("{second} (5.0°)")) && !low[0].contains(first),
+        "{}",
+        low[0]
+    );
+    // The moving Sun: its mean from the record, its range that of the ramp.
+    let third = obs[2]["label"].as_str().unwrap();
+    let mean = obs[2]["sun"]["elevation_deg"].as_f64().unwrap();
+    assert!((12.0..15.0).contains(&mean), "{mean}");
+    assert!(
+        low[0].contains(&format!(
+            "{third} (6.0–20.0° over the region, {mean:.1}° on average)"
+        )),
         "{}",
         low[0]
     );

@@ -320,7 +320,9 @@ pub(super) struct MeanSun {
 /// warning ([`low_sun_warning`]).
 pub const LOW_SUN_DEG: f64 = 10.0;
 
-/// The observations used alongside others whose mean Sun stands below [`LOW_SUN_DEG`]: such an
+/// The observations used alongside others whose Sun stands below [`LOW_SUN_DEG`] on average
+/// over the region (`sun_deg`, [azimuth, mean elevation]) or over part of it (`range_deg`, the
+/// lowest and highest elevation; over a long strip the Sun changes along the track): such an
 /// image is mostly cast shadow and grazing light, which the photometric model describes least
 /// well; measured on the synthetic scenes, a Sun 5° high added to one 30° high gains 7 %, one
 /// 2° high nothing (docs/science.md, "Several observations").
@@ -328,6 +330,7 @@ pub(super) fn low_sun_warning(
     labels: &[String],
     used: &[bool],
     sun_deg: &[Option<[f64; 2]>],
+    range_deg: &[Option<[f64; 2]>],
 ) -> Option<String> {
     if used.iter().filter(|&&u| u).count() < 2 {
         return None;
@@ -336,14 +339,20 @@ pub(super) fn low_sun_warning(
         .iter()
         .zip(used)
         .zip(sun_deg)
-        .filter_map(|((label, &used), sun)| {
-            let [_, el] = sun.filter(|[_, el]| used && *el < LOW_SUN_DEG)?;
-            Some(format!("{label} ({el:.1}°)"))
+        .enumerate()
+        .filter_map(|(k, ((label, &used), sun))| {
+            let [_, el] = sun.filter(|_| used)?;
+            if el < LOW_SUN_DEG {
+                return Some(format!("{label} ({el:.1}°)"));
+            }
+            let [lo, hi] = range_deg.get(k).copied().flatten()?;
+            (lo < LOW_SUN_DEG)
+                .then(|| format!("{label} ({lo:.1}–{hi:.1}° over the region, {el:.1}° on average)"))
         })
         .collect();
     (!low.is_empty()).then(|| {
         format!(
-            "Sun less than {LOW_SUN_DEG:.0}° above the horizon on average over the region: {}. Such an image is mostly cast shadow and grazing light, where the photometric model is least reliable; it is weighted by its brightness and tapered near the horizon, but it adds little (docs/science.md, \"Several observations\"). Leave it out, or lower [inputs] max_incidence_deg to drop its most grazing pixels",
+            "Sun less than {LOW_SUN_DEG:.0}° above the horizon on average over the region, or over part of it: {}. Such an image, or that part of it, is mostly cast shadow and grazing light, where the photometric model is least reliable; it is weighted by its brightness and tapered near the horizon, but it adds little (docs/science.md, \"Several observations\"). Leave it out, or lower [inputs] max_incidence_deg to drop its most grazing pixels",
             low.join(", ")
         )
     })
@@ -783,9 +792,12 @@ fn run_sanity(plan: &Plan, records: &[TileRecord], labels: &[String]) -> (Sanity
         &plan.pixel_size_m,
         plan.grid.spacing,
     ));
-    sanity
-        .warnings
-        .extend(low_sun_warning(labels, &used, &plan.sun_deg));
+    sanity.warnings.extend(low_sun_warning(
+        labels,
+        &used,
+        &plan.sun_deg,
+        &plan.sun_elevation_range_deg,
+    ));
     sanity
         .warnings
         .extend(dem_datum_warning(labels, &plan.dem_vs_loc));
