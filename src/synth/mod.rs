@@ -206,9 +206,16 @@ impl SceneSpec {
             .collect();
         self
     }
-}
 
-impl SceneSpec {
+    /// The first observation's Sun over the scene.
+    pub fn sun_path(&self) -> SunPath {
+        SunPath {
+            azimuth_deg: self.sun_azimuth_deg,
+            zenith_deg: self.sun_incidence_deg,
+            drift_deg: self.sun_drift_deg,
+        }
+    }
+
     /// The Suns of its observations moving along the rows (in observation order; missing ones
     /// do not move): Δazimuth and Δelevation, degrees, from the first row to the last
     /// ([`SunPath`]). Refused, naming the observation, where a Sun would end at or below the
@@ -288,9 +295,10 @@ pub struct SunPath {
 }
 
 impl SunPath {
-    /// The Sun over row `row` (fractional) of `rows`: azimuth + t·Δazimuth, zenith − t·Δelevation,
-    /// t = row/(rows − 1), as a unit east-north-up vector ([`direction`]; a Sun that does not
-    /// move is exactly `direction(zenith, azimuth)` on every row).
+    /// The Sun over row `row` (fractional) of `rows`: azimuth + t·Δazimuth and
+    /// zenith − t·Δelevation, t = row/(rows − 1), as a unit east-north-up vector
+    /// ([`direction`]; a Sun that does not move is exactly `direction(zenith, azimuth)` on
+    /// every row).
     pub fn at_row(&self, row: f64, rows: usize) -> Vec3 {
         let t = if rows > 1 {
             row / (rows - 1) as f64
@@ -316,17 +324,6 @@ impl SunPath {
             .map(|i| self.at_row(i as f64, rows).map(|x| x as f32))
             .collect();
         Directions::PerPixel(Array2::from_shape_fn((rows, cols), |(i, _)| per_row[i]).into())
-    }
-}
-
-impl SceneSpec {
-    /// The first observation's Sun over the scene.
-    pub fn sun_path(&self) -> SunPath {
-        SunPath {
-            azimuth_deg: self.sun_azimuth_deg,
-            zenith_deg: self.sun_incidence_deg,
-            drift_deg: self.sun_drift_deg,
-        }
     }
 }
 
@@ -784,9 +781,10 @@ fn cast_shadow(
         if horiz < 1e-12 {
             return;
         }
-        let rise = sun[2] / horiz; // metres of ray rise per metre travelled
-        let (dj, di) = (sun[0] / horiz, -sun[1] / horiz); // per pixel step, columns east, rows south
-                                                          // A ray that sinks (the Sun below the horizon) may not skip anything: no blocks.
+        // Metres of ray rise per metre travelled; per pixel step, columns east, rows south.
+        let rise = sun[2] / horiz;
+        let (dj, di) = (sun[0] / horiz, -sun[1] / horiz);
+        // A ray that sinks (the Sun below the horizon) may not skip anything: no blocks.
         let blocks = if rise >= 0.0 { &maxima[..] } else { &[] };
         let h0 = h[(i, j)];
         // t = k·step exactly (multiples of 0.5).

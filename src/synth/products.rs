@@ -462,7 +462,7 @@ fn write_obs(
             for b in 0..cols {
                 let (i, j) = swath.centre(i, b);
                 let t = geo.bearing[(i, j)];
-                let sun = shot.sun.at_row(i as f64, scene.truth_height.nrows());
+                let sun = shot.sun.at_row(i as f64, scene.spec.size);
                 let (s, v) = (to_enu(sun, t), to_enu(scene.view, t));
                 let (saz, sz) = az_zen(s);
                 let (vaz, vz) = az_zen(v);
