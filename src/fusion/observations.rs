@@ -552,13 +552,40 @@ pub fn shadow_edge_factors(
             .and(n)
             .for_each(|c, &w, &n| *c = c.saturating_add(u8::from(w > 0.0 && !n)));
     }
-    for (w, n) in weight.iter_mut().zip(&near) {
-        Zip::from(w).and(n).and(&clean).par_for_each(|w, &n, &c| {
-            if n && c > 0 {
-                *w *= if c >= 2 { beta_all } else { beta };
-            }
-        });
+    for ((w, n), o) in weight.iter_mut().zip(&near).zip(&pr.observations) {
+        Zip::indexed(w)
+            .and(n)
+            .and(&clean)
+            .par_for_each(|(i, j), w, &n, &c| {
+                // Only where k carries the pixel: beyond its footprint its Sun is not a number.
+                if n && c > 0 && *w > 0.0 {
+                    *w *= if c >= 2 {
+                        beta_all
+                    } else {
+                        beta * low_sun_edge_factor(90.0 - incidence_deg(&o.sun.at(i, j)))
+                    };
+                }
+            });
     }
+}
+
+/// The shadow-edge factor β is taken down to this share of itself under a Sun
+/// [`LOW_SUN_EDGE_DEG`]`[0]` high or lower ([`low_sun_edge_factor`]).
+pub const LOW_SUN_EDGE_SHARE: f64 = 0.4;
+
+/// The Sun elevations, degrees, between which β goes from [`LOW_SUN_EDGE_SHARE`]·β to β.
+pub const LOW_SUN_EDGE_DEG: [f64; 2] = [20.0, 25.0];
+
+/// The factor on β next to a shadow of an observation whose Sun stands `elevation_deg` above
+/// the horizon at the pixel: [`LOW_SUN_EDGE_SHARE`] up to 20°, 1 from 25°, a smoothstep
+/// between. A low Sun's shadows are long and their edges many, and the part-shadowed pixels
+/// along them read as slopes rising towards the Sun, a crease along the shadow's edge; under
+/// Suns 25° high or more the pixels on the rim's side still carry slope (docs/science.md,
+/// "Several observations": β scanned again on 2026-12-07).
+pub fn low_sun_edge_factor(elevation_deg: f64) -> f64 {
+    let [lo, hi] = LOW_SUN_EDGE_DEG;
+    let t = smoothstep((elevation_deg - lo) / (hi - lo));
+    LOW_SUN_EDGE_SHARE + (1.0 - LOW_SUN_EDGE_SHARE) * t
 }
 
 /// Where an observation sees a pixel in shadow, or next to its own shadow, the pixel is still
@@ -1157,6 +1184,74 @@ mod tests {
         pr.observations.truncate(1);
         let one = weights(&pr, vec![1.0], 0.03, None, 0.1, 0.0, (0.25, 0.1));
         assert!(shadow_cover(&pr, (&one, &one.multiplicity()), 0.03, (0.1, 0.0), 0.7).is_none());
+    }
+
+    /// Under a low Sun the shadow-edge factor is lower: 0.4 of β up to 20°, all of it from
+    /// 25°, the smoothstep between (0.7 of it at 22.5°). On a pixel next to observation 0's
+    /// shadow that observation 1 sees cleanly, 0's weight is β·0.4 with its Sun 20° high,
+    /// β·0.7 at 22.5°, β at 50°; 1's own ring, under a 45° Sun, keeps β throughout.
+    #[test]
+    fn a_low_suns_shadow_edges_weigh_less() {
+        use crate::photometry::Hapke;
+        assert_eq!(low_sun_edge_factor(5.0), 0.4);
+        assert_eq!(low_sun_edge_factor(20.0), 0.4);
+        assert!((low_sun_edge_factor(22.5) - 0.7).abs() < 1e-12);
+        assert_eq!(low_sun_edge_factor(25.0), 1.0);
+        assert_eq!(low_sun_edge_factor(60.0), 1.0);
+        let n = 16;
+        let dark =
+            |i: usize, j: usize, lo: usize| (lo..lo + 3).contains(&i) && (lo..lo + 3).contains(&j);
+        let a = Array2::from_shape_fn((n, n), |(i, j)| if dark(i, j, 4) { 1e-4 } else { 0.03 });
+        let b = Array2::from_shape_fn((n, n), |(i, j)| if dark(i, j, 10) { 1e-4 } else { 0.03 });
+        let dem = Array2::zeros((n, n));
+        let model = Hapke::moon();
+        for (elevation, share) in [(20.0, 0.4), (22.5, 0.7), (50.0, 1.0)] {
+            let pr = uniform_problem(
+                &[(&a, 90.0 - elevation, 100.0), (&b, 45.0, 250.0)],
+                &dem,
+                &model,
+            );
+            let w = weights(
+                &pr,
+                vec![1.0, 1.0],
+                0.03,
+                Some(vec![1.0, 1.0]),
+                0.1,
+                0.0,
+                (0.25, 0.1),
+            );
+            // (3, 3) is on 0's ring, (9, 9) on 1's.
+            let got = f64::from(w.weight[0][(3, 3)]);
+            assert!((got - 0.25 * share).abs() < 1e-6, "{elevation}°: {got}");
+            assert_eq!(w.weight[1][(9, 9)], 0.25, "{elevation}°");
+        }
+        // Observation 0 ends at column 7, its Sun per pixel and not a number beyond (as an
+        // ingested swath's): the ring of its shadow at columns 4..7 reaches column 7, where
+        // it does not carry the pixel, and every weight stays a number.
+        let edge =
+            Array2::from_shape_fn((n, n), |(i, j)| if j >= 7 { f64::NAN } else { a[(i, j)] });
+        let sun = Array2::from_shape_fn((n, n), |(_, j)| {
+            let s = crate::synth::direction(70.0, 100.0).map(|x| x as f32);
+            if j >= 7 {
+                [f32::NAN; 3]
+            } else {
+                s
+            }
+        });
+        let mut pr = uniform_problem(&[(&edge, 70.0, 100.0), (&b, 45.0, 250.0)], &dem, &model);
+        pr.observations[0].sun = crate::fusion::Directions::PerPixel(sun.view().into());
+        let w = weights(
+            &pr,
+            vec![1.0, 1.0],
+            0.03,
+            Some(vec![1.0, 1.0]),
+            0.1,
+            0.0,
+            (0.25, 0.1),
+        );
+        assert!(w.weight.iter().all(|w| w.iter().all(|x| x.is_finite())));
+        assert_eq!(w.weight[0][(5, 7)], 0.0);
+        assert!((f64::from(w.weight[0][(5, 3)]) - 0.1).abs() < 1e-6);
     }
 
     #[test]
