@@ -916,6 +916,20 @@ pub fn invert_albedo(
 mod tests {
     use super::*;
 
+    /// [`weights`] of a problem of two observations, gains and noise weights 1, Ī = 0.03,
+    /// shadow threshold 0.1, no edge ramp, shadow-edge factors `beta` (β, β_all).
+    fn pair_weights(pr: &Problem, beta: (f64, f64)) -> Weights {
+        weights(
+            pr,
+            vec![1.0, 1.0],
+            0.03,
+            Some(vec![1.0, 1.0]),
+            0.1,
+            0.0,
+            beta,
+        )
+    }
+
     /// A problem of `images` (each with its Sun's zenith and azimuth, degrees) seen from
     /// nadir, over `dem` at 100 m pixels.
     fn uniform_problem<'a>(
@@ -1149,15 +1163,7 @@ mod tests {
         let dem = Array2::zeros((n, n));
         let model = Hapke::moon();
         let mut pr = uniform_problem(&[(&a, 40.0, 100.0), (&b, 45.0, 250.0)], &dem, &model);
-        let w = weights(
-            &pr,
-            vec![1.0, 1.0],
-            0.03,
-            Some(vec![1.0, 1.0]),
-            0.1,
-            0.0,
-            (0.25, 0.1),
-        );
+        let w = pair_weights(&pr, (0.25, 0.1));
         let cover = shadow_cover(&pr, (&w, &w.multiplicity()), 0.03, (0.1, 0.0), 0.7).unwrap();
         for i in 0..n {
             for j in 0..n {
@@ -1211,15 +1217,7 @@ mod tests {
                 &dem,
                 &model,
             );
-            let w = weights(
-                &pr,
-                vec![1.0, 1.0],
-                0.03,
-                Some(vec![1.0, 1.0]),
-                0.1,
-                0.0,
-                (0.25, 0.1),
-            );
+            let w = pair_weights(&pr, (0.25, 0.1));
             // (3, 3) is on 0's ring, (9, 9) on 1's.
             let got = f64::from(w.weight[0][(3, 3)]);
             assert!((got - 0.25 * share).abs() < 1e-6, "{elevation}°: {got}");
@@ -1240,15 +1238,7 @@ mod tests {
         });
         let mut pr = uniform_problem(&[(&edge, 70.0, 100.0), (&b, 45.0, 250.0)], &dem, &model);
         pr.observations[0].sun = crate::fusion::Directions::PerPixel(sun.view().into());
-        let w = weights(
-            &pr,
-            vec![1.0, 1.0],
-            0.03,
-            Some(vec![1.0, 1.0]),
-            0.1,
-            0.0,
-            (0.25, 0.1),
-        );
+        let w = pair_weights(&pr, (0.25, 0.1));
         assert!(w.weight.iter().all(|w| w.iter().all(|x| x.is_finite())));
         assert_eq!(w.weight[0][(5, 7)], 0.0);
         assert!((f64::from(w.weight[0][(5, 3)]) - 0.1).abs() < 1e-6);
@@ -1279,17 +1269,7 @@ mod tests {
         let dem = Array2::zeros((n, n));
         let model = Hapke::moon();
         let mut pr = uniform_problem(&[(&a, 40.0, 100.0), (&b, 45.0, 250.0)], &dem, &model);
-        let w = |beta: f64| {
-            weights(
-                &pr,
-                vec![1.0, 1.0],
-                0.03,
-                Some(vec![1.0, 1.0]),
-                0.1,
-                0.0,
-                (beta, beta),
-            )
-        };
+        let w = |beta: f64| pair_weights(&pr, (beta, beta));
         let (full, edged) = (w(1.0), w(0.25));
         assert_eq!(full.usable, edged.usable);
         let ring = |i: usize, j: usize, lo: usize| {
