@@ -273,7 +273,9 @@ pub struct FusionParams {
     pub edge_ramp_px: f64,
     /// β: an observation's weight on a pixel next to one it sees shadowed, where another
     /// observation sees the pixel away from its own shadows ([`observations::shadow_edge_factors`];
-    /// 1: the full weight). Such a pixel is likely part in shadow, which the reflectance does
+    /// 1: the full weight). Under the observation's Sun up to 20° high it is 0.4β, rising to β
+    /// at 25° ([`observations::low_sun_edge_factor`]); β and β_all both 1 turn the factors off
+    /// under every Sun. Such a pixel is likely part in shadow, which the reflectance does
     /// not model (docs/science.md, "Several observations"). No effect with one observation.
     pub shadow_edge_weight: f64,
     /// β_all: the same factor where two or more other observations see the pixel away from

@@ -18,8 +18,9 @@
 //!     is alone e_k = 1;
 //!   - τ_k(x), 1 up to 10° before the maximum incidence and a smoothstep to 0 at it: near the
 //!     terminator shadows and roughness make the model least reliable;
-//!   - β (`shadow_edge_weight`) on a pixel next to one k sees shadowed, wherever another
-//!     observation carries the pixel away from its own shadows, β_all
+//!   - β (`shadow_edge_weight`; 0.4β under k's Sun up to 20° high, β from 25°) on a pixel next
+//!     to one k sees shadowed, wherever another observation carries the pixel away from its own
+//!     shadows, β_all
 //!     (`shadow_edge_weight_all`) where two or more others do ([`shadow_edge_factors`]); 1
 //!     elsewhere.
 //! * Selection: pixels outside [min, max] incidence drop out; with `max_per_pixel` = M > 0 only
@@ -521,9 +522,10 @@ fn footprint_edges(pr: &Problem, width: f64) -> Vec<Array2<f64>> {
 }
 
 /// s_k(x), the shadow-edge factors, applied to the weights in place: where observation k
-/// carries x (w_k > 0) within one pixel of a pixel it sees shadowed, β = `beta.0` if one other
-/// observation carries x with no shadow of its own that near, β_all = `beta.1` if two or more
-/// do; 1 elsewhere. Two clean observations under Suns apart in azimuth measure the slope free of
+/// carries x (w_k > 0) within one pixel of a pixel it sees shadowed, β = `beta.0` times
+/// [`low_sun_edge_factor`] of k's Sun at x if one other observation carries x with no shadow
+/// of its own that near, β_all = `beta.1` if two or more do; 1 elsewhere, and 1 everywhere
+/// when both are 1 (the factors off, under every Sun). Two clean observations under Suns apart in azimuth measure the slope free of
 /// albedo along one direction, and k's pixel holds the other; three measure it along every
 /// direction, and k's pixel then adds mostly its partial shadow. A detector pixel
 /// next to a cast shadow is likely part in shadow (the shadow mask marks only the pixels
