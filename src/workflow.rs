@@ -792,7 +792,8 @@ pub const MIN_HALO_SEVERAL: usize = 80;
 /// window. It also covers the photometric support band (3 σ_DEM,
 /// [`crate::fusion::support::band`]). With a coarse reference (`reference`,
 /// [`crate::fusion::pyramid`]) the first albedo stage is the plan's, solved over the whole
-/// region, and does not count. With cast shadows on (`shadow_weight` > 0) it is also at least
+/// region, and does not count. With cast shadows on (`shadow_weight` > 0, or
+/// `partial_shadow`, whose lit shares walk as far) it is also at least
 /// ⌈4/3 × `shadow_reach_px`⌉: every pixel a tile gives the mosaic (≥ 3/4 halo inside the
 /// window) then has its whole ray inside the window, as it does on the whole region. With
 /// `several` observations listed it is at least [`MIN_HALO_SEVERAL`].
@@ -816,7 +817,7 @@ pub fn auto_halo(p: &FusionParams, dem_psf: f64, reference: bool, several: bool)
         .copied()
         .chain([p.final_albedo_sigma, dem, tracks])
         .fold(0.0f64, f64::max);
-    let rays = if p.shadow_weight > 0.0 {
+    let rays = if p.shadow_weight > 0.0 || p.partial_shadow {
         (4 * p.shadow_reach_px).div_ceil(3)
     } else {
         0
@@ -1003,6 +1004,9 @@ directory = "out"
         longer.shadow_reach_px = 60;
         assert_eq!(auto_halo(&longer, psf, true, false), 80);
         longer.shadow_weight = 0.0;
+        // The partial shadow's lit shares walk as far.
+        assert_eq!(auto_halo(&longer, psf, true, false), 80);
+        longer.partial_shadow = false;
         assert_eq!(auto_halo(&longer, psf, true, false), 40);
         let given = MINIMAL.replace("[output]", "[solver]\nsigma_dem = 5.0\n[output]");
         let Workflow::Orbital(g) =

@@ -427,6 +427,12 @@ pub struct FusionParams {
     /// The longest walk of an E_S ray towards the Sun, pixels (a `run`'s halo is at least 4/3
     /// of it, `workflow::auto_halo`).
     pub shadow_reach_px: usize,
+    /// Model the pixels just past an observation's own cast shadows (the pixel 1 or 1.5 px
+    /// towards its Sun image-shadowed) as part in shadow: E_I and the albedo inversion compare
+    /// I/g with f·R, f the pixel's lit share on the surface each stage starts from
+    /// ([`shadows::lit_fraction`]; walks of at most `shadow_reach_px`). Off: f = 1, as before
+    /// 2026-12-07.
+    pub partial_shadow: bool,
 }
 
 impl Default for FusionParams {
@@ -475,6 +481,7 @@ impl Default for FusionParams {
             shadow_weight_alone: 0.0,
             shadow_lit_threshold: 0.5,
             shadow_reach_px: 24,
+            partial_shadow: true,
         }
     }
 }
@@ -1024,6 +1031,9 @@ fn fine_stages(
         .and(&obj.support())
         .and(pr.dem)
         .par_for_each(|z, &s, &d| *z = d + s * *z);
+    if params.partial_shadow {
+        obj.set_lit_fractions(z.view(), params.shadow_threshold, params.shadow_reach_px);
+    }
     let mut albedo = final_albedo_layer(pr, &obj, params, z.view(), last_rho, multi.as_ref())?;
     drop(multi);
     // The residuals and coverage of each observation on the final surface (their slopes'
@@ -1087,6 +1097,9 @@ fn albedo_stages(
     let mut last_rho: Option<Array2<f64>> = None;
     for (m, &sigma) in sigmas.iter().enumerate() {
         let t0 = Instant::now();
+        if params.partial_shadow {
+            obj.set_lit_fractions(z.view(), params.shadow_threshold, params.shadow_reach_px);
+        }
         let rho = albedo_map(pr, &obj.weights, &obj.dct, z.view(), sigma)?;
         obj.begin_stage(z.view(), rho.view(), MembraneRule::of(params));
         let last = m + 1 == sigmas.len() && multi_stage.is_none();
@@ -1149,6 +1162,9 @@ fn overlap_passes(
     let mut last_rho = None;
     for pass in 0..passes {
         let t0 = Instant::now();
+        if params.partial_shadow {
+            obj.set_lit_fractions(z.view(), params.shadow_threshold, params.shadow_reach_px);
+        }
         let maps = albedo_maps(
             pr,
             &obj.weights,

@@ -332,6 +332,21 @@ impl<'a, 'p> Objective<'a, 'p> {
         }
     }
 
+    /// Sets f_k, the lit share of each pixel just past an observation's own shadows
+    /// ([`super::shadows::lit_fractions`]), on surface `z`, for the stage that starts there:
+    /// E_I then compares I/g with f·R. Shadows are I/g/Ī_k below `threshold`, as
+    /// [`Weights::usable`] finds them; rays walk at most `reach_px`.
+    pub fn set_lit_fractions(&mut self, z: ArrayView2<f64>, threshold: f64, reach_px: usize) {
+        let blurred: Vec<bool> = self.kernels.iter().map(Option::is_some).collect();
+        self.weights.lit = super::shadows::lit_fractions(
+            self.problem,
+            (&self.weights, self.scale),
+            &blurred,
+            z,
+            (threshold, reach_px),
+        );
+    }
+
     /// Adds E_S ([`super::shadows`]) of weight λ = `weight`: the rays of every pixel an
     /// observation sees shadowed (I/g/Ī_k below `threshold`, as the photometric term drops it)
     /// or lit just past a shadow's end (I/g/Ī_k at least `lit_threshold`), each walked at most
@@ -833,11 +848,13 @@ impl<'a, 'p> Objective<'a, 'p> {
                         }
                         let sh = shade_at(model, o, (p[j], q[j]), rho, (i, j));
                         if sh.lit {
-                            let r = (o.image[(i, j)] / g - sh.r) / s;
+                            // Part in shadow: I/g against f·R ([`Weights::lit`]).
+                            let f = self.weights.lit_at(k, (i, j));
+                            let r = (o.image[(i, j)] / g - f * sh.r) / s;
                             part += f64::from(w[(i, j)]) * r * r;
                             res[j] = r as f32;
-                            a[j] = (sh.dr_dp / s) as f32;
-                            b[j] = (sh.dr_dq / s) as f32;
+                            a[j] = (f * sh.dr_dp / s) as f32;
+                            b[j] = (f * sh.dr_dq / s) as f32;
                             used[j] = true;
                         }
                     }
@@ -1120,7 +1137,7 @@ impl<'a, 'p> Objective<'a, 'p> {
                 let rxx = (xp.dr_dp - gx) / h;
                 let ryy = (yp.dr_dq - gy) / h;
                 let rxy = 0.5 * (xp.dr_dq - gy + yp.dr_dp - gx) / h;
-                let c = -2.0 * r / s;
+                let c = -2.0 * r * self.weights.lit_at(k, (i, j)) / s;
                 let t = psd_part([c * rxx, c * rxy, c * ryy]);
                 let w = f64::from(self.weights.weight[k][(i, j)]);
                 m[0] += w * t[0];
@@ -1548,6 +1565,31 @@ mod tests {
     /// The second observation coarser than the grid (a blur of σ = 0.9 px, radius 3): its
     /// residuals compare the image with B R, it uses only pixels whose whole neighbourhood it
     /// sees, and the gradient (through Bᵀ) still matches E.
+    /// With lit shares f < 1 (pixels part in shadow, [`Weights::lit`]) E_I compares I/g with
+    /// f·R: the gradient still matches finite differences, and the energy is not the one
+    /// with f = 1.
+    #[test]
+    fn gradient_matches_finite_differences_with_part_shadowed_pixels() {
+        let (z, dem) = surfaces(12, 30);
+        let (a, b) = two_strips(1.1);
+        let model = Hapke::moon();
+        let pr = two_observations(&a, &b, &dem, &model);
+        let mut w = two_strip_weights(&pr);
+        let plain = Objective::new(&pr, 3.0, 0.2, 1.2, 1.5, 0.03, w.clone());
+        w.lit[0] = Some(Array2::from_shape_fn(z.dim(), |(i, j)| {
+            if (i + j) % 3 == 0 {
+                0.6 + 0.01 * i as f32
+            } else {
+                1.0
+            }
+        }));
+        let obj = Objective::new(&pr, 3.0, 0.2, 1.2, 1.5, 0.03, w);
+        let rho = Array2::from_elem(z.dim(), 0.4);
+        let e = |o: &Objective| o.energy(z.view(), &o.photo(z.view(), rho.view())).intensity;
+        assert!((e(&obj) - e(&plain)).abs() > 1e-3 * e(&plain));
+        assert_gradient_matches(&obj, &z, &[(3, 3), (6, 9), (5, 15), (11, 25), (0, 0)]);
+    }
+
     #[test]
     fn gradient_matches_finite_differences_with_a_blurred_observation() {
         let (z, dem) = surfaces(12, 30);

@@ -80,9 +80,18 @@ pub struct Weights {
     pub gains: Vec<f64>,
     /// ν_k.
     pub noise: Vec<f64>,
+    /// f_k(x), the lit share of each pixel next to observation k's own shadows at the stage's
+    /// surface ([`super::shadows::lit_fraction`]); `None`: 1 everywhere.
+    pub lit: Vec<Option<Array2<f32>>>,
 }
 
 impl Weights {
+    /// f_k at pixel `ix` ([`Weights::lit`]).
+    #[inline]
+    pub fn lit_at(&self, k: usize, ix: (usize, usize)) -> f64 {
+        self.lit[k].as_ref().map_or(1.0, |f| f64::from(f[ix]))
+    }
+
     /// c(x) = min(1, Σ_k u_k/max_k u_k − 1), u_k = w_k/ν_k (the edge ramp, incidence taper
     /// and shadow-edge factor): 0 where one observation carries the pixel (or none), 1 where a
     /// second one carries it in full, continuous across the edge ramps.
@@ -529,7 +538,9 @@ fn footprint_edges(pr: &Problem, width: f64) -> Vec<Array2<f64>> {
 /// albedo along one direction, and k's pixel holds the other; three measure it along every
 /// direction, and k's pixel then adds mostly its partial shadow. A detector pixel
 /// next to a cast shadow is likely part in shadow (the shadow mask marks only the pixels
-/// mostly dark), and the solver's reflectance has no partial shadow: there the forward model
+/// mostly dark), and the solver's reflectance models partial shadow only coarsely (the pixels
+/// just past a shadow, its edge placed to two pixels: [`super::shadows::lit_fraction`]); before
+/// it did at all, there the forward model
 /// is 10–15 % of the mean brightness off, against 2–3 % elsewhere (docs/science.md, "What
 /// limits several Suns"), so where another observation sees the pixel cleanly it carries the
 /// pixel. A pixel no other observation sees cleanly keeps its weights: one observation's
@@ -592,7 +603,7 @@ pub fn low_sun_edge_factor(elevation_deg: f64) -> f64 {
 
 /// Where an observation sees a pixel in shadow, or next to its own shadow, the pixel is still
 /// one it sees: a shadow bounds the heights ([`super::shadows`]), and the pixel next to one is
-/// left to the other observations only because the model has no partial shadow. The
+/// left to the other observations only because the model's partial shadow is coarse. The
 /// regularisers (the several-observation membrane, δ·f and the pixel-scale shrink) count such
 /// an observation towards
 /// their multi-coverage, so that a crater floor a low Sun shadows and a high Sun alone carries
@@ -785,11 +796,13 @@ pub fn weights(
     for (u, w) in usable.iter_mut().zip(&weight) {
         Zip::from(u).and(w).for_each(|u, &w| *u &= w > 0.0);
     }
+    let lit = vec![None; weight.len()];
     Weights {
         usable,
         weight,
         gains,
         noise,
+        lit,
     }
 }
 
@@ -869,7 +882,10 @@ pub fn invert_albedo(
                     if wk <= 0.0 {
                         continue;
                     }
-                    let ik = o.image[(i, j)] / w.gains[k];
+                    // Part in shadow (f < 1): I/g = f·R, so R = I/(g f), weighed f².
+                    let f = w.lit_at(k, (i, j));
+                    wk *= f * f;
+                    let ik = o.image[(i, j)] / w.gains[k] / f;
                     let Some(g) = incidence(pp, qq, &o.sun.at(i, j), &o.view.at(i, j)) else {
                         continue;
                     };
@@ -1406,6 +1422,39 @@ mod tests {
             (1.0, 1.0),
         );
         assert_eq!(given.usable, w.usable);
+    }
+
+    /// A pixel part in shadow, lit share f, shows I = f·R(ρ): with f known the joint inversion
+    /// gives ρ back (to the Gauss–Newton steps' tolerance); taken as wholly lit it would give
+    /// a darker albedo.
+    #[test]
+    fn the_albedo_of_a_part_shadowed_pixel_is_inverted_from_its_lit_share() {
+        let model = crate::photometry::Hapke::moon();
+        let dem = Array2::zeros((4, 4));
+        let (za, zb) = (40.0, 60.0);
+        let flat = |zenith: f64| {
+            let sh = model.shade_observed(0.0, 0.0, 0.3, &sun(0.0, 90.0 - zenith), &sun(0.0, 90.0));
+            sh.r
+        };
+        // Observation 0 sees the pixel (1, 2) 70 % lit, observation 1 wholly.
+        let mut a = Array2::from_elem((4, 4), flat(za));
+        a[(1, 2)] *= 0.7;
+        let b = Array2::from_elem((4, 4), flat(zb));
+        let pr = uniform_problem(&[(&a, za, 0.0), (&b, zb, 0.0)], &dem, &model);
+        let mut w = pair_weights(&pr, (1.0, 1.0));
+        let (plain, _, _) = invert_albedo(&pr, &w, dem.view(), 1.0);
+        assert!(plain[(1, 2)] < 0.29, "{}", plain[(1, 2)]);
+        w.lit[0] = Some(Array2::from_shape_fn((4, 4), |ij| {
+            if ij == (1, 2) {
+                0.7
+            } else {
+                1.0
+            }
+        }));
+        let (rho, ok, _) = invert_albedo(&pr, &w, dem.view(), 1.0);
+        for ((ij, &r), &ok) in rho.indexed_iter().zip(&ok) {
+            assert!(ok && (r - 0.3).abs() < 1e-6, "{ij:?}: {r}");
+        }
     }
 
     #[test]
