@@ -430,8 +430,8 @@ pub struct FusionParams {
     /// Model the pixels just past an observation's own cast shadows (the pixel 1 or 1.5 px
     /// towards its Sun image-shadowed) as part in shadow: E_I and the albedo inversion compare
     /// I/g with f·R, f the pixel's lit share on the surface each stage starts from
-    /// ([`shadows::lit_fraction`]; walks of at most `shadow_reach_px`). Off: f = 1, as before
-    /// 2026-12-07.
+    /// ([`shadows::lit_fraction`]; walks of at most `shadow_reach_px`), under Suns up to
+    /// 27.5° high ([`shadows::partial_shadow_share`]). Off: f = 1, as before 2026-12-07.
     pub partial_shadow: bool,
 }
 

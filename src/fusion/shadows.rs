@@ -507,14 +507,15 @@ fn past_a_shadow(
 
 /// Sun elevations, degrees, up to which the partial shadow is modelled in full and from which
 /// not at all ([`partial_shadow_share`]).
-pub const PARTIAL_SHADOW_DEG: [f64; 2] = [20.0, 25.0];
+pub const PARTIAL_SHADOW_DEG: [f64; 2] = [22.5, 27.5];
 
 /// a(e), how much of the lit share [`lit_fractions`] takes under a Sun `elevation_deg` high:
-/// 1 up to 20°, 0 from 25°, a smoothstep between. Under a 20° Sun the shadows are long and
-/// their edges many, and the share takes the error 5 % lower; under Suns of 30–35° the
-/// shadows are short, the edge's place (to W = [`LIT_EDGE_WIDTH_PX`]) costs more than the
-/// share gains (105/30 + 225/35: +1.1 %), and a single 30° Sun's 96-px tiles ended 0.105× the
-/// RMSE from the whole region (docs/science.md, "Partial shadow").
+/// 1 up to 22.5°, 0 from 27.5°, a smoothstep between (½ at 25°). Under a 20° Sun the shadows
+/// are long and their edges many, and the share takes the error 5 % lower; under Suns of
+/// 30–35° the shadows are short, the edge's place (to W = [`LIT_EDGE_WIDTH_PX`]) costs more
+/// than the share gains (105/30 + 225/35: +1.1 %), and a single 30° Sun's 96-px tiles ended
+/// 0.105× the RMSE from the whole region; at 25° half the share does better than all of it
+/// or none (docs/science.md, "Partial shadow").
 pub fn partial_shadow_share(elevation_deg: f64) -> f64 {
     let [lo, hi] = PARTIAL_SHADOW_DEG;
     1.0 - super::support::smoothstep((elevation_deg - lo) / (hi - lo))
@@ -693,14 +694,14 @@ mod tests {
     /// lit share: the image shows the plateau's shadow on rows 0–2 only, and on rows 3–5 the
     /// pixel the surface would put part in shadow keeps 1, as do the plateau's edge (the rim
     /// that casts the shadow) and the plain far from it. The share is taken in full under a
-    /// Sun 20° high, half under 22.5° (a = ½), not at all under 30°.
+    /// Sun 20° high, half under 25° (a = ½), not at all under 30°.
     #[test]
     fn lit_shares_are_taken_only_just_past_a_shadow_under_a_low_sun() {
         let model = Hapke::moon();
         let mut img = image(6, 40);
         img.slice_mut(s![3.., ..]).fill(1.0);
         let dem = plateau(6, 40, 200.0);
-        for (elevation, a) in [(20.0_f64, 1.0), (22.5, 0.5), (30.0, 0.0)] {
+        for (elevation, a) in [(20.0_f64, 1.0), (25.0, 0.5), (30.0, 0.0)] {
             assert!((partial_shadow_share(elevation) - a).abs() < 1e-12);
             let sun = crate::synth::direction(90.0 - elevation, 90.0);
             let pr = Problem::single(
