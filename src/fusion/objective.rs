@@ -1562,9 +1562,6 @@ mod tests {
         assert_gradient_matches(&obj, &z, &[(3, 4), (6, 9), (5, 15), (11, 25), (0, 29)]);
     }
 
-    /// The second observation coarser than the grid (a blur of σ = 0.9 px, radius 3): its
-    /// residuals compare the image with B R, it uses only pixels whose whole neighbourhood it
-    /// sees, and the gradient (through Bᵀ) still matches E.
     /// With lit shares f < 1 (pixels part in shadow, [`Weights::lit`]) E_I compares I/g with
     /// f·R: the gradient still matches finite differences, and the energy is not the one
     /// with f = 1.
@@ -1590,6 +1587,9 @@ mod tests {
         assert_gradient_matches(&obj, &z, &[(3, 3), (6, 9), (5, 15), (11, 25), (0, 0)]);
     }
 
+    /// The second observation coarser than the grid (a blur of σ = 0.9 px, radius 3): its
+    /// residuals compare the image with B R, it uses only pixels whose whole neighbourhood it
+    /// sees, and the gradient (through Bᵀ) still matches E.
     #[test]
     fn gradient_matches_finite_differences_with_a_blurred_observation() {
         let (z, dem) = surfaces(12, 30);

@@ -80,8 +80,9 @@ pub struct Weights {
     pub gains: Vec<f64>,
     /// ν_k.
     pub noise: Vec<f64>,
-    /// f_k(x), the lit share of each pixel next to observation k's own shadows at the stage's
-    /// surface ([`super::shadows::lit_fraction`]); `None`: 1 everywhere.
+    /// f_k(x), the lit share of each pixel just past observation k's own cast shadows on the
+    /// surface the stage started from ([`super::shadows::lit_fractions`]); `None`: 1
+    /// everywhere.
     pub lit: Vec<Option<Array2<f32>>>,
 }
 

@@ -451,7 +451,8 @@ fn height_at(z: ArrayView2<f64>, r: f64, c: f64) -> f64 {
 ///
 /// with the edge's place taken as known to W = [`LIT_EDGE_WIDTH_PX`] pixels: the share a pixel
 /// has against an edge spread evenly over W pixels, where it crosses the pixel (W = 1 would be
-/// the pixel's own share of a sharp edge). 1 where the Sun is at or below the horizon.
+/// the pixel's own share of a sharp edge). 1 where the Sun is at or below the horizon or so
+/// near the zenith that it casts no shadow a grid pixel can hold.
 pub fn lit_fraction(
     z: ArrayView2<f64>,
     spacing: f64,
@@ -525,8 +526,8 @@ pub fn partial_shadow_share(elevation_deg: f64) -> f64 {
 /// [`lit_fraction`] on surface `z` and a the [`partial_shadow_share`] of the Sun there, at each
 /// pixel observation k uses just past one of its own shadows (the pixel 1 or 1.5 pixels
 /// towards its Sun is shadowed, I/g/Ī_k below `threshold`; walks of at most `reach_px`), 1
-/// elsewhere. `None` for an observation coarser than the grid (`blurred`): its
-/// rendering is blurred before it meets the image, and f stays 1.
+/// elsewhere. `None` where that is 1 at every pixel, and for an observation coarser than the
+/// grid (`blurred`): its rendering is blurred before it meets the image, and f stays 1.
 pub fn lit_fractions(
     pr: &Problem,
     (w, scale): (&super::observations::Weights, f64),
@@ -548,7 +549,7 @@ pub fn lit_fractions(
                 let v = o.image[(r, c)];
                 v.is_finite() && image_shadowed(v, gain, own, threshold)
             };
-            Some(Zip::indexed(&w.usable[k]).par_map_collect(|ij, &u| {
+            let f = Zip::indexed(&w.usable[k]).par_map_collect(|ij, &u| {
                 let sun = o.sun.at(ij.0, ij.1);
                 if !u {
                     return 1.0;
@@ -559,7 +560,8 @@ pub fn lit_fractions(
                 } else {
                     1.0
                 }
-            }))
+            });
+            f.iter().any(|&f| f < 1.0).then_some(f)
         })
         .collect()
 }
@@ -727,7 +729,11 @@ mod tests {
             let share = 0.5 + 0.3 / LIT_EDGE_WIDTH_PX;
             assert!((lit_fraction(z.view(), SPACING, (4, 21), &sun, 48) - share).abs() < 1e-9);
             let lit = lit_fractions(&pr, (&w, 1.0), &[false], z.view(), (0.1, 48));
-            let f = lit[0].as_ref().unwrap();
+            // Where every share is 1, none is stored.
+            let Some(f) = lit[0].as_ref() else {
+                assert_eq!(a, 0.0, "{elevation}°: no share stored");
+                continue;
+            };
             for ((i, j), &f) in f.indexed_iter() {
                 // Columns 20 and 21 lie 1.5 and 1 px west of the shadow's first pixel, 22; on
                 // column 20 the whole pixel is west of x_e.
