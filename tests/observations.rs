@@ -102,30 +102,27 @@ fn pixels_next_to_a_shadow_count_less_where_another_sun_sees_them() {
 
 /// Partial shadow (`partial_shadow`, docs/science.md "Partial shadow"): the pixels just past a
 /// cast shadow are part in shadow, and compared with f·R, f their lit share on the surface,
-/// they stop reading as slopes rising towards the Sun. Two Suns 20° high (45/20 + 135/20) and
-/// one of them alone, whose shadows are long and many, must come out lower with it than
-/// without (this scene, measured 2026-12-07: 8.09 → 7.92 m alone, 5.26 → 5.01 m the pair).
+/// they stop reading as slopes rising towards the Sun. Two Suns 20° high (45/20 + 135/20),
+/// whose shadows are long and many, must come out at least 3 % lower with it than without
+/// (this scene, measured 2026-12-07: 5.26 → 5.01 m). One of them alone must come out exactly
+/// as without: where no other observation sees a pixel the share is not taken (it made one
+/// Sun's tiles depend on the window).
 #[test]
 fn pixels_part_in_shadow_are_modelled_as_such() {
-    let with_and_without = |suns: &[(f64, f64)]| {
-        let without = FusionParams {
-            partial_shadow: false,
-            ..FusionParams::default()
-        };
-        (
-            fused_with(suns, FusionParams::default()).0,
-            fused_with(suns, without).0,
-        )
+    let without = || FusionParams {
+        partial_shadow: false,
+        ..FusionParams::default()
     };
-    let (single, single_without) = with_and_without(&[(45.0, 20.0)]);
-    let (pair, pair_without) = with_and_without(&[(45.0, 20.0), (135.0, 20.0)]);
-    eprintln!(
-        "one 20° Sun {single:.3} m (without {single_without:.3} m), two {pair:.3} m (without {pair_without:.3} m)"
+    let (single, z) = fused_with(&[(45.0, 20.0)], FusionParams::default());
+    let (single_without, z_without) = fused_with(&[(45.0, 20.0)], without());
+    assert_eq!(
+        z, z_without,
+        "one observation: {single:.3} vs {single_without:.3} m"
     );
-    assert!(
-        single <= 0.99 * single_without,
-        "{single:.3} vs {single_without:.3} m"
-    );
+    let suns = [(45.0, 20.0), (135.0, 20.0)];
+    let pair = fused_with(&suns, FusionParams::default()).0;
+    let pair_without = fused_with(&suns, without()).0;
+    eprintln!("one 20° Sun {single:.3} m, two {pair:.3} m (without {pair_without:.3} m)");
     assert!(
         pair <= 0.97 * pair_without,
         "{pair:.3} vs {pair_without:.3} m"

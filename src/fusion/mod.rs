@@ -428,7 +428,8 @@ pub struct FusionParams {
     /// of it, `workflow::auto_halo`).
     pub shadow_reach_px: usize,
     /// Model the pixels just past an observation's own cast shadows (the pixel 1 or 1.5 px
-    /// towards its Sun image-shadowed) as part in shadow: E_I and the albedo inversion compare
+    /// towards its Sun image-shadowed) that another observation sees too as part in shadow:
+    /// E_I and the albedo inversion compare
     /// I/g with f·R, f the pixel's lit share on the surface each stage starts from
     /// ([`shadows::lit_fraction`]; walks of at most `shadow_reach_px`), under Suns up to
     /// 27.5° high ([`shadows::partial_shadow_share`]). Off: f = 1, as before 2026-12-07.
