@@ -132,6 +132,12 @@ impl<'a> Problem<'a> {
         blur::Kernel::gaussian(self.blur_sigma(k))
     }
 
+    /// Whether an observation other than `k` has a value at pixel `ij` (sees it, lit or in
+    /// shadow).
+    pub fn seen_by_another(&self, k: usize, ij: (usize, usize)) -> bool {
+        (self.observations.iter().enumerate()).any(|(m, o)| m != k && o.image[ij].is_finite())
+    }
+
     /// The footprint: where at least one image has a value (cast shadow included: the image
     /// sees the surface there, E_I just has no gradient to give).
     pub fn footprint(&self) -> Array2<bool> {
@@ -1032,9 +1038,7 @@ fn fine_stages(
         .and(&obj.support())
         .and(pr.dem)
         .par_for_each(|z, &s, &d| *z = d + s * *z);
-    if params.partial_shadow {
-        obj.set_lit_fractions(z.view(), params.shadow_threshold, params.shadow_reach_px);
-    }
+    obj.set_lit_fractions(z.view(), params);
     let mut albedo = final_albedo_layer(pr, &obj, params, z.view(), last_rho, multi.as_ref())?;
     drop(multi);
     // The residuals and coverage of each observation on the final surface (their slopes'
@@ -1098,9 +1102,7 @@ fn albedo_stages(
     let mut last_rho: Option<Array2<f64>> = None;
     for (m, &sigma) in sigmas.iter().enumerate() {
         let t0 = Instant::now();
-        if params.partial_shadow {
-            obj.set_lit_fractions(z.view(), params.shadow_threshold, params.shadow_reach_px);
-        }
+        obj.set_lit_fractions(z.view(), params);
         let rho = albedo_map(pr, &obj.weights, &obj.dct, z.view(), sigma)?;
         obj.begin_stage(z.view(), rho.view(), MembraneRule::of(params));
         let last = m + 1 == sigmas.len() && multi_stage.is_none();
@@ -1163,9 +1165,7 @@ fn overlap_passes(
     let mut last_rho = None;
     for pass in 0..passes {
         let t0 = Instant::now();
-        if params.partial_shadow {
-            obj.set_lit_fractions(z.view(), params.shadow_threshold, params.shadow_reach_px);
-        }
+        obj.set_lit_fractions(z.view(), params);
         let maps = albedo_maps(
             pr,
             &obj.weights,

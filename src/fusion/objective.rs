@@ -333,17 +333,21 @@ impl<'a, 'p> Objective<'a, 'p> {
     }
 
     /// Sets f_k, the lit share of each pixel just past an observation's own shadows
-    /// ([`super::shadows::lit_fractions`]), on surface `z`, for the stage that starts there:
-    /// E_I then compares I/g with f·R. Shadows are I/g/Ī_k below `threshold`, as
-    /// [`Weights::usable`] finds them; rays walk at most `reach_px`.
-    pub fn set_lit_fractions(&mut self, z: ArrayView2<f64>, threshold: f64, reach_px: usize) {
+    /// ([`super::shadows::lit_fractions`]), on surface `z`, for the stage that starts there,
+    /// where `params.partial_shadow` asks for it: E_I then compares I/g with f·R. Shadows are
+    /// I/g/Ī_k below `shadow_threshold`, as [`Weights::usable`] finds them; rays walk at most
+    /// `shadow_reach_px`.
+    pub fn set_lit_fractions(&mut self, z: ArrayView2<f64>, params: &super::FusionParams) {
+        if !params.partial_shadow {
+            return;
+        }
         let blurred: Vec<bool> = self.kernels.iter().map(Option::is_some).collect();
         self.weights.lit = super::shadows::lit_fractions(
             self.problem,
             (&self.weights, self.scale),
             &blurred,
             z,
-            (threshold, reach_px),
+            (params.shadow_threshold, params.shadow_reach_px),
         );
     }
 
@@ -373,16 +377,12 @@ impl<'a, 'p> Objective<'a, 'p> {
             .collect();
         let gains = w.gains.clone();
         let usable = &w.usable;
-        let observations = &self.problem.observations;
         // Where two or more other observations carry the pixel, its slopes in every direction
         // are measured and the ray adds mostly its own sub-pixel error. Where no other
         // observation sees it (lit or not), its ray is the only one: under a low Sun the
         // surface there then ended metres apart on a tile and on the whole region.
         let factor = |k: usize, i: usize, j: usize| {
-            let seen = observations
-                .iter()
-                .enumerate()
-                .any(|(m, o)| m != k && o.image[(i, j)].is_finite());
+            let seen = self.problem.seen_by_another(k, (i, j));
             let others = (0..usable.len())
                 .filter(|&m| m != k && usable[m][(i, j)])
                 .count();

@@ -135,6 +135,19 @@ enum Seen {
     Unseen,
 }
 
+/// The step towards the Sun `sun` (unit, grid frame) along its azimuth, in rows and columns per
+/// unit step (east is +column, north is −row), and Δ·tan e, the ray's rise per step of
+/// `spacing` metres, e the Sun's elevation; `None` where the Sun is at or below the horizon,
+/// or so near the zenith (tan e over [`MAX_TAN_ELEVATION`]) that it casts no shadow a grid
+/// pixel can hold.
+fn towards_sun(sun: &crate::photometry::Vec3, spacing: f64) -> Option<(f64, f64, f64)> {
+    let h = (sun[0] * sun[0] + sun[1] * sun[1]).sqrt();
+    if sun[2] <= 0.0 || h <= 0.0 || sun[2] / h > MAX_TAN_ELEVATION {
+        return None;
+    }
+    Some((-sun[1] / h, sun[0] / h, spacing * sun[2] / h))
+}
+
 /// The rays of every observation: `shadowed(k, v)` and `lit(k, v)` say whether observation
 /// k's value v is shadow or clearly lit; `reach_px` bounds every walk.
 pub fn rays(
@@ -171,20 +184,16 @@ pub fn rays(
                     if w <= 0.0 {
                         continue;
                     }
-                    let s = o.sun.at(i, j);
-                    let h = (s[0] * s[0] + s[1] * s[1]).sqrt();
-                    if s[2] <= 0.0 || h <= 0.0 || s[2] / h > MAX_TAN_ELEVATION {
+                    let Some((dr, dc, rise)) = towards_sun(&o.sun.at(i, j), pr.spacing) else {
                         continue;
-                    }
-                    // East is +column, north is −row.
-                    let (dr, dc) = (-s[1] / h, s[0] / h);
+                    };
                     if let Some(ray) = walk(&seen, (i, j), (dr, dc), start, reach_px) {
                         row.push(Ray {
                             i: i as u32,
                             j: j as u32,
                             dr: dr as f32,
                             dc: dc as f32,
-                            rise: (pr.spacing * s[2] / h) as f32,
+                            rise: rise as f32,
                             steps: ray as u16,
                             lit: start == Seen::Lit,
                             weight: w as f32,
@@ -461,12 +470,9 @@ pub fn lit_fraction(
     reach_px: usize,
 ) -> f64 {
     let (ny, nx) = z.dim();
-    let h = (sun[0] * sun[0] + sun[1] * sun[1]).sqrt();
-    if sun[2] <= 0.0 || h <= 0.0 || sun[2] / h > MAX_TAN_ELEVATION {
+    let Some((dr, dc, rise)) = towards_sun(sun, spacing) else {
         return 1.0;
-    }
-    let (dr, dc) = (-sun[1] / h, sun[0] / h);
-    let rise = spacing * sun[2] / h;
+    };
     // Within a millionth of a pixel of the grid counts as on it: a Sun due east has a
     // north–south component of 10⁻¹⁷, not 0, and the first row's walk must not leave the grid.
     let (last_r, last_c) = ((ny - 1) as f64 + 1e-6, (nx - 1) as f64 + 1e-6);
@@ -494,11 +500,9 @@ fn past_a_shadow(
     sun: &crate::photometry::Vec3,
     shadowed: impl Fn(usize, usize) -> bool,
 ) -> bool {
-    let h = (sun[0] * sun[0] + sun[1] * sun[1]).sqrt();
-    if h <= 0.0 {
+    let Some((dr, dc, _)) = towards_sun(sun, 1.0) else {
         return false;
-    }
-    let (dr, dc) = (-sun[1] / h, sun[0] / h);
+    };
     [1.0, 1.5].iter().any(|&t| {
         let r = (i as f64 + t * dr).round();
         let c = (j as f64 + t * dc).round();
@@ -555,9 +559,7 @@ pub fn lit_fractions(
             };
             let f = Zip::indexed(&w.usable[k]).par_map_collect(|ij, &u| {
                 // Where no other observation sees the pixel, the share is its only hold.
-                let seen = (pr.observations.iter().enumerate())
-                    .any(|(m, o)| m != k && o.image[ij].is_finite());
-                if !u || !seen {
+                if !u || !pr.seen_by_another(k, ij) {
                     return 1.0;
                 }
                 let sun = o.sun.at(ij.0, ij.1);
