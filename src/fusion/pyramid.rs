@@ -172,6 +172,7 @@ pub fn coarse_params(params: &FusionParams, f: usize) -> FusionParams {
         albedo_sigmas: params.albedo_sigmas.iter().copied().map(div).collect(),
         final_albedo_sigma: div(params.final_albedo_sigma),
         multi_albedo_sigma: div(params.multi_albedo_sigma),
+        multi_albedo_sigma_single: div(params.multi_albedo_sigma_single),
         multi_final_albedo_sigma: div(params.multi_final_albedo_sigma),
         edge_ramp_px: div(params.edge_ramp_px),
         coarse_factor: 1,

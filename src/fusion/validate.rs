@@ -282,7 +282,7 @@ fn dem_and_membrane(params: &FusionParams) -> [Check; 9] {
 }
 
 /// What acts only where several observations overlap.
-fn several_observations(params: &FusionParams) -> [Check; 16] {
+fn several_observations(params: &FusionParams) -> [Check; 17] {
     [
         (
             "multi_delta_factor",
@@ -321,6 +321,12 @@ fn several_observations(params: &FusionParams) -> [Check; 16] {
             "multi_albedo_sigma",
             params.multi_albedo_sigma,
             params.multi_albedo_sigma >= 0.0,
+            "must be ≥ 0 pixels",
+        ),
+        (
+            "multi_albedo_sigma_single",
+            params.multi_albedo_sigma_single,
+            params.multi_albedo_sigma_single >= 0.0,
             "must be ≥ 0 pixels",
         ),
         (
