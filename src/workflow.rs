@@ -328,8 +328,9 @@ pub struct Tiling {
     /// halo of 40 px that is 1.16× the core's work at 1024, 1.34× at 512 (docs/workflows.md).
     pub tile_size: usize,
     /// Overlap on each side, pixels; absent = [`auto_halo`]: ⌈4 × the largest Gaussian σ⌉ a
-    /// tile applies (the fine albedo stages, σ_DEM, the DEM's point spread), at least
-    /// [`MIN_HALO`] and, with cast shadows on, 4/3 of their rays' reach.
+    /// tile applies (the fine albedo stages, σ_DEM, the DEM's point spread, and where several
+    /// observations are listed the overlap passes' widths), at least [`MIN_HALO`] (with several
+    /// observations [`MIN_HALO_SEVERAL`]) and, with cast shadows on, 4/3 of their rays' reach.
     pub halo: Option<usize>,
     /// Half-width, pixels, of the band around each core edge where neighbouring tiles are
     /// blended; at most the halo. Absent = halo / 4.
@@ -812,10 +813,18 @@ pub fn auto_halo(p: &FusionParams, dem_psf: f64, reference: bool, several: bool)
     } else {
         0.0
     };
+    // Where observations overlap, the last stage's passes also low-pass the multi-coverage
+    // (`fusion::near_overlap`) and the albedo at `multi_albedo_sigma_single`.
+    let overlap = if several {
+        let last = p.albedo_sigmas.last().copied().unwrap_or(0.0);
+        (crate::fusion::NEAR_OVERLAP_SIGMA_FACTOR * last).max(p.multi_albedo_sigma_single)
+    } else {
+        0.0
+    };
     let largest = stages
         .iter()
         .copied()
-        .chain([p.final_albedo_sigma, dem, tracks])
+        .chain([p.final_albedo_sigma, dem, tracks, overlap])
         .fold(0.0f64, f64::max);
     let rays = if p.shadow_weight > 0.0 || p.partial_shadow {
         (4 * p.shadow_reach_px).div_ceil(3)
@@ -999,6 +1008,12 @@ directory = "out"
         // Several observations: at least 80 px.
         assert_eq!(auto_halo(&o.solver, psf, true, true), 80);
         assert_eq!(auto_halo(&o.solver, psf, false, true), 400);
+        // There the overlap passes low-pass the multi-coverage at twice the last albedo stage's
+        // σ_ρ: a last stage of 25 px asks for 4 × 50 px, only where several are listed.
+        let mut wide = o.solver.clone();
+        wide.albedo_sigmas = vec![100.0, 25.0];
+        assert_eq!(auto_halo(&wide, psf, true, true), 200);
+        assert_eq!(auto_halo(&wide, psf, true, false), 100);
         // Rays of cast shadows longer than 3/4 of that widen it: 60 px → 80 px.
         let mut longer = o.solver.clone();
         longer.shadow_reach_px = 60;

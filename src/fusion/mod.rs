@@ -292,8 +292,9 @@ pub struct FusionParams {
     pub shadow_edge_weight_all: f64,
     /// Where two or more observations see a pixel under different Suns, shading and albedo
     /// separate pixel by pixel: a last albedo stage of this σ_ρ (pixels) is run there,
-    /// blended into the last configured stage by the multi-coverage c(x) of
-    /// [`observations::Weights::multiplicity`] (no effect with one observation).
+    /// blended by the multi-coverage c(x) of [`observations::Weights::multiplicity`] into the
+    /// albedo of the pixels one observation carries (`multi_albedo_sigma_single`; no effect
+    /// with one observation).
     pub multi_albedo_sigma: f64,
     /// σ_ρ (pixels) of the overlap passes where one observation carries a pixel next to
     /// pixels that several carry (c(x) = 0 there; blended by c with `multi_albedo_sigma`, and
@@ -1151,9 +1152,10 @@ fn early_stage_params(params: &FusionParams) -> FusionParams {
 
 /// The last stage where observations overlap, `multi_albedo_passes` times: the albedo at
 /// `multi_albedo_sigma` blended by the multi-coverage `multi` with the one where one
-/// observation carries the pixel (at `multi_albedo_sigma_single` next to the overlap, at `last`,
-/// the last configured σ_ρ, away from it: [`near_overlap`]), the membrane weighed on it, the surface solved. Every pass but the last
-/// hands the next its surface, from which the next inverts its albedo and weighs its membrane:
+/// observation carries the pixel (at `multi_albedo_sigma_single` next to the overlap, at
+/// `last`, the last configured σ_ρ, away from it: [`near_overlap`]), the membrane weighed on
+/// it, the surface solved, each step's conjugate gradients to [`PASS_CG_FACTOR`] ×
+/// `cg_tolerance`. Every pass but the last hands the next its surface, from which the next inverts its albedo and weighs its membrane:
 /// a fixed number of steps, the same in every window (one: a second step moves the results by
 /// less than 1 mm). Appends each pass's report to `stages`; returns the last pass's albedo
 /// where `keep_rho`.
@@ -1167,7 +1169,7 @@ fn overlap_passes(
     stages: &mut Vec<StageReport>,
 ) -> Result<Option<Array2<f64>>, FusionError> {
     let passes = params.multi_albedo_passes;
-    let near = near_overlap(&obj.dct, multi, 2.0 * last);
+    let near = near_overlap(&obj.dct, multi, NEAR_OVERLAP_SIGMA_FACTOR * last);
     // The passes solve their steps further (`PASS_CG_FACTOR`).
     let params = &FusionParams {
         cg_tolerance: PASS_CG_FACTOR * params.cg_tolerance,
@@ -1223,7 +1225,7 @@ fn overlap_passes(
 
 /// How near a pixel lies to where several observations carry the surface: b = min(1,
 /// [`NEAR_OVERLAP_GAIN`] · (G_σ ∗ c)(x)), c the multi-coverage (σ = `sigma`; the overlap
-/// passes use twice the last configured σ_ρ). Where one observation carries a pixel the passes
+/// passes use [`NEAR_OVERLAP_SIGMA_FACTOR`] × the last configured σ_ρ). Where one observation carries a pixel the passes
 /// take its albedo at `multi_albedo_sigma_single` in share b and at the last configured σ_ρ in
 /// share 1 − b: in the other Suns' shadows and the rings beside them b is 1, while deep in one
 /// strip's own part, as in a window with no overlap at all, the albedo stays that of a single
@@ -1231,6 +1233,10 @@ fn overlap_passes(
 fn near_overlap(dct: &Dct2d, multi: &Array2<f64>, sigma: f64) -> Array2<f64> {
     spectral::gaussian_filter(dct, multi, sigma).mapv(|v| (NEAR_OVERLAP_GAIN * v).clamp(0.0, 1.0))
 }
+
+/// The width of `near_overlap`'s Gaussian in the overlap passes, in last configured σ_ρ (8 px
+/// at the defaults; `workflow::auto_halo` counts it where several observations are listed).
+pub const NEAR_OVERLAP_SIGMA_FACTOR: f64 = 2.0;
 
 /// The gain of `near_overlap`, the share of the sharper albedo next to the overlap: a pixel
 /// with a quarter of its σ-neighbourhood's weight in the overlap counts as next to it.
