@@ -1155,10 +1155,10 @@ fn early_stage_params(params: &FusionParams) -> FusionParams {
 /// observation carries the pixel (at `multi_albedo_sigma_single` next to the overlap, at
 /// `last`, the last configured σ_ρ, away from it: [`near_overlap`]), the membrane weighed on
 /// it, the surface solved, each step's conjugate gradients to [`PASS_CG_FACTOR`] ×
-/// `cg_tolerance`. Every pass but the last hands the next its surface, from which the next inverts its albedo and weighs its membrane:
-/// a fixed number of steps, the same in every window (one: a second step moves the results by
-/// less than 1 mm). Appends each pass's report to `stages`; returns the last pass's albedo
-/// where `keep_rho`.
+/// `cg_tolerance`. Every pass but the last hands the next its surface, from which the next
+/// inverts its albedo and weighs its membrane: a fixed number of steps, the same in every
+/// window (one: a second step moves the results by less than 1 mm). Appends each pass's
+/// report to `stages`; returns the last pass's albedo where `keep_rho`.
 fn overlap_passes(
     pr: &Problem,
     obj: &mut Objective,
@@ -1225,11 +1225,12 @@ fn overlap_passes(
 
 /// How near a pixel lies to where several observations carry the surface: b = min(1,
 /// [`NEAR_OVERLAP_GAIN`] · (G_σ ∗ c)(x)), c the multi-coverage (σ = `sigma`; the overlap
-/// passes use [`NEAR_OVERLAP_SIGMA_FACTOR`] × the last configured σ_ρ). Where one observation carries a pixel the passes
-/// take its albedo at `multi_albedo_sigma_single` in share b and at the last configured σ_ρ in
-/// share 1 − b: in the other Suns' shadows and the rings beside them b is 1, while deep in one
-/// strip's own part, as in a window with no overlap at all, the albedo stays that of a single
-/// image (b = 0). b reaches 0 within some 3σ of the overlap, well inside a tile's halo.
+/// passes use [`NEAR_OVERLAP_SIGMA_FACTOR`] × the last configured σ_ρ). Where one observation
+/// carries a pixel the passes take its albedo at `multi_albedo_sigma_single` in share b and at
+/// the last configured σ_ρ in share 1 − b: in the other Suns' shadows and the rings beside them
+/// b is 1, while deep in one strip's own part, as in a window with no overlap at all, the
+/// albedo stays that of a single image (b = 0). b reaches 0 within some 3σ of the overlap, well
+/// inside a tile's halo.
 fn near_overlap(dct: &Dct2d, multi: &Array2<f64>, sigma: f64) -> Array2<f64> {
     spectral::gaussian_filter(dct, multi, sigma).mapv(|v| (NEAR_OVERLAP_GAIN * v).clamp(0.0, 1.0))
 }
