@@ -491,7 +491,7 @@ impl Default for FusionParams {
             dem_track_sigma_px: 9.0,
             coarse_dem_membrane: true,
             nyquist_shrink: 0.75,
-            shadow_weight: 1.0,
+            shadow_weight: 2.0,
             shadow_tolerance_px: 0.0,
             shadow_weight_all: 0.1,
             shadow_weight_alone: 0.0,
@@ -1105,6 +1105,18 @@ fn albedo_stages(
         .last()
         .copied()
         .filter(|_| multi.is_some());
+    // Where observations overlap, every stage solves its conjugate gradients further
+    // (`MULTI_CG_FACTOR`), and the passes further still.
+    let tighter;
+    let params = if multi.is_some() {
+        tighter = FusionParams {
+            cg_tolerance: MULTI_CG_FACTOR * params.cg_tolerance,
+            ..params.clone()
+        };
+        &tighter
+    } else {
+        params
+    };
     let early = early_stage_params(params);
     // The last stage's albedo, kept for the final albedo's sharpened images only where an
     // observation is coarser than the grid (otherwise not held past its stage).
@@ -1154,9 +1166,9 @@ fn early_stage_params(params: &FusionParams) -> FusionParams {
 /// `multi_albedo_sigma` blended by the multi-coverage `multi` with the one where one
 /// observation carries the pixel (at `multi_albedo_sigma_single` next to the overlap, at
 /// `last`, the last configured σ_ρ, away from it: [`near_overlap`]), the membrane weighed on
-/// it, the surface solved, each step's conjugate gradients to [`PASS_CG_FACTOR`] ×
-/// `cg_tolerance`. Every pass but the last hands the next its surface, from which the next
-/// inverts its albedo and weighs its membrane: a fixed number of steps, the same in every
+/// it, the surface solved, each step's conjugate gradients to [`PASS_CG_FACTOR`] × the
+/// stages' `cg_tolerance`. Every pass but the last hands the next its surface, from which the
+/// next inverts its albedo and weighs its membrane: a fixed number of steps, the same in every
 /// window (one: a second step moves the results by less than 1 mm). Appends each pass's
 /// report to `stages`; returns the last pass's albedo where `keep_rho`.
 fn overlap_passes(
@@ -1243,12 +1255,22 @@ pub const NEAR_OVERLAP_SIGMA_FACTOR: f64 = 2.0;
 /// with a quarter of its σ-neighbourhood's weight in the overlap counts as next to it.
 pub const NEAR_OVERLAP_GAIN: f64 = 4.0;
 
-/// The overlap passes solve each Gauss–Newton step's conjugate gradients to this share of
-/// `cg_tolerance` (0.005 at the default). With the sharper albedo where one observation carries
-/// a pixel, a doubly shadowed pit between partly shadowed pixels (315/20 + 45/20, seed 4) ended
-/// 0.77 m (0.18× the RMSE) apart in 128-px tiles and one 512-px tile at the default tolerance,
-/// 0.23 m at this one, at the same cost within the machine's noise (docs/science.md, "The
-/// albedo where one observation carries a pixel").
+/// Where observations overlap in a window, its stages solve each Gauss–Newton step's conjugate
+/// gradients to this share of `cg_tolerance` (0.01 at the default; the overlap passes then to
+/// [`PASS_CG_FACTOR`] of that). E_S at λ = 2 holds the floors two low Suns shadow from both
+/// sides 1–2 % better than at 1, but a doubly shadowed pixel that only E_S and the membrane hold
+/// (315/20 + 45/20, seed 3, pixel (90, 336)) then ended 0.91 m (0.19× the RMSE) apart in 128-px
+/// tiles and one 512-px tile; at this tolerance 0.18 m (0.036×), for 2–5 % of a pair's run
+/// (docs/science.md, "Cast shadows"). One observation alone has no E_S and keeps the default.
+pub const MULTI_CG_FACTOR: f64 = 0.5;
+
+/// The overlap passes solve each Gauss–Newton step's conjugate gradients to this share of the
+/// stages' tolerance ([`MULTI_CG_FACTOR`] × `cg_tolerance`, 0.0025 at the default). With the
+/// sharper albedo where one observation carries a pixel, a doubly shadowed pit between partly
+/// shadowed pixels (315/20 + 45/20, seed 4) ended 0.77 m (0.18× the RMSE) apart in 128-px tiles
+/// and one 512-px tile at the stages' tolerance, 0.23 m at this one, at the same cost within
+/// the machine's noise (docs/science.md, "The albedo where one observation carries a pixel";
+/// measured with the stages at 0.02 and E_S at λ = 1).
 pub const PASS_CG_FACTOR: f64 = 0.25;
 
 /// The albedo layer on the final surface `z`: inverted jointly over the observations
