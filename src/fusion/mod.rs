@@ -1256,16 +1256,18 @@ pub const NEAR_OVERLAP_SIGMA_FACTOR: f64 = 2.0;
 pub const NEAR_OVERLAP_GAIN: f64 = 4.0;
 
 /// Where observations overlap in a window, its stages solve each Gauss–Newton step's conjugate
-/// gradients to this share of `cg_tolerance` (0.01 at the default; the overlap passes then to
+/// gradients to this share of `cg_tolerance` (0.005 at the default; the overlap passes then to
 /// [`PASS_CG_FACTOR`] of that). E_S at λ = 2 holds the floors two low Suns shadow from both
-/// sides 1–2 % better than at 1, but a doubly shadowed pixel that only E_S and the membrane hold
-/// (315/20 + 45/20, seed 3, pixel (90, 336)) then ended 0.91 m (0.19× the RMSE) apart in 128-px
-/// tiles and one 512-px tile; at this tolerance 0.18 m (0.036×), for 2–5 % of a pair's run
-/// (docs/science.md, "Cast shadows"). One observation alone has no E_S and keeps the default.
-pub const MULTI_CG_FACTOR: f64 = 0.5;
+/// sides 1–2 % better than at 1, but pixels that only E_S and the membrane hold end where the
+/// conjugate gradients leave them, which a residual relative to the window sets: 315/20 + 45/20
+/// in 128-px tiles against one 512-px tile ended 0.19× the RMSE apart at the default tolerance
+/// (seed 3, pixel (90, 336)) and 0.14× at half of it (seed 7, (320, 293)); at this one 0.009×
+/// and 0.067×, for ≈ 15 % of a pair's fusion (docs/science.md, "Cast shadows";
+/// docs/performance.md). One observation alone has no E_S and keeps the default.
+pub const MULTI_CG_FACTOR: f64 = 0.25;
 
 /// The overlap passes solve each Gauss–Newton step's conjugate gradients to this share of the
-/// stages' tolerance ([`MULTI_CG_FACTOR`] × `cg_tolerance`, 0.0025 at the default). With the
+/// stages' tolerance ([`MULTI_CG_FACTOR`] × `cg_tolerance`, 0.00125 at the default). With the
 /// sharper albedo where one observation carries a pixel, a doubly shadowed pit between partly
 /// shadowed pixels (315/20 + 45/20, seed 4) ended 0.77 m (0.18× the RMSE) apart in 128-px tiles
 /// and one 512-px tile at the stages' tolerance, 0.23 m at this one, at the same cost within
