@@ -1107,15 +1107,14 @@ fn albedo_stages(
         .filter(|_| multi.is_some());
     // Where observations overlap, every stage solves its conjugate gradients further
     // (`MULTI_CG_FACTOR`), and the passes further still.
-    let tighter;
-    let params = if multi.is_some() {
-        tighter = FusionParams {
-            cg_tolerance: MULTI_CG_FACTOR * params.cg_tolerance,
-            ..params.clone()
-        };
-        &tighter
+    let factor = if multi.is_some() {
+        MULTI_CG_FACTOR
     } else {
-        params
+        1.0
+    };
+    let params = &FusionParams {
+        cg_tolerance: factor * params.cg_tolerance,
+        ..params.clone()
     };
     let early = early_stage_params(params);
     // The last stage's albedo, kept for the final albedo's sharpened images only where an
