@@ -224,8 +224,7 @@ fn walk(
 ) -> Option<usize> {
     let (ny, nx) = seen.dim();
     let at = |s: usize| -> Option<Seen> {
-        let r = (i as f64 + s as f64 * dr).round();
-        let c = (j as f64 + s as f64 * dc).round();
+        let (r, c) = nearest_along((i, j), s as f64, (dr, dc));
         if r < 0.0 || c < 0.0 || r > (ny - 1) as f64 || c > (nx - 1) as f64 {
             None
         } else {
@@ -273,6 +272,19 @@ fn walk(
         }
     }
     Some(last)
+}
+
+/// The pixel nearest the point `t` pixels from (i, j) along the unit step (dr, dc), as
+/// (row, column), possibly off the grid. The offset is rounded, not the position, so the pixel
+/// chosen is the same wherever (i, j) lies in the window: at an exact half-pixel tie (a Sun
+/// due south, 1.5 px) rounding i + t·dr went up or down with the size of i, because the
+/// product's last bit is lost in the sum on one side of a power of two and not on the other;
+/// a tile and the whole region then took different pixels for part in shadow and ended tens of
+/// metres apart on steep pits (docs/science.md, "Partial shadow"). Ties round away from the
+/// pixel, the same for every Sun azimuth.
+#[inline]
+fn nearest_along((i, j): (usize, usize), t: f64, (dr, dc): (f64, f64)) -> (f64, f64) {
+    (i as f64 + (t * dr).round(), j as f64 + (t * dc).round())
 }
 
 /// Bilinear weights of (r, c) inside an ny × nx grid: the flat indices of its four pixels and
@@ -504,8 +516,7 @@ fn past_a_shadow(
         return false;
     };
     [1.0, 1.5].iter().any(|&t| {
-        let r = (i as f64 + t * dr).round();
-        let c = (j as f64 + t * dc).round();
+        let (r, c) = nearest_along((i, j), t, (dr, dc));
         r >= 0.0 && c >= 0.0 && r < ny as f64 && c < nx as f64 && shadowed(r as usize, c as usize)
     })
 }
@@ -924,6 +935,37 @@ mod tests {
             assert!(
                 (f64::from(h) - num).abs() < 1e-4 * (1.0 + num.abs()),
                 "{k}: {h} against {num}"
+            );
+        }
+    }
+
+    /// Whether a pixel lies just past a shadow does not depend on where it lies in the window.
+    /// A Sun due south whose unit step is a hair short of one row, 1 − 10⁻¹⁴ (as a per-pixel
+    /// geometry gives it): 1.5 steps is a half-pixel tie, and rounding the position i + 1.5·dr
+    /// took the second row sunward at some rows and the first at others (the row's size decides
+    /// which bits of the sum survive). With the shadow two rows sunward, every row must answer
+    /// alike, for a Sun from the north too.
+    #[test]
+    fn a_pixel_past_a_shadow_is_found_wherever_it_lies_in_the_window() {
+        let (ny, nx) = (2100, 3);
+        let e = 1.4e-7;
+        let (c, s) = (20f64.to_radians().cos(), 20f64.to_radians().sin());
+        for north in [false, true] {
+            let sign = if north { -1.0 } else { 1.0 };
+            let sun = [e * c, -sign * c, s];
+            let (dr, _, _) = towards_sun(&sun, 1.0).unwrap();
+            assert!((dr - sign).abs() < 1e-13 && dr != sign, "{dr}");
+            let answers: Vec<bool> = (2..ny - 2)
+                .map(|i| {
+                    let shadow = (i as f64 + 2.0 * sign) as usize;
+                    past_a_shadow((i, 1), (ny, nx), &sun, |r, _| r == shadow)
+                })
+                .collect();
+            assert!(
+                answers.iter().all(|&a| a == answers[0]),
+                "north {north}: {} of {} rows differ from the first",
+                answers.iter().filter(|&&a| a != answers[0]).count(),
+                answers.len()
             );
         }
     }
