@@ -709,3 +709,24 @@ fn obs_suns_of_real_crops_agree_with_the_ephemeris() {
         );
     }
 }
+
+/// The scratch of a test process that no longer runs is swept away; this process's own is not.
+/// (Process ids stop below 2²², so 4294967294 never runs.)
+#[test]
+fn scratch_left_by_finished_test_runs_is_swept() {
+    if !std::path::Path::new("/proc/self").exists() {
+        return;
+    }
+    let tmp = std::env::temp_dir();
+    let crate_name = env!("CARGO_CRATE_NAME");
+    let stale = tmp.join(format!("sfsfuse-{crate_name}-4294967294-left"));
+    let own = tmp.join(format!("sfsfuse-{crate_name}-{}-kept", std::process::id()));
+    for d in [&stale, &own] {
+        std::fs::create_dir_all(d.join("sub")).unwrap();
+        std::fs::write(d.join("sub/f"), b"x").unwrap();
+    }
+    support::sweep_stale_scratch();
+    assert!(!stale.exists(), "{} was not swept", stale.display());
+    assert!(own.exists(), "{} was swept", own.display());
+    std::fs::remove_dir_all(&own).unwrap();
+}

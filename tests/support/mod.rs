@@ -11,7 +11,12 @@ pub fn sfsfuse() -> Command {
     Command::new(env!("CARGO_BIN_EXE_sfsfuse"))
 }
 
+/// A fresh scratch directory `name` of this test process under the system's temporary
+/// directory. The first call also sweeps away what earlier runs of this test binary left
+/// there ([`sweep_stale_scratch`]).
 pub fn scratch(name: &str) -> PathBuf {
+    static SWEEP: std::sync::Once = std::sync::Once::new();
+    SWEEP.call_once(sweep_stale_scratch);
     let d = std::env::temp_dir().join(format!(
         "sfsfuse-{}-{}-{name}",
         env!("CARGO_CRATE_NAME"),
@@ -20,6 +25,33 @@ pub fn scratch(name: &str) -> PathBuf {
     let _ = std::fs::remove_dir_all(&d);
     std::fs::create_dir_all(&d).unwrap();
     d
+}
+
+/// Removes the scratch directories `sfsfuse-<crate>-<pid>-*` of this test binary whose
+/// process is no longer running. The products [`scene_products`] shares through a static are
+/// never dropped (20–60 MB a run), and a failed test leaves its directory for inspection: swept
+/// here, on the next run, they do not pile up. Only where `/proc` tells which processes run
+/// (Linux); a directory whose process id is running again is left alone.
+pub fn sweep_stale_scratch() {
+    if !Path::new("/proc/self").exists() {
+        return;
+    }
+    let prefix = format!("sfsfuse-{}-", env!("CARGO_CRATE_NAME"));
+    let Ok(entries) = std::fs::read_dir(std::env::temp_dir()) else {
+        return;
+    };
+    for e in entries.flatten() {
+        let name = e.file_name();
+        let Some(rest) = name.to_str().and_then(|n| n.strip_prefix(&prefix)) else {
+            continue;
+        };
+        let Some(pid) = rest.split('-').next().and_then(|p| p.parse::<u32>().ok()) else {
+            continue;
+        };
+        if pid != std::process::id() && !Path::new("/proc").join(pid.to_string()).exists() {
+            let _ = std::fs::remove_dir_all(e.path());
+        }
+    }
 }
 
 /// Products of one synthetic scene, written once per test binary.
