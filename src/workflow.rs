@@ -330,7 +330,7 @@ pub struct Tiling {
     /// Overlap on each side, pixels; absent = [`auto_halo`]: ⌈4 × the largest Gaussian σ⌉ a
     /// tile applies (the fine albedo stages, σ_DEM, the DEM's point spread, and where several
     /// observations are listed the overlap passes' widths), at least [`MIN_HALO`] (with several
-    /// observations [`MIN_HALO_SEVERAL`]) and, with cast shadows on, 4/3 of their rays' reach.
+    /// observations [`MIN_HALO_SEVERAL`]) and, where cast shadows act, 4/3 of their rays' reach.
     pub halo: Option<usize>,
     /// Half-width, pixels, of the band around each core edge where neighbouring tiles are
     /// blended; at most the halo. Absent = halo / 4.
@@ -793,8 +793,9 @@ pub const MIN_HALO_SEVERAL: usize = 80;
 /// window. It also covers the photometric support band (3 σ_DEM,
 /// [`crate::fusion::support::band`]). With a coarse reference (`reference`,
 /// [`crate::fusion::pyramid`]) the first albedo stage is the plan's, solved over the whole
-/// region, and does not count. With cast shadows on (`shadow_weight` > 0, or
-/// `partial_shadow`, whose lit shares walk as far) it is also at least
+/// region, and does not count. Where cast shadows act (`shadow_weight` > 0, or
+/// `partial_shadow`, whose lit shares walk as far, with `several` observations listed; with
+/// one, only E_S raised by `shadow_weight_alone`) it is also at least
 /// ⌈4/3 × `shadow_reach_px`⌉: every pixel a tile gives the mosaic (≥ 3/4 halo inside the
 /// window) then has its whole ray inside the window, as it does on the whole region. With
 /// `several` observations listed it is at least [`MIN_HALO_SEVERAL`].
@@ -826,7 +827,11 @@ pub fn auto_halo(p: &FusionParams, dem_psf: f64, reference: bool, several: bool)
         .copied()
         .chain([p.final_albedo_sigma, dem, tracks, overlap])
         .fold(0.0f64, f64::max);
-    let rays = if p.shadow_weight > 0.0 || p.partial_shadow {
+    // E_S and the lit shares act only where another observation sees the pixel, unless E_S is
+    // asked for on pixels one observation carries alone.
+    let rays_act = (several && (p.shadow_weight > 0.0 || p.partial_shadow))
+        || (p.shadow_weight > 0.0 && p.shadow_weight_alone > 0.0);
+    let rays = if rays_act {
         (4 * p.shadow_reach_px).div_ceil(3)
     } else {
         0
@@ -1014,15 +1019,22 @@ directory = "out"
         wide.albedo_sigmas = vec![100.0, 25.0];
         assert_eq!(auto_halo(&wide, psf, true, true), 200);
         assert_eq!(auto_halo(&wide, psf, true, false), 100);
-        // Rays of cast shadows longer than 3/4 of that widen it: 60 px → 80 px.
+        // The default rays (40 px) fit in 3/4 of the 80 px of several observations; longer
+        // ones widen it, 90 px → 120 px, where they act: with several observations listed,
+        // and with one only where E_S is raised on pixels one observation carries alone.
+        assert_eq!(o.solver.shadow_reach_px, 40);
         let mut longer = o.solver.clone();
-        longer.shadow_reach_px = 60;
-        assert_eq!(auto_halo(&longer, psf, true, false), 80);
-        longer.shadow_weight = 0.0;
-        // The partial shadow's lit shares walk as far.
-        assert_eq!(auto_halo(&longer, psf, true, false), 80);
-        longer.partial_shadow = false;
+        longer.shadow_reach_px = 90;
+        assert_eq!(auto_halo(&longer, psf, true, true), 120);
         assert_eq!(auto_halo(&longer, psf, true, false), 40);
+        longer.shadow_weight_alone = 1.0;
+        assert_eq!(auto_halo(&longer, psf, true, false), 120);
+        longer.shadow_weight = 0.0;
+        assert_eq!(auto_halo(&longer, psf, true, false), 40);
+        // The partial shadow's lit shares walk as far.
+        assert_eq!(auto_halo(&longer, psf, true, true), 120);
+        longer.partial_shadow = false;
+        assert_eq!(auto_halo(&longer, psf, true, true), 80);
         let given = MINIMAL.replace("[output]", "[solver]\nsigma_dem = 5.0\n[output]");
         let Workflow::Orbital(g) =
             Workflow::parse(&given, Path::new("w.toml"), Path::new(".")).unwrap()

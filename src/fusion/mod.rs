@@ -438,8 +438,11 @@ pub struct FusionParams {
     /// I/g/Ī_k from which a pixel counts as lit for E_S (the pixels between this and
     /// `shadow_threshold` are part in shadow and constrain nothing).
     pub shadow_lit_threshold: f64,
-    /// The longest walk of an E_S ray towards the Sun, pixels (a `run`'s halo is at least 4/3
-    /// of it, `workflow::auto_halo`).
+    /// The longest walk of an E_S ray towards the Sun, and of a lit share's, pixels (where
+    /// they act, a `run`'s halo is at least 4/3 of it, `workflow::auto_halo`). 40: a shadow
+    /// longer than the walk gives its pixels no ray, and a 1.6-km deep crater under a 20° Sun
+    /// casts one of 31 px (24 until 2026-12-07; docs/science.md, "Cast shadows", "The reach at
+    /// 40 px").
     pub shadow_reach_px: usize,
     /// Model the pixels just past an observation's own cast shadows (the pixel 1 or 1.5 px
     /// towards its Sun image-shadowed) that another observation sees too as part in shadow:
@@ -496,7 +499,7 @@ impl Default for FusionParams {
             shadow_weight_all: 0.1,
             shadow_weight_alone: 0.0,
             shadow_lit_threshold: 0.5,
-            shadow_reach_px: 24,
+            shadow_reach_px: 40,
             partial_shadow: true,
         }
     }
