@@ -277,9 +277,9 @@ fn walk(
 /// The pixel nearest the point `t` pixels from (i, j) along the unit step (dr, dc), as
 /// (row, column), possibly off the grid. The offset is rounded, not the position, so the pixel
 /// chosen is the same wherever (i, j) lies in the window: at an exact half-pixel tie (a Sun
-/// due south, 1.5 px) rounding i + t·dr went up or down with the size of i, because the
-/// product's last bit is lost in the sum on one side of a power of two and not on the other;
-/// a tile and the whole region then took different pixels for part in shadow and ended tens of
+/// due south, 1.5 px) rounding i + t·dr went up or down with the size of i, because the sum
+/// keeps the step's shortfall from 1.5 (10⁻¹⁴) where i is small and rounds it away where the
+/// spacing of doubles near i is coarser than that; a tile and the whole region then took different pixels for part in shadow and ended tens of
 /// metres apart on steep pits (docs/science.md, "Partial shadow"). Ties round away from the
 /// pixel, the same for every Sun azimuth.
 #[inline]
@@ -942,8 +942,8 @@ mod tests {
     /// Whether a pixel lies just past a shadow does not depend on where it lies in the window.
     /// A Sun due south whose unit step is a hair short of one row, 1 − 10⁻¹⁴ (as a per-pixel
     /// geometry gives it): 1.5 steps is a half-pixel tie, and rounding the position i + 1.5·dr
-    /// took the second row sunward at some rows and the first at others (the row's size decides
-    /// which bits of the sum survive). With the shadow two rows sunward, every row must answer
+    /// took the second row sunward at some rows and the first at others (the sum keeps the
+    /// shortfall from 1.5 only where the spacing of doubles near i is finer than it). With the shadow two rows sunward, every row must answer
     /// alike, for a Sun from the north too.
     #[test]
     fn a_pixel_past_a_shadow_is_found_wherever_it_lies_in_the_window() {
