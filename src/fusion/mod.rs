@@ -436,7 +436,9 @@ pub struct FusionParams {
     /// the whole region under low Suns (docs/science.md, "Cast shadows"); 0: none there.
     pub shadow_weight_alone: f64,
     /// I/g/Ī_k from which a pixel counts as lit for E_S (the pixels between this and
-    /// `shadow_threshold` are part in shadow and constrain nothing).
+    /// `shadow_threshold` are part in shadow and constrain nothing). 0.15: with the partial
+    /// shadow's lit shares and rays of 40 px, a dim pixel that ends a shadow holds its ray as
+    /// well as a bright one (0.5 until 2026-12-07; docs/science.md, "The lit threshold at 0.15").
     pub shadow_lit_threshold: f64,
     /// The longest walk of an E_S ray towards the Sun, and of a lit share's, pixels (where
     /// they act, a `run`'s halo is at least 4/3 of it, `workflow::auto_halo`). 40: a shadow
@@ -498,7 +500,7 @@ impl Default for FusionParams {
             shadow_tolerance_px: 0.0,
             shadow_weight_all: 0.1,
             shadow_weight_alone: 0.0,
-            shadow_lit_threshold: 0.5,
+            shadow_lit_threshold: 0.15,
             shadow_reach_px: 40,
             partial_shadow: true,
         }
