@@ -279,9 +279,10 @@ fn walk(
 /// chosen is the same wherever (i, j) lies in the window: at an exact half-pixel tie (a Sun
 /// due south, 1.5 px) rounding i + t·dr went up or down with the size of i, because the sum
 /// keeps the step's shortfall from 1.5 (10⁻¹⁴) where i is small and rounds it away where the
-/// spacing of doubles near i is coarser than that; a tile and the whole region then took different pixels for part in shadow and ended tens of
-/// metres apart on steep pits (docs/science.md, "Partial shadow"). Ties round away from the
-/// pixel, the same for every Sun azimuth.
+/// spacing of doubles near i is coarser than that; a tile and the whole region then took
+/// different pixels for part in shadow and ended tens of metres apart on steep pits
+/// (docs/science.md, "Partial shadow"). Ties round away from the pixel, the same for every
+/// Sun azimuth.
 #[inline]
 fn nearest_along((i, j): (usize, usize), t: f64, (dr, dc): (f64, f64)) -> (f64, f64) {
     (i as f64 + (t * dr).round(), j as f64 + (t * dc).round())
@@ -943,8 +944,8 @@ mod tests {
     /// A Sun due south whose unit step is a hair short of one row, 1 − 10⁻¹⁴ (as a per-pixel
     /// geometry gives it): 1.5 steps is a half-pixel tie, and rounding the position i + 1.5·dr
     /// took the second row sunward at some rows and the first at others (the sum keeps the
-    /// shortfall from 1.5 only where the spacing of doubles near i is finer than it). With the shadow two rows sunward, every row must answer
-    /// alike, for a Sun from the north too.
+    /// shortfall from 1.5 only where the spacing of doubles near i is finer than it). With the
+    /// shadow two rows sunward, every row must answer alike, for a Sun from the north too.
     #[test]
     fn a_pixel_past_a_shadow_is_found_wherever_it_lies_in_the_window() {
         let (ny, nx) = (2100, 3);
