@@ -1775,7 +1775,9 @@ fn cast_shadows_on_small_tiles_end_where_the_whole_region_does() {
 /// doubly shadowed pixel of seed 3 ((90, 336)) ended 0.91 m apart (0.19 × the RMSE); at half of
 /// it a crater wall of seed 7 ((320, 293)) still 0.62 m (0.14 ×). Where observations overlap
 /// the stages now stop at a quarter of it (`fusion::MULTI_CG_FACTOR`; measured 0.04 m and
-/// 0.30 m, 0.009 × and 0.067 ×).
+/// 0.30 m, 0.009 × and 0.067 ×; with the 40-px rays and the lit threshold at 0.15 of
+/// 2026-12-07, 0.27 m and 0.43 m, 0.056 × and 0.094 ×: at 48 px seed 7 failed, docs/science.md
+/// "The reach at 40 px").
 #[test]
 fn doubly_shadowed_pixels_on_small_tiles_end_where_the_whole_region_does() {
     let suns = [(315.0, 20.0), (45.0, 20.0)];
@@ -1800,7 +1802,8 @@ fn doubly_shadowed_pixels_on_small_tiles_end_where_the_whole_region_does() {
 /// tie under a Sun on the grid's axis, and rounding the position rather than the offset broke
 /// the tie one way or the other with the pixel's place in the window: single columns of steep
 /// pits then zigzagged differently in a tile, 20.9 m (3.9 × the RMSE) from the whole region;
-/// 0.35 m (0.065 ×) since (docs/science.md, "Partial shadow").
+/// 0.35 m (0.065 ×) with the offset rounded, 0.42 m (0.080 ×) with the 40-px rays and the lit
+/// threshold at 0.15 (docs/science.md, "Partial shadow").
 #[test]
 fn two_low_suns_on_one_line_on_small_tiles_end_where_the_whole_region_does() {
     let suns = [(0.0, 20.0), (180.0, 20.0)];
