@@ -355,8 +355,9 @@ impl<'a, 'p> Objective<'a, 'p> {
     /// observation sees shadowed (I/g/Ī_k below `threshold`, as the photometric term drops it)
     /// or lit just past a shadow's end (I/g/Ī_k at least `lit_threshold`), each walked at most
     /// `reach_px` steps, forgiven `tolerance` pixels of shadow length, and weighing
-    /// `weight_all` instead of 1 where two or more other observations carry the pixel and
-    /// `weight_alone` where no other observation sees it. λ = 0 leaves the energy as it was.
+    /// `weight_all` instead of 1 where two or more other observations carry the pixel (raised
+    /// towards 1 under Suns lower than 30°, [`shadows::ray_weight_all`]) and `weight_alone`
+    /// where no other observation sees it. λ = 0 leaves the energy as it was.
     pub fn with_shadows(
         mut self,
         weight: f64,
@@ -378,7 +379,8 @@ impl<'a, 'p> Objective<'a, 'p> {
         let gains = w.gains.clone();
         let usable = &w.usable;
         // Where two or more other observations carry the pixel, its slopes in every direction
-        // are measured and the ray adds mostly its own sub-pixel error. Where no other
+        // are measured and the ray adds mostly its own sub-pixel error, unless its Sun is low
+        // and its shadows long ([`shadows::ray_weight_all`]). Where no other
         // observation sees it (lit or not), its ray is the only one: under a low Sun the
         // surface there then ended metres apart on a tile and on the whole region.
         let factor = |k: usize, i: usize, j: usize| {
@@ -389,7 +391,8 @@ impl<'a, 'p> Objective<'a, 'p> {
             if !seen {
                 weight_alone
             } else if others >= 2 {
-                weight_all
+                let sun = self.problem.observations[k].sun.at(i, j);
+                shadows::ray_weight_all(weight_all, 90.0 - observations::incidence_deg(&sun))
             } else {
                 1.0
             }

@@ -573,10 +573,11 @@ pub fn shadow_edge_factors(
             .par_for_each(|(i, j), w, &n, &c| {
                 // Only where k carries the pixel: beyond its footprint its Sun is not a number.
                 if n && c > 0 && *w > 0.0 {
+                    let elevation = 90.0 - incidence_deg(&o.sun.at(i, j));
                     *w *= if c >= 2 {
-                        beta_all
+                        beta_all * low_sun_edge_factor_all(elevation)
                     } else {
-                        beta * low_sun_edge_factor(90.0 - incidence_deg(&o.sun.at(i, j)))
+                        beta * low_sun_edge_factor(elevation)
                     };
                 }
             });
@@ -597,9 +598,30 @@ pub const LOW_SUN_EDGE_DEG: [f64; 2] = [20.0, 25.0];
 /// Suns 25° high or more the pixels on the rim's side still carry slope (docs/science.md,
 /// "Several observations": β scanned again on 2026-12-07).
 pub fn low_sun_edge_factor(elevation_deg: f64) -> f64 {
+    low_sun_share(LOW_SUN_EDGE_SHARE, elevation_deg)
+}
+
+/// The factor on β_all below a Sun's shadow edges, as [`low_sun_edge_factor`] with
+/// [`LOW_SUN_EDGE_SHARE_ALL`] for its share.
+pub fn low_sun_edge_factor_all(elevation_deg: f64) -> f64 {
+    low_sun_share(LOW_SUN_EDGE_SHARE_ALL, elevation_deg)
+}
+
+/// The share of β_all kept next to the shadows of a Sun [`LOW_SUN_EDGE_DEG`]`[0]` high or
+/// lower, where two or more other observations carry the pixel cleanly. Three Suns measure
+/// slope free of albedo in every direction without the pixel; under a low Sun the pixels along
+/// its many shadow edges, part in shadow, add a bias that the other images do not correct and
+/// that sums over the craters into relief tens of pixels wide (three Suns 20° high: β_all 0.1
+/// → 0.01 takes the error 6 % lower, 15° high 12 %; 25° high it gains nothing;
+/// docs/science.md, "Three low Suns").
+pub const LOW_SUN_EDGE_SHARE_ALL: f64 = 0.1;
+
+/// `share` up to [`LOW_SUN_EDGE_DEG`]`[0]`, 1 from [`LOW_SUN_EDGE_DEG`]`[1]`, a smoothstep
+/// between.
+fn low_sun_share(share: f64, elevation_deg: f64) -> f64 {
     let [lo, hi] = LOW_SUN_EDGE_DEG;
     let t = smoothstep((elevation_deg - lo) / (hi - lo));
-    LOW_SUN_EDGE_SHARE + (1.0 - LOW_SUN_EDGE_SHARE) * t
+    share + (1.0 - share) * t
 }
 
 /// Where an observation sees a pixel in shadow, or next to its own shadow, the pixel is still
@@ -1214,7 +1236,8 @@ mod tests {
     /// Under a low Sun the shadow-edge factor is lower: 0.4 of β up to 20°, all of it from
     /// 25°, the smoothstep between (0.7 of it at 22.5°). On a pixel next to observation 0's
     /// shadow that observation 1 sees cleanly, 0's weight is β·0.4 with its Sun 20° high,
-    /// β·0.7 at 22.5°, β at 50°; 1's own ring, under a 45° Sun, keeps β throughout.
+    /// β·0.7 at 22.5°, β at 50°; 1's own ring, under a 45° Sun, keeps β throughout. Where a
+    /// third observation sees the pixel cleanly too, β_all takes its own share, 0.1 up to 20°.
     #[test]
     fn a_low_suns_shadow_edges_weigh_less() {
         use crate::photometry::Hapke;
@@ -1223,6 +1246,12 @@ mod tests {
         assert!((low_sun_edge_factor(22.5) - 0.7).abs() < 1e-12);
         assert_eq!(low_sun_edge_factor(25.0), 1.0);
         assert_eq!(low_sun_edge_factor(60.0), 1.0);
+        // β_all's share is 0.1: 0.1 up to 20°, 0.55 at 22.5° (the smoothstep's half), 1 from 25°.
+        assert_eq!(low_sun_edge_factor_all(15.0), 0.1);
+        assert_eq!(low_sun_edge_factor_all(20.0), 0.1);
+        assert!((low_sun_edge_factor_all(22.5) - 0.55).abs() < 1e-12);
+        assert_eq!(low_sun_edge_factor_all(25.0), 1.0);
+        assert_eq!(low_sun_edge_factor_all(40.0), 1.0);
         let n = 16;
         let dark =
             |i: usize, j: usize, lo: usize| (lo..lo + 3).contains(&i) && (lo..lo + 3).contains(&j);
@@ -1241,6 +1270,34 @@ mod tests {
             let got = f64::from(w.weight[0][(3, 3)]);
             assert!((got - 0.25 * share).abs() < 1e-6, "{elevation}°: {got}");
             assert_eq!(w.weight[1][(9, 9)], 0.25, "{elevation}°");
+            // A third observation that sees every pixel cleanly: 0's ring is now carried by two
+            // others, and 0 keeps β_all times its own share there.
+            let c = Array2::from_elem((n, n), 0.03);
+            let pr = uniform_problem(
+                &[
+                    (&a, 90.0 - elevation, 100.0),
+                    (&b, 45.0, 250.0),
+                    (&c, 45.0, 10.0),
+                ],
+                &dem,
+                &model,
+            );
+            let w = weights(
+                &pr,
+                vec![1.0; 3],
+                0.03,
+                Some(vec![1.0; 3]),
+                0.1,
+                0.0,
+                (0.25, 0.1),
+            );
+            let got = f64::from(w.weight[0][(3, 3)]);
+            let share_all = low_sun_edge_factor_all(elevation);
+            assert!(
+                (got - 0.1 * share_all).abs() < 1e-6,
+                "{elevation}°, three: {got}"
+            );
+            assert_eq!(w.weight[1][(9, 9)], 0.1, "{elevation}°, three");
         }
         // Observation 0 ends at column 7, its Sun per pixel and not a number beyond (as an
         // ingested swath's): the ring of its shadow at columns 4..7 reaches column 7, where

@@ -538,6 +538,23 @@ pub fn partial_shadow_share(elevation_deg: f64) -> f64 {
     1.0 - super::support::smoothstep((elevation_deg - lo) / (hi - lo))
 }
 
+/// Sun elevations, degrees, up to which a ray at a pixel two or more other observations carry
+/// weighs in full and from which it weighs `shadow_weight_all` ([`ray_weight_all`]).
+pub const LOW_SUN_RAY_DEG: [f64; 2] = [20.0, 30.0];
+
+/// E_S's factor on a ray at a pixel two or more other observations carry, its Sun
+/// `elevation_deg` high: 1 up to 20°, `weight_all` (ω_all) from 30°, a smoothstep between.
+/// Under Suns of 25–35° the shadows are short, the truth itself violates many of their rays
+/// by a fraction of a pixel (sub-pixel rims), and where the other images already fix the
+/// pixel a full ray pulls floors below the truth; under a 20° Sun the shadows are long and
+/// their rays hold crater floors the other images see at grazing light (three Suns 20° high,
+/// ω_all 0.1 → 1: the error 8–10 % lower; docs/science.md, "Three low Suns").
+pub fn ray_weight_all(weight_all: f64, elevation_deg: f64) -> f64 {
+    let [lo, hi] = LOW_SUN_RAY_DEG;
+    let t = super::support::smoothstep((elevation_deg - lo) / (hi - lo));
+    weight_all + (1.0 - weight_all) * (1.0 - t)
+}
+
 /// f_k for every observation ([`super::observations::Weights::lit`]): 1 − a·(1 − f), f the
 /// [`lit_fraction`] on surface `z` and a the [`partial_shadow_share`] of the Sun there, at each
 /// pixel observation k uses just past one of its own shadows (the pixel 1 or 1.5 pixels
@@ -665,6 +682,19 @@ mod tests {
     /// them), so the ray that grazes column 25 at height H casts the longest shadow, its edge
     /// at x_e = 25 − H/(Δ tan e), and floor pixel j, d = x_e − j pixels from it, has
     /// f = ½ + d/W within [[`MIN_LIT_FRACTION`], 1].
+    /// ω_all under a low Sun: 1 up to 20°, ω_all from 30°, the smoothstep between (halfway
+    /// at 25°); ω_all = 1 leaves every ray at 1.
+    #[test]
+    fn rays_under_a_low_sun_weigh_in_full_where_others_carry_the_pixel() {
+        assert_eq!(ray_weight_all(0.1, 10.0), 1.0);
+        assert_eq!(ray_weight_all(0.1, 20.0), 1.0);
+        assert!((ray_weight_all(0.1, 25.0) - 0.55).abs() < 1e-12);
+        assert_eq!(ray_weight_all(0.1, 30.0), 0.1);
+        assert_eq!(ray_weight_all(0.1, 60.0), 0.1);
+        assert_eq!(ray_weight_all(1.0, 45.0), 1.0);
+        assert_eq!(ray_weight_all(0.0, 25.0), 0.5);
+    }
+
     #[test]
     fn the_lit_share_of_a_pixel_follows_its_distance_from_the_shadows_edge() {
         let tan_e = ELEVATION.to_radians().tan();
