@@ -287,8 +287,10 @@ pub struct FusionParams {
     /// β_all: the same factor where two or more other observations see the pixel away from
     /// their own shadows ([`observations::shadow_edge_factors`]). Three Suns spread in azimuth
     /// measure slope free of albedo in every direction without the pixel, which then adds
-    /// mostly its partial shadow (docs/science.md, "Several observations"). No effect with one
-    /// or two observations.
+    /// mostly its partial shadow (docs/science.md, "Several observations"). Under the
+    /// observation's Sun up to 20° high it is 0.1β_all, rising to β_all at 25°
+    /// ([`observations::low_sun_edge_factor_all`]; "Three low Suns"). No effect with one or two
+    /// observations.
     pub shadow_edge_weight_all: f64,
     /// Where two or more observations see a pixel under different Suns, shading and albedo
     /// separate pixel by pixel: a last albedo stage of this σ_ρ (pixels) is run there,
@@ -429,7 +431,9 @@ pub struct FusionParams {
     pub shadow_weight: f64,
     /// τ: pixels of shadow length an E_S ray may be violated by at no cost.
     pub shadow_tolerance_px: f64,
-    /// E_S's factor on rays at pixels two or more other observations carry.
+    /// ω_all, E_S's factor on rays at pixels two or more other observations carry, under a Sun
+    /// 30° high or more; under a Sun up to 20° high such a ray weighs 1, a smoothstep between
+    /// ([`shadows::ray_weight_all`]; docs/science.md, "Three low Suns").
     pub shadow_weight_all: f64,
     /// E_S's factor on rays at pixels no other observation sees (one observation alone, or
     /// where strips do not overlap). A single ray per pixel made tiled runs end metres from
