@@ -960,15 +960,13 @@ mod tests {
     /// [`weights`] of a problem of two observations, gains and noise weights 1, Ī = 0.03,
     /// shadow threshold 0.1, no edge ramp, shadow-edge factors `beta` (β, β_all).
     fn pair_weights(pr: &Problem, beta: (f64, f64)) -> Weights {
-        weights(
-            pr,
-            vec![1.0, 1.0],
-            0.03,
-            Some(vec![1.0, 1.0]),
-            0.1,
-            0.0,
-            beta,
-        )
+        unit_weights(pr, beta)
+    }
+
+    /// [`weights`] as [`pair_weights`], for any number of observations.
+    fn unit_weights(pr: &Problem, beta: (f64, f64)) -> Weights {
+        let n = pr.observations.len();
+        weights(pr, vec![1.0; n], 0.03, Some(vec![1.0; n]), 0.1, 0.0, beta)
     }
 
     /// A problem of `images` (each with its Sun's zenith and azimuth, degrees) seen from
@@ -1282,15 +1280,7 @@ mod tests {
                 &dem,
                 &model,
             );
-            let w = weights(
-                &pr,
-                vec![1.0; 3],
-                0.03,
-                Some(vec![1.0; 3]),
-                0.1,
-                0.0,
-                (0.25, 0.1),
-            );
+            let w = unit_weights(&pr, (0.25, 0.1));
             let got = f64::from(w.weight[0][(3, 3)]);
             let share_all = low_sun_edge_factor_all(elevation);
             assert!(
@@ -1411,15 +1401,7 @@ mod tests {
             &dem,
             &model,
         );
-        let w = weights(
-            &pr,
-            vec![1.0; 3],
-            0.03,
-            Some(vec![1.0; 3]),
-            0.1,
-            0.0,
-            (0.25, 0.1),
-        );
+        let w = unit_weights(&pr, (0.25, 0.1));
         assert_eq!(w.weight[0][(4, 4)], 0.1, "1 and 2 carry (4, 4)");
         assert_eq!(w.weight[0][(4, 8)], 0.25, "only 1 carries (4, 8)");
         assert_eq!(w.weight[0][(6, 6)], 0.0, "the shadow itself is not used");

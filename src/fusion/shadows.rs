@@ -676,12 +676,6 @@ mod tests {
         )
     }
 
-    /// The lit share of the pixels past a plateau's shadow, against the shadow's edge worked
-    /// out as the point where the Sun's ray over the plateau's edge meets the floor. The
-    /// plateau rises from column 24 (its last floor pixel) to column 25 (bilinearly between
-    /// them), so the ray that grazes column 25 at height H casts the longest shadow, its edge
-    /// at x_e = 25 − H/(Δ tan e), and floor pixel j, d = x_e − j pixels from it, has
-    /// f = ½ + d/W within [[`MIN_LIT_FRACTION`], 1].
     /// ω_all under a low Sun: 1 up to 20°, ω_all from 30°, the smoothstep between (halfway
     /// at 25°); ω_all = 1 leaves every ray at 1.
     #[test]
@@ -695,6 +689,12 @@ mod tests {
         assert_eq!(ray_weight_all(0.0, 25.0), 0.5);
     }
 
+    /// The lit share of the pixels past a plateau's shadow, against the shadow's edge worked
+    /// out as the point where the Sun's ray over the plateau's edge meets the floor. The
+    /// plateau rises from column 24 (its last floor pixel) to column 25 (bilinearly between
+    /// them), so the ray that grazes column 25 at height H casts the longest shadow, its edge
+    /// at x_e = 25 − H/(Δ tan e), and floor pixel j, d = x_e − j pixels from it, has
+    /// f = ½ + d/W within [[`MIN_LIT_FRACTION`], 1].
     #[test]
     fn the_lit_share_of_a_pixel_follows_its_distance_from_the_shadows_edge() {
         let tan_e = ELEVATION.to_radians().tan();
