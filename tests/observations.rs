@@ -30,7 +30,7 @@ fn fused(spec: &SceneSpec) -> (Scene, Fusion) {
 
 /// Two Suns 120° apart in azimuth, then three; the second observation 5 % brighter and the
 /// third 3 % darker than the first (calibration differences). The bars: elevation RMSE ≤ 0.65×
-/// the better single image with two, ≤ 0.55× with three (this scene: 0.462× and 0.362×,
+/// the better single image with two, ≤ 0.55× with three (this scene: 0.461× and 0.358×,
 /// docs/science.md), albedo RMSE ≤ 0.008, gains recovered.
 #[test]
 fn two_and_three_illuminations_beat_the_better_single_image() {
