@@ -102,10 +102,12 @@ fn pixels_next_to_a_shadow_count_less_where_another_sun_sees_them() {
 
 /// Three Suns 15° high (docs/science.md, "Three low Suns"): their shadows are long and many,
 /// and the pixels along their edges, part in shadow, are left to the two other images
-/// (β_all × 0.1 under Suns up to 20°), while the rays of E_S hold in full the pixels the other
-/// two carry (ω_all → 1 under Suns up to 20°). Before these rules three 15° Suns missed the
-/// 0.55× bar: this scene 5.09 m, 0.579× the best single image (8.79 m), held-out seeds 3 / 5
-/// at 512² 0.635 / 0.637×; with them 4.58 m, 0.522× (measured 2026-12-07).
+/// (β_all × 0.1 under Suns up to 20°), the rays of E_S hold in full the pixels the other two
+/// carry (ω_all → 1 under Suns up to 20°), and the DEM term keeps the weight it has with two
+/// Suns (no every-direction factor under Suns up to 20° on average). Before these rules three
+/// 15° Suns missed the 0.55× bar: this scene 5.09 m, 0.579× the best single image (8.79 m),
+/// held-out seeds 3 / 5 at 512² 0.635 / 0.637×; with them 4.56 m, 0.519× (measured
+/// 2026-12-07).
 #[test]
 fn three_low_suns_beat_the_best_single_image() {
     let suns = [(105.0, 15.0), (225.0, 15.0), (345.0, 15.0)];

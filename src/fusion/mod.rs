@@ -331,7 +331,9 @@ pub struct FusionParams {
     /// (three or more Suns spread in azimuth), δ is lowered further, towards δ × this: the
     /// factor becomes f − (f − f_all)·φ(x), f = `multi_delta_factor`, φ the share of that
     /// information in its least-measured direction ([`observations::every_direction`]; 0 for
-    /// two observations, whose images never measure a second direction).
+    /// two observations, whose images never measure a second direction, and under Suns 20°
+    /// high or lower on average, whose slopes carry the forward model's errors at grazing
+    /// light: [`observations::EVERY_DIRECTION_SUN_DEG`]).
     pub multi_delta_factor_all: f64,
     /// Where the Suns of the observations at a pixel stand high (mean cot² of their
     /// elevations under 1.2, fully under 0.6: ≈ 42° and 52°), δ is lowered further, towards

@@ -246,7 +246,7 @@ fn slope_spread(observations: &mut dyn Iterator<Item = (f64, Vec3)>) -> (usize, 
 /// φ of [`every_direction`] at one pixel, from each observation's (u_k, Sun vector); those with
 /// u_k ≤ 0 or the Sun at or below the horizon do not count.
 pub fn every_direction_at(observations: &mut dyn Iterator<Item = (f64, Vec3)>) -> f64 {
-    let (n, m, _) = slope_spread(observations);
+    let (n, m, cot2) = slope_spread(observations);
     if n < 3 {
         return 0.0;
     }
@@ -254,8 +254,20 @@ pub fn every_direction_at(observations: &mut dyn Iterator<Item = (f64, Vec3)>) -
     if hi <= 0.0 {
         return 0.0;
     }
-    direction_spread(lo, hi) * lo / (lo + EVERY_DIRECTION_M0)
+    let [e0, e1] = EVERY_DIRECTION_SUN_DEG;
+    let elevation = cot2.sqrt().recip().atan().to_degrees();
+    let high_enough = smoothstep((elevation - e0) / (e1 - e0));
+    direction_spread(lo, hi) * lo / (lo + EVERY_DIRECTION_M0) * high_enough
 }
+
+/// [e₀, e₁] of [`every_direction`], degrees: φ is taken in full where the Suns at a pixel stand
+/// e₁ high or more on average (ē = atan(1/√(mean cot² e_k)), u_k-weighted), not at all at e₀
+/// or lower, a smoothstep between. Under low Suns the images' slopes carry the forward
+/// model's errors at grazing light (partial shadows, sub-pixel rims) into relief tens of
+/// pixels wide, and the DEM keeps the share it has with two Suns: three Suns 15° high 2–3 %
+/// lower with it (12° 6 %), 20° 1.4 %; 25° 1.3 % higher without it (docs/science.md, "Three
+/// low Suns").
+pub const EVERY_DIRECTION_SUN_DEG: [f64; 2] = [20.0, 25.0];
 
 /// The eigenvalues λ_min ≤ λ_max of the symmetric M = [[a, b], [b, d]] of [`slope_spread`],
 /// λ_min no lower than 0.
@@ -1090,6 +1102,7 @@ mod tests {
     /// = 4.5 twice: φ = 4.5/4.55); two Suns, or three with one shadowed (u = 0) or below the
     /// horizon: 0; 45/30 + 135/30 + 90/60 (λ_min/λ_max = 0.093): 0; 0/40 + 90/40 + 180/40
     /// (M = cot² 40°·diag(2/3, 2), ratio 1/3: (1/3 − 0.2)/0.4 = 1/3 of λ_min/(λ_min + m₀)).
+    /// Three Suns 20° high or lower: 0, 25° or higher: all of it ([`EVERY_DIRECTION_SUN_DEG`]).
     #[test]
     fn every_direction_needs_suns_spread_in_azimuth() {
         let phi = |s: &[(f64, f64, f64)]| {
@@ -1117,6 +1130,17 @@ mod tests {
         let lo = 2.0 / 3.0 * k;
         let quarter = phi(&[(1.0, 0.0, 40.0), (1.0, 90.0, 40.0), (1.0, 180.0, 40.0)]);
         assert!((quarter - (1.0 / 3.0) * lo / (lo + EVERY_DIRECTION_M0)).abs() < 1e-12);
+        // Under low Suns the images do not take over: three 20° Suns give 0, three 25° Suns
+        // φ in full (λ = 1.5·cot² 25°), three at 22.5° half of it (the smoothstep's middle).
+        let at = |e: f64| phi(&[(1.0, 0.0, e), (1.0, 120.0, e), (1.0, 240.0, e)]);
+        let full = |e: f64| {
+            let l = 1.5 * (e.to_radians().tan()).powi(-2);
+            l / (l + EVERY_DIRECTION_M0)
+        };
+        assert_eq!(at(15.0), 0.0);
+        assert!(at(20.0) < 1e-12, "{}", at(20.0));
+        assert!((at(25.0) - full(25.0)).abs() < 1e-12);
+        assert!((at(22.5) - 0.5 * full(22.5)).abs() < 1e-12);
     }
 
     /// η by hand: two Suns at 60° and 55° (cot² = 1/3, 0.49): 1; at 45° (cot² = 1): (1.2 −
