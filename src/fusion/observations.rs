@@ -188,7 +188,9 @@ pub const EVERY_DIRECTION_RATIO: [f64; 2] = [0.2, 0.6];
 /// the best one and in absolute terms. A change of albedo moves every ln R_k alike, so only the
 /// g_k's spread measures slope free of it: two observations spread along one direction only
 /// (M has rank one, φ = 0, taken as exactly 0), three or more Suns apart in azimuth along
-/// every one. 0 where c(x) = 0.
+/// every one. Times smoothstep((ē − e₀)/(e₁ − e₀)), ē the Suns' mean elevation
+/// ([`EVERY_DIRECTION_SUN_DEG`]): under Suns 20° high or lower on average φ = 0. 0 where
+/// c(x) = 0.
 pub fn every_direction(pr: &Problem, w: &Weights, c: &Array2<f64>) -> Array2<f64> {
     where_overlapping(pr, w, c, every_direction_at)
 }
@@ -264,9 +266,9 @@ pub fn every_direction_at(observations: &mut dyn Iterator<Item = (f64, Vec3)>) -
 /// e₁ high or more on average (ē = atan(1/√(mean cot² e_k)), u_k-weighted), not at all at e₀
 /// or lower, a smoothstep between. Under low Suns the images' slopes carry the forward
 /// model's errors at grazing light (partial shadows, sub-pixel rims) into relief tens of
-/// pixels wide, and the DEM keeps the share it has with two Suns: three Suns 15° high 2–3 %
-/// lower with it (12° 6 %), 20° 1.4 %; 25° 1.3 % higher without it (docs/science.md, "Three
-/// low Suns").
+/// pixels wide, and the DEM keeps the share it has with two Suns: with the rule three Suns
+/// 15° high come out 2–3.4 % lower (12°: 5.6 %, 20°: 1.4 %), and φ taken at 25° keeps three
+/// 25° Suns 1.3 % lower than without it (docs/science.md, "Three low Suns").
 pub const EVERY_DIRECTION_SUN_DEG: [f64; 2] = [20.0, 25.0];
 
 /// The eigenvalues λ_min ≤ λ_max of the symmetric M = [[a, b], [b, d]] of [`slope_spread`],
@@ -613,7 +615,7 @@ pub fn low_sun_edge_factor(elevation_deg: f64) -> f64 {
     low_sun_share(LOW_SUN_EDGE_SHARE, elevation_deg)
 }
 
-/// The factor on β_all below a Sun's shadow edges, as [`low_sun_edge_factor`] with
+/// The factor on β_all next to a Sun's shadow edges, as [`low_sun_edge_factor`] with
 /// [`LOW_SUN_EDGE_SHARE_ALL`] for its share.
 pub fn low_sun_edge_factor_all(elevation_deg: f64) -> f64 {
     low_sun_share(LOW_SUN_EDGE_SHARE_ALL, elevation_deg)

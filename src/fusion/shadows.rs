@@ -548,7 +548,7 @@ pub const LOW_SUN_RAY_DEG: [f64; 2] = [20.0, 30.0];
 /// by a fraction of a pixel (sub-pixel rims), and where the other images already fix the
 /// pixel a full ray pulls floors below the truth; under a 20° Sun the shadows are long and
 /// their rays hold crater floors the other images see at grazing light (three Suns 20° high,
-/// ω_all 0.1 → 1: the error 8–10 % lower; docs/science.md, "Three low Suns").
+/// ω_all 0.1 → 1: the error 8 % lower; docs/science.md, "Three low Suns").
 pub fn ray_weight_all(weight_all: f64, elevation_deg: f64) -> f64 {
     let [lo, hi] = LOW_SUN_RAY_DEG;
     let t = super::support::smoothstep((elevation_deg - lo) / (hi - lo));
