@@ -392,7 +392,7 @@ impl<'a, 'p> Objective<'a, 'p> {
                 weight_alone
             } else if others >= 2 {
                 let sun = self.problem.observations[k].sun.at(i, j);
-                shadows::ray_weight_all(weight_all, 90.0 - observations::incidence_deg(&sun))
+                shadows::ray_weight_all(weight_all, observations::elevation_deg(&sun))
             } else {
                 1.0
             }

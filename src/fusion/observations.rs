@@ -438,6 +438,12 @@ pub fn incidence_deg(sun: &[f64; 3]) -> f64 {
     sun[2].clamp(-1.0, 1.0).acos().to_degrees()
 }
 
+/// The Sun's elevation above the horizon of a level surface, degrees: 90° − its incidence
+/// ([`incidence_deg`]).
+pub fn elevation_deg(sun: &[f64; 3]) -> f64 {
+    90.0 - incidence_deg(sun)
+}
+
 /// τ(i) for incidence `i` and maximum incidence `max` (degrees).
 pub fn incidence_taper(i: f64, max: f64) -> f64 {
     smoothstep((max - i) / INCIDENCE_FADE_DEG)
@@ -587,7 +593,7 @@ pub fn shadow_edge_factors(
             .par_for_each(|(i, j), w, &n, &c| {
                 // Only where k carries the pixel: beyond its footprint its Sun is not a number.
                 if n && c > 0 && *w > 0.0 {
-                    let elevation = 90.0 - incidence_deg(&o.sun.at(i, j));
+                    let elevation = elevation_deg(&o.sun.at(i, j));
                     *w *= if c >= 2 {
                         beta_all * low_sun_edge_factor_all(elevation)
                     } else {

@@ -572,7 +572,7 @@ pub fn lit_fractions(
     z: ArrayView2<f64>,
     (threshold, reach_px): (f64, usize),
 ) -> Vec<Option<Array2<f32>>> {
-    use super::observations::{image_shadowed, incidence_deg, own_mean};
+    use super::observations::{elevation_deg, image_shadowed, own_mean};
     pr.observations
         .iter()
         .enumerate()
@@ -592,7 +592,7 @@ pub fn lit_fractions(
                     return 1.0;
                 }
                 let sun = o.sun.at(ij.0, ij.1);
-                let a = partial_shadow_share(90.0 - incidence_deg(&sun));
+                let a = partial_shadow_share(elevation_deg(&sun));
                 if a > 0.0 && past_a_shadow(ij, dim, &sun, shadowed) {
                     (1.0 - a * (1.0 - lit_fraction(z, pr.spacing, ij, &sun, reach_px))) as f32
                 } else {
