@@ -248,13 +248,17 @@ pub struct ObservationSanity {
     pub correlation_fused_dem: f64,
     pub change_footprint_rms_m: f64,
     pub change_footprint_max_m: f64,
+    /// Whether the plan's survey found usable pixels of it on the grid. Its footprint counts
+    /// only the tiles where some observation was used: where the incidence window or the
+    /// shadows leave none, a tile is not fused and counts nothing.
+    pub reaches_region: bool,
 }
 
 /// What part an observation had in a run, from its figures: the one distinction the
 /// warnings, the run record's `gain_source` and the gain groups all draw.
 #[derive(Debug, Clone, Copy, PartialEq, Eq)]
 pub enum Usage {
-    /// Its footprint misses the region.
+    /// Its footprint misses the region (the survey found no usable pixel of it on the grid).
     OffRegion,
     /// It covers the region, but no pixel of it was used (shadow, incidence limits, the
     /// per-pixel maximum).
@@ -264,9 +268,9 @@ pub enum Usage {
 }
 
 impl ObservationSanity {
-    /// [`Usage`] from the footprint and the photometric fraction.
+    /// [`Usage`] from the survey's reach, the footprint and the photometric fraction.
     pub fn usage(&self) -> Usage {
-        if self.footprint_pixels == 0 {
+        if self.footprint_pixels == 0 && !self.reaches_region {
             Usage::OffRegion
         } else if self.photometric_fraction == 0.0 {
             Usage::Unused
@@ -311,8 +315,9 @@ fn worse(label: &str, before: f64, after: f64) -> Option<String> {
 }
 
 impl Sanity {
-    /// The figures from the run's sums; `labels` names the observations in input order.
-    pub fn from_sums(s: &TileSums, labels: &[String]) -> Sanity {
+    /// The figures from the run's sums; `labels` names the observations in input order and
+    /// `reached` says which the plan's survey found usable pixels of on the grid.
+    pub fn from_sums(s: &TileSums, labels: &[String], reached: &[bool]) -> Sanity {
         let a = &s.all;
         let ((f_rms, f_max), (b_rms, b_max), (o_rms, o_max)) =
             (a.change(0), a.change(1), a.change(2));
@@ -323,7 +328,8 @@ impl Sanity {
                     .iter()
                     .chain(std::iter::repeat(&Sums::default())),
             )
-            .map(|(label, o)| {
+            .zip(reached.iter().chain(std::iter::repeat(&false)))
+            .map(|((label, o), &reaches_region)| {
                 let (rms, max) = o.change(0);
                 ObservationSanity {
                     label: label.clone(),
@@ -333,6 +339,7 @@ impl Sanity {
                     correlation_fused_dem: o.correlation(1),
                     change_footprint_rms_m: rms,
                     change_footprint_max_m: max,
+                    reaches_region,
                 }
             })
             .collect();
@@ -355,8 +362,13 @@ impl Sanity {
                     o.label
                 )),
                 Usage::Unused => warnings.push(format!(
-                    "{}: the observation covers {} px of the region but none was used (all in shadow, or outside [inputs] min_incidence_deg … max_incidence_deg, or beyond max_observations_per_pixel)",
-                    o.label, o.footprint_pixels
+                    "{}: the observation {} but none was used (all in shadow, or outside [inputs] min_incidence_deg … max_incidence_deg, or beyond max_observations_per_pixel)",
+                    o.label,
+                    if o.footprint_pixels > 0 {
+                        format!("covers {} px of the region", o.footprint_pixels)
+                    } else {
+                        "reaches the region".to_string()
+                    }
                 )),
                 Usage::Used => {}
             }
@@ -434,8 +446,11 @@ impl Sanity {
         );
         if self.observations.len() > 1 {
             for o in &self.observations {
-                if o.usage() == Usage::OffRegion {
-                    t.push_str(&format!("  {}: 0 px (not used)\n", o.label));
+                if o.usage() != Usage::Used {
+                    t.push_str(&format!(
+                        "  {}: {} px (not used)\n",
+                        o.label, o.footprint_pixels
+                    ));
                     continue;
                 }
                 t.push_str(&format!(
@@ -495,7 +510,7 @@ mod tests {
         t.add(&TileSums::no_image(10, 1));
         assert_eq!(t.all.pixels, 15);
         assert_eq!(t.all.change[2].0, 11);
-        let out = Sanity::from_sums(&t, &["A".into()]);
+        let out = Sanity::from_sums(&t, &["A".into()], &[true]);
         let a = &out.observations[0];
         assert_eq!((a.footprint_pixels, a.change_footprint_max_m), (3, 2.0));
         assert!((a.photometric_fraction - 2.0 / 3.0).abs() < 1e-15);
@@ -534,7 +549,7 @@ mod tests {
                     set(&mut tile, n);
                     t2.add(&tile);
                 }
-                let out = Sanity::from_sums(&t2, &["A".into()]);
+                let out = Sanity::from_sums(&t2, &["A".into()], &[true]);
                 assert_eq!(out.overlap_pixels, 20);
                 assert!((share(&out) - (a + b) as f64 / 20.0).abs() < 1e-15);
                 let warned = |text: &str| out.warnings.iter().any(|w| w.contains(text));

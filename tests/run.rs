@@ -1695,6 +1695,32 @@ fn the_record_says_how_each_gain_was_fixed_and_warns_where_it_was_not() {
         )),
         "{warnings}"
     );
+    // A window of 10–50° admits neither Sun (60° and 55° from the zenith): the run refuses it,
+    // naming the keywords and each observation's incidences, and writes nothing.
+    let out = dir.join("none");
+    let err = run_err(&write_workflow(
+        &dir,
+        &base
+            .replace(&all, &format!("m3 = [{}, {}]", label(0), label(1)))
+            .replace(
+                "[inputs]",
+                "[inputs]\nmin_incidence_deg = 10.0\nmax_incidence_deg = 50.0",
+            )
+            .replace("OUT", &out.display().to_string()),
+    ));
+    assert!(
+        err.contains(
+            "min_incidence_deg = 10 and max_incidence_deg = 50 leave out every observation"
+        ),
+        "{err}"
+    );
+    for (k, inc) in [(0, "60.0–60.0°"), (1, "55.0–55.0°")] {
+        assert!(
+            err.contains(&format!("{}: {inc}", p.m3_labels[k].display())),
+            "{err}"
+        );
+    }
+    assert!(!out.join("dem.tif").exists());
     std::fs::remove_dir_all(&dir).unwrap();
 }
 

@@ -63,7 +63,19 @@ impl Selection {
     pub fn admits(&self, inc: f64) -> bool {
         inc >= self.min_incidence_deg && inc < self.max_incidence_deg
     }
+
+    /// Whether some incidence in `[lo, hi]` (degrees) is within the selection, the window
+    /// widened by [`RANGE_TOLERANCE_DEG`] either side: a range of a whole observation's Suns
+    /// (`pipeline::plan`'s check that a window leaves some observation in) is measured from
+    /// the swath's own angles, which the grid's Sun vectors carry to within rounding.
+    pub fn admits_some_of(&self, [lo, hi]: [f64; 2]) -> bool {
+        hi >= self.min_incidence_deg - RANGE_TOLERANCE_DEG
+            && lo < self.max_incidence_deg + RANGE_TOLERANCE_DEG
+    }
 }
+
+/// Slack of [`Selection::admits_some_of`], degrees.
+pub const RANGE_TOLERANCE_DEG: f64 = 1e-3;
 
 /// Width, in degrees, over which τ fades to 0 at the maximum incidence.
 pub const INCIDENCE_FADE_DEG: f64 = 10.0;
@@ -976,6 +988,27 @@ pub fn invert_albedo(
 #[cfg(test)]
 mod tests {
     use super::*;
+
+    /// A range is admitted where any incidence in it is: the window [50°, 58°) takes a Sun at
+    /// 55° and one ranging 40–50° (50 is in), not one at 60°, one ranging 58.1–70° (58 is
+    /// out) or one ranging 20–49.9°.
+    #[test]
+    fn a_window_admits_a_range_where_it_admits_some_incidence_of_it() {
+        let sel = Selection {
+            min_incidence_deg: 50.0,
+            max_incidence_deg: 58.0,
+            ..Selection::default()
+        };
+        for (range, admitted) in [
+            ([55.0, 55.0], true),
+            ([40.0, 50.0], true),
+            ([60.0, 60.0], false),
+            ([58.1, 70.0], false),
+            ([20.0, 49.9], false),
+        ] {
+            assert_eq!(sel.admits_some_of(range), admitted, "{range:?}");
+        }
+    }
 
     /// [`weights`] of a problem of two observations, gains and noise weights 1, Ī = 0.03,
     /// shadow threshold 0.1, no edge ramp, shadow-edge factors `beta` (β, β_all).

@@ -780,7 +780,16 @@ fn blend_tiles(
 fn run_sanity(plan: &Plan, records: &[TileRecord], labels: &[String]) -> (Sanity, Vec<Usage>) {
     let mut sums = TileSums::default();
     records.iter().for_each(|r| sums.add(&r.sanity));
-    let mut sanity = Sanity::from_sums(&sums, labels);
+    let reached: Vec<bool> = (0..labels.len())
+        .map(|k| {
+            plan.sun_elevation_range_deg
+                .get(k)
+                .copied()
+                .flatten()
+                .is_some()
+        })
+        .collect();
+    let mut sanity = Sanity::from_sums(&sums, labels, &reached);
     let usage: Vec<Usage> = sanity.observations.iter().map(|o| o.usage()).collect();
     let used: Vec<bool> = usage.iter().map(|&u| u == Usage::Used).collect();
     sanity

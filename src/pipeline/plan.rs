@@ -640,6 +640,12 @@ pub(super) fn plan(
         dem_vs_loc,
         striping,
     } = survey_all(o, inputs, &grid, &pr)?;
+    let labels: Vec<String> = inputs
+        .obs
+        .iter()
+        .map(|obs| obs.label_path.display().to_string())
+        .collect();
+    incidence_window_admits(&o.inputs.selection(), &labels, &sun_elevation_range_deg)?;
     let mut dem = dem_terms(o, inputs, &grid, &pr);
     let (high_sun_ew, high_sun_ew_source) = high_sun_east_west(
         o.high_sun_east_west_given
@@ -1075,6 +1081,37 @@ fn survey_all(
         dem_vs_loc,
         striping,
     })
+}
+
+/// Refuse an incidence window (`[inputs] min_incidence_deg` … `max_incidence_deg`) that
+/// leaves out every observation: where each observation's Sun stands, over its usable pixels
+/// on the grid (`elevations`, the survey's range of Sun elevations; `None` where it has none),
+/// the window admits no incidence (90° − elevation), so no image would constrain the surface
+/// and the run would write the input DEM back as its result. An observation the window leaves
+/// out while others stay in is reported by the run's sanity figures.
+fn incidence_window_admits(
+    sel: &fusion::Selection,
+    labels: &[String],
+    elevations: &[Option<[f64; 2]>],
+) -> Result<()> {
+    let incidences: Vec<(&String, [f64; 2])> = labels
+        .iter()
+        .zip(elevations)
+        .filter_map(|(label, e)| e.map(|[lo, hi]| (label, [90.0 - hi, 90.0 - lo])))
+        .collect();
+    if incidences.is_empty() || incidences.iter().any(|(_, r)| sel.admits_some_of(*r)) {
+        return Ok(());
+    }
+    let seen: Vec<String> = incidences
+        .iter()
+        .map(|(label, [lo, hi])| format!("{label}: {lo:.1}–{hi:.1}°"))
+        .collect();
+    Err(Error::Usage(format!(
+        "[inputs] min_incidence_deg = {} and max_incidence_deg = {} leave out every observation: over the region their Suns stand at incidences (from the zenith) of {}. Widen the window (the defaults, 0 and 90, admit every Sun above the horizon) or list observations taken under Suns within it",
+        sel.min_incidence_deg,
+        sel.max_incidence_deg,
+        seen.join("; ")
+    )))
 }
 
 /// LOC's sampled heights against the DEM at the same points ([`ingest::dem_vs_loc`]).
