@@ -248,7 +248,8 @@ pub struct ObservationSanity {
     pub correlation_fused_dem: f64,
     pub change_footprint_rms_m: f64,
     pub change_footprint_max_m: f64,
-    /// Whether the plan's survey found usable pixels of it on the grid. Its footprint counts
+    /// Whether the plan's survey found pixels of its swath on the grid, usable or not (dark,
+    /// refused). Its footprint counts
     /// only the tiles where some observation was used: where the incidence window or the
     /// shadows leave none, a tile is not fused and counts nothing.
     pub reaches_region: bool,
@@ -258,7 +259,7 @@ pub struct ObservationSanity {
 /// warnings, the run record's `gain_source` and the gain groups all draw.
 #[derive(Debug, Clone, Copy, PartialEq, Eq)]
 pub enum Usage {
-    /// Its footprint misses the region (the survey found no usable pixel of it on the grid).
+    /// Its footprint misses the region (the survey found no pixel of its swath on the grid).
     OffRegion,
     /// It covers the region, but no pixel of it was used (shadow, incidence limits, the
     /// per-pixel maximum).
@@ -316,7 +317,7 @@ fn worse(label: &str, before: f64, after: f64) -> Option<String> {
 
 impl Sanity {
     /// The figures from the run's sums; `labels` names the observations in input order and
-    /// `reached` says which the plan's survey found usable pixels of on the grid.
+    /// `reached` says which the plan's survey found pixels of on the grid.
     pub fn from_sums(s: &TileSums, labels: &[String], reached: &[bool]) -> Sanity {
         let a = &s.all;
         let ((f_rms, f_max), (b_rms, b_max), (o_rms, o_max)) =
@@ -362,7 +363,7 @@ impl Sanity {
                     o.label
                 )),
                 Usage::Unused => warnings.push(format!(
-                    "{}: the observation {} but none was used (all in shadow, or outside [inputs] min_incidence_deg … max_incidence_deg, or beyond max_observations_per_pixel)",
+                    "{}: the observation {} but none was used (all in shadow or refused as radiance, outside [inputs] min_incidence_deg … max_incidence_deg, or beyond max_observations_per_pixel)",
                     o.label,
                     if o.footprint_pixels > 0 {
                         format!("covers {} px of the region", o.footprint_pixels)

@@ -1576,7 +1576,9 @@ fn a_low_sun_is_recorded_and_named_in_a_warning() {
 /// listed without the middle one form two groups that touch but do not overlap: the fourth
 /// strip's gain is its group's own reference, not tied to the first's, and the fifth's is
 /// estimated relative to it. Over a region the first strip alone reaches, the others are
-/// listed as not used.
+/// listed as not used. An incidence window that leaves out one Sun says so; one that admits
+/// no Sun is refused before anything is solved, and one that admits no pixel leaves no
+/// products.
 #[test]
 fn the_record_says_how_each_gain_was_fixed_and_warns_where_it_was_not() {
     let (dir, p) = observation_products(
@@ -1717,6 +1719,31 @@ fn the_record_says_how_each_gain_was_fixed_and_warns_where_it_was_not() {
     for (k, inc) in [(0, "60.0–60.0°"), (1, "55.0–55.0°")] {
         assert!(
             err.contains(&format!("{}: {inc}", p.m3_labels[k].display())),
+            "{err}"
+        );
+    }
+    assert!(!out.join("dem.tif").exists());
+    // A window that ends 0.0005° short of the second Sun passes the plan (its check allows
+    // 0.001° for rounding) but admits no pixel: the run refuses to write products that would
+    // only repeat the input DEM, and says each observation reached the region unused.
+    let out = dir.join("edge");
+    let err = run_err(&write_workflow(
+        &dir,
+        &base
+            .replace(&all, &format!("m3 = [{}, {}]", label(0), label(1)))
+            .replace("[inputs]", "[inputs]\nmax_incidence_deg = 54.9995")
+            .replace("OUT", &out.display().to_string()),
+    ));
+    assert!(
+        err.contains("no pixel of any observation was used on the region"),
+        "{err}"
+    );
+    for k in 0..2 {
+        assert!(
+            err.contains(&format!(
+                "{}: the observation reaches the region but none was used",
+                p.m3_labels[k].display()
+            )),
             "{err}"
         );
     }

@@ -777,17 +777,15 @@ fn blend_tiles(
 /// The run's sanity figures from its tiles' sums, with the warnings about observations that
 /// share no gain reference, pixels coarser than the grid and low Suns; and how each
 /// observation (`labels`) was used.
-fn run_sanity(plan: &Plan, records: &[TileRecord], labels: &[String]) -> (Sanity, Vec<Usage>) {
+fn run_sanity<'a>(
+    plan: &Plan,
+    records: impl IntoIterator<Item = &'a TileRecord>,
+    labels: &[String],
+) -> (Sanity, Vec<Usage>) {
     let mut sums = TileSums::default();
-    records.iter().for_each(|r| sums.add(&r.sanity));
+    records.into_iter().for_each(|r| sums.add(&r.sanity));
     let reached: Vec<bool> = (0..labels.len())
-        .map(|k| {
-            plan.sun_elevation_range_deg
-                .get(k)
-                .copied()
-                .flatten()
-                .is_some()
-        })
+        .map(|k| plan.on_grid_pixels.get(k).is_some_and(|&n| n > 0))
         .collect();
     let mut sanity = Sanity::from_sums(&sums, labels, &reached);
     let usage: Vec<Usage> = sanity.observations.iter().map(|o| o.usage()).collect();
@@ -811,6 +809,21 @@ fn run_sanity(plan: &Plan, records: &[TileRecord], labels: &[String]) -> (Sanity
         .warnings
         .extend(dem_datum_warning(labels, &plan.dem_vs_loc));
     (sanity, usage)
+}
+
+/// Refuse to write products no observation shaped: where no pixel of any observation was
+/// used on the region (every one in shadow, outside the incidence window or beyond the
+/// per-pixel maximum; the plan refuses a window that admits no observation's Sun at all),
+/// the products would repeat the input DEM under the name of a fusion. The error lists what
+/// the run's warnings say of each observation.
+fn something_used(sanity: &Sanity) -> Result<()> {
+    if sanity.photometric_fraction > 0.0 {
+        return Ok(());
+    }
+    Err(Error::Usage(format!(
+        "no pixel of any observation was used on the region (photometric fraction 0), so the products would only repeat the input DEM and none was written: {}. Check [inputs] min_incidence_deg … max_incidence_deg and max_observations_per_pixel against the observations' Suns, and the images themselves",
+        sanity.warnings.join("; ")
+    )))
 }
 
 /// The warning for observations whose LOC heights lie a median of more than
@@ -866,6 +879,13 @@ pub(super) fn mosaic(
     // What the products are, from the inputs' contents and the parameters only (no path or
     // time: the same inputs give the same files wherever they lie and the run writes).
     let key = run_key(wf, &files);
+    let labels: Vec<String> = inputs
+        .obs
+        .iter()
+        .map(|o| o.label_path.display().to_string())
+        .collect();
+    let (sanity, usage) = run_sanity(plan, heads.iter().map(|(r, _)| r), &labels);
+    something_used(&sanity)?;
     let meta = product_metadata(o, inputs, plan, &key);
     let (writers, mut outputs) = layer_writers(o, plan, &meta)?;
     let (stats, thumbs) = blend_tiles(out, plan, &heads, writers, progress)?;
@@ -873,12 +893,6 @@ pub(super) fn mosaic(
     write_quicklook(&ql, &thumbs, plan.grid.spacing, o.inputs.wavelength_nm)?;
     outputs.push(ql);
     let records: Vec<TileRecord> = heads.into_iter().map(|(r, _)| r).collect();
-    let labels: Vec<String> = inputs
-        .obs
-        .iter()
-        .map(|o| o.label_path.display().to_string())
-        .collect();
-    let (sanity, usage) = run_sanity(plan, &records, &labels);
     let record = RunRecord {
         tool: "sfsfuse",
         version: crate::BUILD,

@@ -83,6 +83,10 @@ pub struct Plan {
     /// without any), in input order.
     #[serde(default)]
     pub sun_elevation_range_deg: Vec<Option<[f64; 2]>>,
+    /// Each observation's swath pixels on the grid, usable or not (dark, refused), in input
+    /// order: an observation with some reaches the region, whether or not any is used.
+    #[serde(default)]
+    pub on_grid_pixels: Vec<usize>,
     /// Each observation's OBS Sun against the ephemeris at its label's times
     /// ([`ingest::SunCheck`]; `None`: the label gives no START_TIME), in input order.
     #[serde(default)]
@@ -636,6 +640,7 @@ pub(super) fn plan(
         sums,
         sun_deg,
         sun_elevation_range_deg,
+        on_grid_pixels,
         sun_ephemeris,
         dem_vs_loc,
         striping,
@@ -751,6 +756,7 @@ pub(super) fn plan(
         pixel_size_m,
         sun_deg,
         sun_elevation_range_deg,
+        on_grid_pixels,
         sun_ephemeris,
         dem_vs_loc,
         striping,
@@ -988,6 +994,8 @@ struct Surveyed {
     sun_deg: Vec<Option<[f64; 2]>>,
     /// Per observation: its lowest and highest Sun elevation, degrees.
     sun_elevation_range_deg: Vec<Option<[f64; 2]>>,
+    /// Per observation: its swath pixels on the grid, usable or not.
+    on_grid_pixels: Vec<usize>,
     /// Per observation: its OBS Sun against the ephemeris ([`ingest::SunCheck`]).
     sun_ephemeris: Vec<Option<ingest::SunCheck>>,
     /// Per observation: LOC's heights against the DEM ([`ingest::DemVsLoc`]).
@@ -1014,6 +1022,7 @@ fn survey_all(
     let mut sums = Vec::new();
     let mut sun_deg = Vec::new();
     let mut sun_elevation_range_deg = Vec::new();
+    let mut on_grid_pixels = Vec::new();
     let mut sun_ephemeris = Vec::new();
     let mut dem_vs_loc = Vec::new();
     let mut striping = Vec::new();
@@ -1044,6 +1053,7 @@ fn survey_all(
         sums.push(s.sum);
         sun_deg.push(s.mean_sun().map(|(az, el)| [az, el]));
         sun_elevation_range_deg.push(s.sun_elevation_range());
+        on_grid_pixels.push(s.on_grid);
         why.push(if s.on_grid == 0 {
             format!(
                 "{}: no pixel of its swath falls on the grid (region)",
@@ -1077,6 +1087,7 @@ fn survey_all(
         sums,
         sun_deg,
         sun_elevation_range_deg,
+        on_grid_pixels,
         sun_ephemeris,
         dem_vs_loc,
         striping,
