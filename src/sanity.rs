@@ -249,9 +249,8 @@ pub struct ObservationSanity {
     pub change_footprint_rms_m: f64,
     pub change_footprint_max_m: f64,
     /// Whether the plan's survey found pixels of its swath on the grid, usable or not (dark,
-    /// refused). Its footprint counts
-    /// only the tiles where some observation was used: where the incidence window or the
-    /// shadows leave none, a tile is not fused and counts nothing.
+    /// refused). Its footprint counts only the tiles where some observation was used: where
+    /// the incidence window or the shadows leave none, a tile is not fused and counts nothing.
     pub reaches_region: bool,
 }
 
@@ -261,8 +260,8 @@ pub struct ObservationSanity {
 pub enum Usage {
     /// Its footprint misses the region (the survey found no pixel of its swath on the grid).
     OffRegion,
-    /// It covers the region, but no pixel of it was used (shadow, incidence limits, the
-    /// per-pixel maximum).
+    /// It covers the region, but no pixel of it was used (shadow, refused radiance, incidence
+    /// limits, the per-pixel maximum).
     Unused,
     /// It carried photometric information somewhere.
     Used,

@@ -816,7 +816,7 @@ fn run_sanity<'a>(
 /// per-pixel maximum; the plan refuses a window that admits no observation's Sun at all),
 /// the products would repeat the input DEM under the name of a fusion. The error lists what
 /// the run's warnings say of each observation.
-fn something_used(sanity: &Sanity) -> Result<()> {
+fn some_observation_used(sanity: &Sanity) -> Result<()> {
     if sanity.photometric_fraction > 0.0 {
         return Ok(());
     }
@@ -885,7 +885,7 @@ pub(super) fn mosaic(
         .map(|o| o.label_path.display().to_string())
         .collect();
     let (sanity, usage) = run_sanity(plan, heads.iter().map(|(r, _)| r), &labels);
-    something_used(&sanity)?;
+    some_observation_used(&sanity)?;
     let meta = product_metadata(o, inputs, plan, &key);
     let (writers, mut outputs) = layer_writers(o, plan, &meta)?;
     let (stats, thumbs) = blend_tiles(out, plan, &heads, writers, progress)?;
