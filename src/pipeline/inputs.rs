@@ -70,6 +70,15 @@ impl Inputs {
         &self.solar[self.solar_of[k]]
     }
 
+    /// Each observation's L1B label path as text, in `[inputs] m3` order: how the plan's
+    /// errors and the run record name the observations.
+    pub(super) fn labels(&self) -> Vec<String> {
+        self.obs
+            .iter()
+            .map(|obs| obs.label_path.display().to_string())
+            .collect()
+    }
+
     /// Every file the run reads.
     pub(super) fn files(&self) -> Result<Vec<PathBuf>> {
         let mut v = Vec::new();

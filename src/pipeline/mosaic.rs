@@ -879,11 +879,7 @@ pub(super) fn mosaic(
     // What the products are, from the inputs' contents and the parameters only (no path or
     // time: the same inputs give the same files wherever they lie and the run writes).
     let key = run_key(wf, &files);
-    let labels: Vec<String> = inputs
-        .obs
-        .iter()
-        .map(|o| o.label_path.display().to_string())
-        .collect();
+    let labels = inputs.labels();
     let (sanity, usage) = run_sanity(plan, heads.iter().map(|(r, _)| r), &labels);
     some_observation_used(&sanity)?;
     let meta = product_metadata(o, inputs, plan, &key);

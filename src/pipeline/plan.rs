@@ -645,12 +645,11 @@ pub(super) fn plan(
         dem_vs_loc,
         striping,
     } = survey_all(o, inputs, &grid, &pr)?;
-    let labels: Vec<String> = inputs
-        .obs
-        .iter()
-        .map(|obs| obs.label_path.display().to_string())
-        .collect();
-    incidence_window_admits(&o.inputs.selection(), &labels, &sun_elevation_range_deg)?;
+    incidence_window_admits(
+        &o.inputs.selection(),
+        &inputs.labels(),
+        &sun_elevation_range_deg,
+    )?;
     let mut dem = dem_terms(o, inputs, &grid, &pr);
     let (high_sun_ew, high_sun_ew_source) = high_sun_east_west(
         o.high_sun_east_west_given
